@@ -1,0 +1,50 @@
+//! Publishes the four discrete motions of the Monolith task in a loop.
+
+mod common;
+
+use std::time::Duration;
+
+use clap::Parser;
+use offworld_runtime::msg::MotionCommand;
+use offworld_runtime::{wire, CommonArgs, EnvId, Topic};
+
+#[derive(Parser)]
+struct Args {
+    /// Env to command.
+    #[arg(long, default_value = "sim/monolith-0")]
+    env: EnvId,
+    /// Commands to send (0 = forever).
+    #[arg(long, default_value_t = 0)]
+    count: u64,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    offworld_runtime::session::init_logging();
+    let args = Args::parse();
+    let session = common::client_config(args.common).open().await?;
+    let key = args.env.key(Topic::Cmd);
+    let table = [
+        (0.07, 1.25, 1.2),
+        (0.07, -1.25, 1.2),
+        (0.1, 0.0, 0.6),
+        (-0.1, 0.0, 0.6),
+    ];
+    let mut seq = 0;
+    while args.count == 0 || seq < args.count {
+        let (linear_x, angular_z, duration_s) = table[(seq % 4) as usize];
+        let cmd = MotionCommand {
+            seq,
+            linear_x,
+            angular_z,
+            duration_s,
+        };
+        wire::put(&session, &key, &cmd).await?;
+        println!("sent seq {seq} on {key}");
+        seq += 1;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    Ok(())
+}

@@ -1,0 +1,63 @@
+//! The one encode/decode seam: every payload on the wire is little-endian
+//! CDR (XCDR1) with the 4-byte encapsulation header `00 01 00 00`, the
+//! encoding ROS 2 uses, so ROS types are byte-compatible with ROS 2 peers.
+//! Call sites never name the codec.
+
+mod reader;
+
+use serde::{de::DeserializeOwned, Deserialize, Serialize};
+
+use crate::error::{DecodeError, EncodeError};
+
+/// Encapsulation header of little-endian plain CDR.
+pub const CDR_LE_HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
+
+/// Encodes a message into a fresh buffer.
+pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, EncodeError> {
+    let mut buf = Vec::new();
+    encode_into(msg, &mut buf)?;
+    Ok(buf)
+}
+
+/// Encodes a message into `buf`, replacing its contents but keeping its
+/// capacity: big frames reuse one allocation from step to step.
+pub fn encode_into<T: Serialize + ?Sized>(msg: &T, buf: &mut Vec<u8>) -> Result<(), EncodeError> {
+    buf.clear();
+    cdr::serialize_into::<_, _, _, cdr::CdrLe>(&mut *buf, msg, cdr::Infinite)
+        .map_err(|e| EncodeError(e.to_string()))
+}
+
+/// Decodes a message, borrowing byte and string payloads from `bytes` where
+/// the type allows it.
+///
+/// Rejects a wrong header, truncation, invalid values and more than 3
+/// trailing bytes (alignment padding some writers add). Never panics and
+/// never allocates more than the input can justify.
+pub fn decode_borrowed<'de, T: Deserialize<'de>>(bytes: &'de [u8]) -> Result<T, DecodeError> {
+    let (header, body) = bytes
+        .split_first_chunk::<4>()
+        .ok_or(DecodeError::TooShort(bytes.len()))?;
+    // Bytes 2..4 are options (padding bits) that we ignore, as ROS 2 does.
+    if header[..2] != CDR_LE_HEADER[..2] {
+        return Err(DecodeError::BadHeader(*header));
+    }
+    let mut reader = reader::CdrReader::new(body);
+    let value = T::deserialize(&mut reader)?;
+    let trailing = reader.remaining();
+    if trailing.len() > 3 || trailing.iter().any(|b| *b != 0) {
+        return Err(DecodeError::TrailingBytes(trailing.len()));
+    }
+    Ok(value)
+}
+
+/// Decodes an owned message (see [`decode_borrowed`]).
+pub fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, DecodeError> {
+    decode_borrowed(bytes)
+}
+
+/// Decodes a Zenoh payload; contiguous payloads are read in place.
+pub fn decode_payload<T: DeserializeOwned>(
+    payload: &zenoh::bytes::ZBytes,
+) -> Result<T, DecodeError> {
+    decode(&payload.to_bytes())
+}

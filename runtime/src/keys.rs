@@ -1,0 +1,332 @@
+//! The key space: the only place that formats or parses Zenoh key expressions.
+//!
+//! Every key lives under `offworld/@v1/<realm>/<name>/…`. `@v1` is a verbatim
+//! chunk: wildcards never match it, so a peer speaking another protocol
+//! version can never receive (or answer) our messages by accident. `<realm>`
+//! (`sim` or `real`) plus `<name>` form the [`EnvId`]; pointing a controller or
+//! client at a twin or at the real robot is a matter of namespace alone.
+
+use std::fmt;
+use std::str::FromStr;
+
+use crate::error::ContractError;
+
+/// Root chunk of every key.
+pub const ROOT: &str = "offworld";
+/// Protocol version chunk (verbatim: only matched literally).
+pub const VERSION: &str = "@v1";
+
+/// Whether an environment is a simulated twin or a physical enclosure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Realm {
+    /// A simulated twin (sim_twin).
+    Sim,
+    /// A physical enclosure (robot_agent + tracker_agent).
+    Real,
+}
+
+impl Realm {
+    /// The key chunk for this realm.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Realm::Sim => "sim",
+            Realm::Real => "real",
+        }
+    }
+}
+
+impl FromStr for Realm {
+    type Err = ContractError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "sim" => Ok(Realm::Sim),
+            "real" => Ok(Realm::Real),
+            other => Err(ContractError::InvalidEnvId(format!(
+                "realm must be `sim` or `real`, got `{other}`"
+            ))),
+        }
+    }
+}
+
+/// One enclosure instance, e.g. `sim/monolith-0` or `real/enclosure-a`.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct EnvId {
+    realm: Realm,
+    name: String,
+}
+
+impl EnvId {
+    /// Builds an env id; `name` must be one non-empty key chunk of
+    /// `[A-Za-z0-9_-]` (no `/`, no wildcards, no `@`).
+    pub fn new(realm: Realm, name: &str) -> Result<Self, ContractError> {
+        let valid = !name.is_empty()
+            && name.len() <= 64
+            && name
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+        if !valid {
+            return Err(ContractError::InvalidEnvId(format!(
+                "env name must be 1-64 chars of [A-Za-z0-9_-], got `{name}`"
+            )));
+        }
+        Ok(Self {
+            realm,
+            name: name.to_owned(),
+        })
+    }
+
+    /// A simulated env; panics never — returns an error on a bad name.
+    pub fn sim(name: &str) -> Result<Self, ContractError> {
+        Self::new(Realm::Sim, name)
+    }
+
+    /// A physical env.
+    pub fn real(name: &str) -> Result<Self, ContractError> {
+        Self::new(Realm::Real, name)
+    }
+
+    /// The realm (sim or real).
+    pub fn realm(&self) -> Realm {
+        self.realm
+    }
+
+    /// The instance name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The key prefix `offworld/@v1/<realm>/<name>`.
+    pub fn prefix(&self) -> String {
+        format!("{ROOT}/{VERSION}/{}/{}", self.realm.as_str(), self.name)
+    }
+
+    /// The full key of one topic of this env.
+    pub fn key(&self, topic: Topic) -> String {
+        format!("{}/{}", self.prefix(), topic.as_str())
+    }
+
+    /// Liveliness token key for one component serving this env.
+    pub fn alive_key(&self, component: Component) -> String {
+        format!("{}/alive/{}", self.prefix(), component.as_str())
+    }
+
+    /// Liveliness token key of one client session (lease holder) on this env.
+    pub fn client_alive_key(&self, session_id: &str) -> Result<String, ContractError> {
+        // Reuse the env-name rule: one safe chunk.
+        EnvId::new(self.realm, session_id)?;
+        Ok(format!("{}/alive/client/{session_id}", self.prefix()))
+    }
+
+    /// Key of one overhead camera stream of this env.
+    pub fn overhead_key(&self, camera: &str) -> Result<String, ContractError> {
+        EnvId::new(self.realm, camera)?;
+        Ok(format!("{}/overhead/{camera}", self.prefix()))
+    }
+
+    /// Parses an env id back out of any key under it.
+    pub fn from_key(key: &str) -> Result<Self, ContractError> {
+        let mut chunks = key.split('/');
+        let (Some(ROOT), Some(VERSION), Some(realm), Some(name)) =
+            (chunks.next(), chunks.next(), chunks.next(), chunks.next())
+        else {
+            return Err(ContractError::InvalidEnvId(format!(
+                "`{key}` is not under `{ROOT}/{VERSION}/<realm>/<name>`"
+            )));
+        };
+        Self::new(realm.parse()?, name)
+    }
+}
+
+impl fmt::Display for EnvId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}/{}", self.realm.as_str(), self.name)
+    }
+}
+
+impl FromStr for EnvId {
+    type Err = ContractError;
+    /// Parses `sim/monolith-0` or `real/enclosure-a`.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.split_once('/') {
+            Some((realm, name)) => Self::new(realm.parse()?, name),
+            None => Err(ContractError::InvalidEnvId(format!(
+                "env id must look like `sim/<name>` or `real/<name>`, got `{s}`"
+            ))),
+        }
+    }
+}
+
+/// The per-env topics. Payloads are CDR (see [`crate::msg`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Topic {
+    /// Controller → twin/robot: [`crate::msg::MotionCommand`] (pub/sub).
+    Cmd,
+    /// Twin/robot → all: [`crate::msg::CameraFrame`] answering a command (pub/sub).
+    Obs,
+    /// Twin/robot → all: `nav_msgs/Odometry` (pub/sub).
+    Odom,
+    /// Twin/tracker → all: `geometry_msgs/PoseStamped` of base_link in the world frame.
+    Pose,
+    /// Tracker → all: [`crate::msg::TrackingStatus`] on change.
+    Tracking,
+    /// Controller → all: [`crate::msg::EpisodeEvent`] after every step.
+    Reward,
+    /// Controller → all: [`crate::msg::EnvStatus`] on change; also a queryable.
+    Status,
+    /// Controller → robot: [`crate::msg::Heartbeat`] keeping the watchdog armed.
+    Heartbeat,
+    /// Operator/controller → robot: [`crate::msg::EStop`] (acts immediately).
+    EStop,
+    /// Queryable on the twin/robot: [`crate::msg::GotoRequest`] → [`crate::msg::GotoReply`]
+    /// (sim teleports, real navigates).
+    Goto,
+    /// Queryable on the controller: [`crate::msg::OpenRequest`] → [`crate::msg::OpenReply`].
+    Open,
+    /// Queryable on the controller: () → [`crate::msg::EnvSpec`].
+    Spec,
+    /// Queryable on the controller: [`crate::msg::ResetRequest`] → [`crate::msg::ResetReply`].
+    Reset,
+    /// Queryable on the controller: [`crate::msg::StepRequest`] → [`crate::msg::StepReply`].
+    Step,
+    /// Queryable on the controller: [`crate::msg::CloseRequest`] → [`crate::msg::CloseReply`].
+    Close,
+    /// Queryable on the controller: [`crate::msg::AdminRequest`] → [`crate::msg::EnvStatus`].
+    Admin,
+}
+
+impl Topic {
+    /// Every topic, in declaration order.
+    pub const ALL: [Topic; 16] = [
+        Topic::Cmd,
+        Topic::Obs,
+        Topic::Odom,
+        Topic::Pose,
+        Topic::Tracking,
+        Topic::Reward,
+        Topic::Status,
+        Topic::Heartbeat,
+        Topic::EStop,
+        Topic::Goto,
+        Topic::Open,
+        Topic::Spec,
+        Topic::Reset,
+        Topic::Step,
+        Topic::Close,
+        Topic::Admin,
+    ];
+
+    /// The key chunk of this topic.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Topic::Cmd => "cmd",
+            Topic::Obs => "obs",
+            Topic::Odom => "odom",
+            Topic::Pose => "pose",
+            Topic::Tracking => "tracking",
+            Topic::Reward => "reward",
+            Topic::Status => "status",
+            Topic::Heartbeat => "heartbeat",
+            Topic::EStop => "estop",
+            Topic::Goto => "goto",
+            Topic::Open => "open",
+            Topic::Spec => "spec",
+            Topic::Reset => "reset",
+            Topic::Step => "step",
+            Topic::Close => "close",
+            Topic::Admin => "admin",
+        }
+    }
+}
+
+/// Components that declare liveliness tokens.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Component {
+    /// The gym server.
+    Controller,
+    /// The simulated robot + tracker.
+    SimTwin,
+    /// The robot-side agent.
+    RobotAgent,
+    /// The tracker-side agent.
+    TrackerAgent,
+    /// The rerun monitor.
+    Monitor,
+}
+
+impl Component {
+    /// The key chunk of this component.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Component::Controller => "controller",
+            Component::SimTwin => "sim_twin",
+            Component::RobotAgent => "robot_agent",
+            Component::TrackerAgent => "tracker_agent",
+            Component::Monitor => "monitor",
+        }
+    }
+}
+
+/// Key of the site-wide e-stop that stops every robot at once.
+pub fn global_estop_key() -> String {
+    format!("{ROOT}/{VERSION}/estop")
+}
+
+/// Selector matching every key of every env (monitors, spectators).
+pub fn all_envs_selector() -> String {
+    format!("{ROOT}/{VERSION}/**")
+}
+
+/// Selector matching one topic on every env, e.g. all `spec` queryables.
+pub fn topic_on_all_envs(topic: Topic) -> String {
+    format!("{ROOT}/{VERSION}/*/*/{}", topic.as_str())
+}
+
+/// Selector matching every liveliness token of every env.
+pub fn all_alive_selector() -> String {
+    format!("{ROOT}/{VERSION}/*/*/alive/**")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_have_the_documented_shape() {
+        let env = EnvId::sim("monolith-0").expect("valid");
+        assert_eq!(env.key(Topic::Cmd), "offworld/@v1/sim/monolith-0/cmd");
+        assert_eq!(
+            env.alive_key(Component::Controller),
+            "offworld/@v1/sim/monolith-0/alive/controller"
+        );
+        let real = EnvId::real("enclosure-a").expect("valid");
+        assert_eq!(real.key(Topic::Step), "offworld/@v1/real/enclosure-a/step");
+        assert_eq!(
+            real.overhead_key("cam1").expect("valid"),
+            "offworld/@v1/real/enclosure-a/overhead/cam1"
+        );
+    }
+
+    #[test]
+    fn env_ids_round_trip_and_reject_bad_names() {
+        let env: EnvId = "real/enclosure-a".parse().expect("valid");
+        assert_eq!(env.realm(), Realm::Real);
+        assert_eq!(EnvId::from_key(&env.key(Topic::Obs)).expect("parse"), env);
+        for bad in ["", "a/b", "*", "**", "x$", "@v1", "a b"] {
+            assert!(EnvId::sim(bad).is_err(), "{bad:?} accepted");
+        }
+        assert!("lab/x".parse::<EnvId>().is_err());
+        assert!("monolith".parse::<EnvId>().is_err());
+        assert!(EnvId::from_key("offworld/v1/sim/x/cmd").is_err());
+    }
+
+    #[test]
+    fn every_topic_key_is_a_valid_zenoh_key() {
+        let env = EnvId::sim("m").expect("valid");
+        for topic in Topic::ALL {
+            let key = env.key(topic);
+            zenoh::key_expr::KeyExpr::try_from(key.clone()).expect(&key);
+        }
+        zenoh::key_expr::KeyExpr::try_from(all_envs_selector()).expect("selector");
+        zenoh::key_expr::KeyExpr::try_from(topic_on_all_envs(Topic::Spec)).expect("sel");
+    }
+}

@@ -1,0 +1,27 @@
+//! The OffWorld Gym contract: everything two components must agree on to
+//! talk over Zenoh, defined once.
+//!
+//! - [`keys`]: the key space `offworld/@v1/<realm>/<name>/<topic>`;
+//!   nothing else formats keys.
+//! - [`msg`]: message types — ROS 2 layouts where a ROS type exists, our own
+//!   request/reply types otherwise.
+//! - [`codec`]: little-endian CDR with the encapsulation header; decoding
+//!   untrusted bytes never panics.
+//! - [`wire`]: typed put / request / reply over a Zenoh session.
+//! - [`session`]: opening sessions from files, environment or flags.
+//! - [`WireError`]: the one typed error every reply can carry.
+
+pub mod codec;
+mod error;
+pub mod keys;
+pub mod msg;
+pub mod session;
+pub mod wire;
+
+pub use error::{ContractError, DecodeError, EncodeError, ErrorCode, WireError};
+pub use keys::{Component, EnvId, Realm, Topic};
+pub use session::{CommonArgs, SessionConfig};
+pub use wire::RequestError;
+
+/// Re-exported so dependents use the same Zenoh as the contract.
+pub use zenoh;

@@ -1,0 +1,392 @@
+//! The gym protocol between clients and the controller: request/reply types
+//! for the `open`, `spec`, `reset`, `step`, `close` and `admin` queryables,
+//! and the `reward` / `status` publications. Errors travel as
+//! [`crate::WireError`] replies.
+
+use serde::{Deserialize, Serialize};
+
+/// Which camera channels an observation carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Channels {
+    /// One depth channel.
+    DepthOnly,
+    /// Red, green, blue.
+    RgbOnly,
+    /// Red, green, blue, depth.
+    Rgbd,
+}
+
+impl Channels {
+    /// Channels per pixel.
+    pub fn count(self) -> u32 {
+        match self {
+            Channels::DepthOnly => 1,
+            Channels::RgbOnly => 3,
+            Channels::Rgbd => 4,
+        }
+    }
+}
+
+/// How depth (and then every channel) is represented.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum DepthFormat {
+    /// u8: depth scaled 0–255 over the spec's depth range; RGB 0–255.
+    Uint8,
+    /// f32: depth in metres; RGB as 0–255 floats.
+    Meters,
+}
+
+/// Element type of an observation array.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum DType {
+    /// u8.
+    #[default]
+    U8,
+    /// little-endian f32.
+    F32,
+}
+
+impl DType {
+    /// Bytes per element.
+    pub fn size(self) -> usize {
+        match self {
+            DType::U8 => 1,
+            DType::F32 => 4,
+        }
+    }
+}
+
+/// What the client wants its observations to look like.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct ObsOptions {
+    /// Which channels.
+    pub channels: Channels,
+    /// Rows (resized server-side).
+    pub height: u32,
+    /// Columns.
+    pub width: u32,
+    /// u8 or metric.
+    pub depth_format: DepthFormat,
+}
+
+impl Default for ObsOptions {
+    fn default() -> Self {
+        Self {
+            channels: Channels::DepthOnly,
+            height: 240,
+            width: 320,
+            depth_format: DepthFormat::Uint8,
+        }
+    }
+}
+
+/// An observation tensor, shape (height, width, channels), row-major, interleaved.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ObsArray {
+    /// Rows.
+    pub height: u32,
+    /// Columns.
+    pub width: u32,
+    /// Channels per pixel.
+    pub channels: u32,
+    /// Element type.
+    pub dtype: DType,
+    /// Little-endian elements.
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+
+impl ObsArray {
+    /// Checks that the data length matches the shape.
+    pub fn is_consistent(&self) -> bool {
+        let expected = u64::from(self.height)
+            * u64::from(self.width)
+            * u64::from(self.channels)
+            * self.dtype.size() as u64;
+        expected == self.data.len() as u64
+    }
+}
+
+/// What kind of learning an experiment does (the original's `learning_type`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum LearningType {
+    /// Trained on the real robot from scratch ("end2end").
+    EndToEnd,
+    /// Trained in sim, evaluated on the real robot ("sim2real").
+    SimToReal,
+    /// From human demonstrations ("humandemos").
+    HumanDemos,
+}
+
+impl LearningType {
+    /// The original's string.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LearningType::EndToEnd => "end2end",
+            LearningType::SimToReal => "sim2real",
+            LearningType::HumanDemos => "humandemos",
+        }
+    }
+}
+
+/// Train or test; test runs count for the leaderboard.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum AlgorithmMode {
+    /// Training.
+    Train,
+    /// Evaluation.
+    Test,
+}
+
+impl AlgorithmMode {
+    /// The original's string.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AlgorithmMode::Train => "train",
+            AlgorithmMode::Test => "test",
+        }
+    }
+}
+
+/// Opens a session (takes the env's lease).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OpenRequest {
+    /// The user's access token (never logged; stored hashed).
+    pub token: String,
+    /// A per-process client id; its liveliness token marks the client alive.
+    pub client_id: String,
+    /// Experiment to create or resume.
+    pub experiment_name: String,
+    /// Continue counters of an existing experiment.
+    pub resume_experiment: bool,
+    /// Learning type of the experiment.
+    pub learning_type: LearningType,
+    /// Train or test.
+    pub algorithm_mode: AlgorithmMode,
+    /// Observation layout for this session.
+    pub obs: ObsOptions,
+}
+
+/// Counters of an experiment.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ExperimentInfo {
+    /// Store id.
+    pub id: i64,
+    /// Name given by the user.
+    pub name: String,
+    /// Episodes completed so far.
+    pub episodes: u64,
+    /// Steps taken so far.
+    pub steps: u64,
+}
+
+/// The session is open; the caller holds the lease.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OpenReply {
+    /// Pass in every later request.
+    pub session_id: String,
+    /// Lease expiry if idle, Unix ms.
+    pub lease_until_unix_ms: i64,
+    /// The env's spec.
+    pub spec: EnvSpec,
+    /// The experiment's counters.
+    pub experiment: ExperimentInfo,
+}
+
+/// An action, checked by the server (never silently clipped).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Action {
+    /// Index into the discrete action table.
+    Discrete(i64),
+    /// [linear, angular] in [−1, 1], mapped to the physical range.
+    Continuous(Vec<f32>),
+}
+
+/// Take one step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepRequest {
+    /// From [`OpenReply`].
+    pub session_id: String,
+    /// Client's step counter, echoed.
+    pub seq: u64,
+    /// What to do.
+    pub action: Action,
+}
+
+/// Episode bookkeeping shared with the agent (never localization).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StepInfo {
+    /// Episode id within the experiment.
+    pub episode_id: u64,
+    /// Steps taken in this episode.
+    pub step: u32,
+}
+
+/// The outcome of a step.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepReply {
+    /// Echo of the request's `seq`.
+    pub seq: u64,
+    /// Observation after the action.
+    pub observation: ObsArray,
+    /// Reward for this step.
+    pub reward: f64,
+    /// Episode ended by the task (success or out of bounds).
+    pub terminated: bool,
+    /// Episode cut at the step limit.
+    pub truncated: bool,
+    /// Counters.
+    pub info: StepInfo,
+}
+
+/// How to seed a reset (CDR has no `Option`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Seed {
+    /// Continue the env's RNG stream.
+    Continue,
+    /// Reseed: the episode becomes reproducible (in sim).
+    Fixed(u64),
+}
+
+/// Start a new episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResetRequest {
+    /// From [`OpenReply`].
+    pub session_id: String,
+    /// Seed for the spawn sampler.
+    pub seed: Seed,
+}
+
+/// The first observation of the new episode.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ResetReply {
+    /// Observation after arrival at the spawn pose.
+    pub observation: ObsArray,
+    /// Counters (step = 0).
+    pub info: StepInfo,
+}
+
+/// Release the lease.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CloseRequest {
+    /// From [`OpenReply`].
+    pub session_id: String,
+}
+
+/// The lease is released.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CloseReply {
+    /// The experiment's final counters.
+    pub experiment: ExperimentInfo,
+}
+
+/// An action space.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum ActionSpace {
+    /// `Discrete(n)`.
+    Discrete {
+        /// Number of actions.
+        n: u32,
+        /// Their names, index order.
+        names: Vec<String>,
+    },
+    /// `Box(low, high)` of float32.
+    Box {
+        /// Lower bounds.
+        low: Vec<f32>,
+        /// Upper bounds.
+        high: Vec<f32>,
+    },
+}
+
+/// An env's description.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EnvSpec {
+    /// `sim/monolith-0` etc.
+    pub env_id: String,
+    /// Task name, e.g. `MonolithDiscrete`.
+    pub task: String,
+    /// World name, e.g. `monolith` or `monolith_obstacle`.
+    pub world: String,
+    /// Action space.
+    pub action_space: ActionSpace,
+    /// Native camera rows.
+    pub native_height: u32,
+    /// Native camera columns.
+    pub native_width: u32,
+    /// Depth range mapped onto 0–255 for `DepthFormat::Uint8`, m.
+    pub depth_max_m: f32,
+    /// Steps before truncation.
+    pub max_episode_steps: u32,
+}
+
+/// One step's result as published for spectators and monitors.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeEvent {
+    /// Experiment name.
+    pub experiment: String,
+    /// Episode id.
+    pub episode_id: u64,
+    /// Step within the episode (0 = reset).
+    pub step: u32,
+    /// Reward of this step.
+    pub reward: f64,
+    /// Return so far.
+    pub episode_return: f64,
+    /// Terminated flag.
+    pub terminated: bool,
+    /// Truncated flag.
+    pub truncated: bool,
+    /// Reached the monolith.
+    pub success: bool,
+    /// Why the episode ended ("" while running).
+    pub end_reason: String,
+}
+
+/// Availability of an env.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum EnvState {
+    /// Anyone may open a session.
+    Free,
+    /// Someone holds the lease.
+    Leased {
+        /// Lease expiry if idle, Unix ms.
+        until_unix_ms: i64,
+    },
+    /// An operator took the env out of service.
+    Maintenance {
+        /// Operator's message.
+        message: String,
+    },
+    /// The robot, tracker or twin is not answering.
+    Offline {
+        /// What is missing.
+        reason: String,
+    },
+}
+
+/// Status of one env, published on change and served on `status`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EnvStatus {
+    /// `sim/monolith-0` etc.
+    pub env_id: String,
+    /// Current state.
+    pub state: EnvState,
+}
+
+/// Operator commands.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AdminRequest {
+    /// Take the env out of service.
+    SetMaintenance {
+        /// Operator token.
+        token: String,
+        /// Shown to users.
+        message: String,
+    },
+    /// Put it back in service.
+    ClearMaintenance {
+        /// Operator token.
+        token: String,
+    },
+}

@@ -1,0 +1,104 @@
+//! Messages between the controller and whatever embodies the robot (sim
+//! twin or robot_agent + tracker_agent). Our own types, CDR-encoded like the
+//! ROS ones they embed.
+
+use serde::{Deserialize, Serialize};
+
+use super::ros::{Image, Time};
+
+/// A motion: drive at (`linear_x`, `angular_z`) for `duration_s`, then stop.
+/// The robot answers with a [`CameraFrame`] carrying the same `seq`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MotionCommand {
+    /// Sequence number; every answer echoes it.
+    pub seq: u64,
+    /// Forward speed, m/s.
+    pub linear_x: f64,
+    /// Yaw rate, rad/s (positive = left).
+    pub angular_z: f64,
+    /// How long to hold the velocity, s. 0 = just observe.
+    pub duration_s: f64,
+}
+
+/// A planar pose in the world frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Pose2D {
+    /// m.
+    pub x: f64,
+    /// m.
+    pub y: f64,
+    /// Heading about +z, rad.
+    pub yaw: f64,
+}
+
+/// The camera frames captured after motion `seq` ended.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraFrame {
+    /// The command this frame answers.
+    pub seq: u64,
+    /// `rgb8`.
+    pub color: Image,
+    /// `32FC1` metres (NaN = no return) or `16UC1` millimetres (0 = no return).
+    pub depth: Image,
+}
+
+/// Tag attached (as the Zenoh attachment) to pose and odometry samples that
+/// answer a command, so their ROS payloads stay untouched.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SeqTag {
+    /// The command answered.
+    pub seq: u64,
+}
+
+/// Move the robot to a pose: the sim twin teleports, the real robot drives
+/// there. Answered by [`GotoReply`] once it has arrived.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GotoRequest {
+    /// Sequence number, echoed.
+    pub seq: u64,
+    /// Where to go.
+    pub target: Pose2D,
+    /// Give up after this long, s.
+    pub timeout_s: f64,
+}
+
+/// The robot has arrived (as close as it could).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GotoReply {
+    /// The request answered.
+    pub seq: u64,
+    /// Where the robot actually is.
+    pub achieved: Pose2D,
+    /// How long the move took, s.
+    pub elapsed_s: f64,
+}
+
+/// Keeps the robot's watchdog armed between commands.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Heartbeat {
+    /// Sender's wall clock.
+    pub stamp: Time,
+    /// Increments per beat.
+    pub counter: u64,
+}
+
+/// Emergency stop: engaged stops the robot at once and refuses motion until
+/// released.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EStop {
+    /// true = stop now.
+    pub engaged: bool,
+    /// Who and why, for the log.
+    pub reason: String,
+}
+
+/// Whether localization is currently trustworthy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackingStatus {
+    /// false = poses stopped or are rejected; do not score on them.
+    pub tracking: bool,
+    /// Age of the last accepted pose, s.
+    pub last_pose_age_s: f64,
+    /// Human-readable cause.
+    pub reason: String,
+}

@@ -1,0 +1,261 @@
+//! Opening Zenoh sessions: one config type shared by every binary and the
+//! Python package, filled from a config file, environment variables, CLI
+//! flags or defaults.
+
+use std::path::PathBuf;
+
+use crate::error::ContractError;
+
+/// Environment variable naming a Zenoh JSON5 config file.
+pub const ENV_CONFIG: &str = "OFFWORLD_ZENOH_CONFIG";
+/// Environment variable: `peer`, `client` or `router`.
+pub const ENV_MODE: &str = "OFFWORLD_ZENOH_MODE";
+/// Environment variable: comma-separated endpoints to connect to.
+pub const ENV_CONNECT: &str = "OFFWORLD_ZENOH_CONNECT";
+/// Environment variable: comma-separated endpoints to listen on.
+pub const ENV_LISTEN: &str = "OFFWORLD_ZENOH_LISTEN";
+
+/// Zenoh session role.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Mode {
+    /// Talks to other peers directly (default).
+    #[default]
+    Peer,
+    /// Talks only through a router.
+    Client,
+    /// Routes for others.
+    Router,
+}
+
+impl Mode {
+    fn as_str(self) -> &'static str {
+        match self {
+            Mode::Peer => "peer",
+            Mode::Client => "client",
+            Mode::Router => "router",
+        }
+    }
+}
+
+impl std::str::FromStr for Mode {
+    type Err = ContractError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "peer" => Ok(Mode::Peer),
+            "client" => Ok(Mode::Client),
+            "router" => Ok(Mode::Router),
+            other => Err(ContractError::Config(format!(
+                "mode must be peer, client or router, got `{other}`"
+            ))),
+        }
+    }
+}
+
+/// How to open a session. Explicit endpoints; multicast scouting is off
+/// unless asked for, so tests and embedded envs never find strangers.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct SessionConfig {
+    /// A Zenoh JSON5 config file applied first; the fields below override it.
+    pub config_file: Option<PathBuf>,
+    /// Role.
+    pub mode: Mode,
+    /// Endpoints to connect to, e.g. `tcp/127.0.0.1:7447`.
+    pub connect: Vec<String>,
+    /// Endpoints to listen on.
+    pub listen: Vec<String>,
+    /// Discover peers by UDP multicast.
+    pub multicast_scouting: bool,
+}
+
+impl SessionConfig {
+    /// An isolated peer: no listening, no scouting. In-process components
+    /// sharing it talk to each other and to nobody else.
+    pub fn isolated() -> Self {
+        Self::default()
+    }
+
+    /// A peer listening on `endpoint`.
+    pub fn listening(endpoint: impl Into<String>) -> Self {
+        Self {
+            listen: vec![endpoint.into()],
+            ..Self::default()
+        }
+    }
+
+    /// A peer connecting to `endpoint`.
+    pub fn connecting(endpoint: impl Into<String>) -> Self {
+        Self {
+            connect: vec![endpoint.into()],
+            ..Self::default()
+        }
+    }
+
+    /// Reads [`ENV_CONFIG`], [`ENV_MODE`], [`ENV_CONNECT`], [`ENV_LISTEN`];
+    /// unset variables keep the defaults.
+    pub fn from_env() -> Result<Self, ContractError> {
+        let list = |name: &str| -> Vec<String> {
+            std::env::var(name)
+                .map(|v| {
+                    v.split(',')
+                        .map(str::trim)
+                        .filter(|s| !s.is_empty())
+                        .map(str::to_owned)
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        Ok(Self {
+            config_file: std::env::var_os(ENV_CONFIG).map(PathBuf::from),
+            mode: match std::env::var(ENV_MODE) {
+                Ok(mode) => mode.parse()?,
+                Err(_) => Mode::Peer,
+            },
+            connect: list(ENV_CONNECT),
+            listen: list(ENV_LISTEN),
+            multicast_scouting: false,
+        })
+    }
+
+    /// Builds the Zenoh config.
+    pub fn to_zenoh(&self) -> Result<zenoh::Config, ContractError> {
+        let mut config = match &self.config_file {
+            Some(path) => zenoh::Config::from_file(path).map_err(|e| {
+                ContractError::Config(format!("cannot load {}: {e}", path.display()))
+            })?,
+            None => zenoh::Config::default(),
+        };
+        let set = |config: &mut zenoh::Config, key: &str, value: String| {
+            config
+                .insert_json5(key, &value)
+                .map_err(|e| ContractError::Config(format!("{key} = {value}: {e}")))
+        };
+        let json_list =
+            |items: &[String]| serde_json::to_string(items).unwrap_or_else(|_| "[]".to_owned());
+        // A config file keeps its own mode and endpoints unless overridden.
+        if self.config_file.is_none() || self.mode != Mode::Peer {
+            set(&mut config, "mode", format!("\"{}\"", self.mode.as_str()))?;
+        }
+        if !self.connect.is_empty() {
+            set(&mut config, "connect/endpoints", json_list(&self.connect))?;
+        }
+        if !self.listen.is_empty() {
+            set(&mut config, "listen/endpoints", json_list(&self.listen))?;
+        } else if self.config_file.is_none() && self.mode == Mode::Peer {
+            // Default peers listen nowhere: an embedded env opens no port.
+            set(&mut config, "listen/endpoints", "[]".to_owned())?;
+        }
+        if self.config_file.is_none() || self.multicast_scouting {
+            set(
+                &mut config,
+                "scouting/multicast/enabled",
+                self.multicast_scouting.to_string(),
+            )?;
+        }
+        Ok(config)
+    }
+
+    /// Opens the session.
+    pub async fn open(&self) -> Result<zenoh::Session, ContractError> {
+        zenoh::open(self.to_zenoh()?)
+            .await
+            .map_err(ContractError::from)
+    }
+}
+
+/// Session flags shared by every binary (flatten into a clap parser).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct CommonArgs {
+    /// Zenoh JSON5 config file.
+    #[arg(short, long, env = ENV_CONFIG)]
+    pub config: Option<PathBuf>,
+    /// Session role.
+    #[arg(short, long, value_enum, default_value_t = Mode::Peer)]
+    pub mode: Mode,
+    /// Endpoints to connect to (repeatable), e.g. tcp/127.0.0.1:7447.
+    #[arg(short = 'e', long, value_delimiter = ',', env = ENV_CONNECT)]
+    pub connect: Vec<String>,
+    /// Endpoints to listen on (repeatable).
+    #[arg(short, long, value_delimiter = ',', env = ENV_LISTEN)]
+    pub listen: Vec<String>,
+    /// Enable UDP multicast scouting.
+    #[arg(long)]
+    pub multicast_scouting: bool,
+}
+
+impl From<CommonArgs> for SessionConfig {
+    fn from(args: CommonArgs) -> Self {
+        Self {
+            config_file: args.config,
+            mode: args.mode,
+            connect: args.connect,
+            listen: args.listen,
+            multicast_scouting: args.multicast_scouting,
+        }
+    }
+}
+
+/// Logging for binaries and examples: `RUST_LOG` or `info`.
+pub fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    // A second init (tests, embedding) is harmless.
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).try_init();
+}
+
+/// A free TCP port on loopback, for tests and examples that need to listen.
+pub fn free_loopback_port() -> std::io::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn isolated_peer_has_no_endpoints_and_no_scouting() {
+        let config = SessionConfig::isolated().to_zenoh().expect("config");
+        assert_eq!(config.get_json("mode").expect("mode"), "\"peer\"");
+        assert_eq!(config.get_json("listen/endpoints").expect("listen"), "[]");
+        assert_eq!(
+            config
+                .get_json("scouting/multicast/enabled")
+                .expect("scouting"),
+            "false"
+        );
+    }
+
+    #[test]
+    fn endpoints_and_mode_are_applied() {
+        let cfg = SessionConfig {
+            mode: Mode::Client,
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            ..SessionConfig::default()
+        };
+        let config = cfg.to_zenoh().expect("config");
+        assert_eq!(config.get_json("mode").expect("mode"), "\"client\"");
+        assert!(config
+            .get_json("connect/endpoints")
+            .expect("connect")
+            .contains("tcp/127.0.0.1:7447"));
+    }
+
+    #[test]
+    fn bad_inputs_are_typed_errors() {
+        assert!(matches!(
+            "hub".parse::<Mode>(),
+            Err(ContractError::Config(_))
+        ));
+        let cfg = SessionConfig {
+            connect: vec!["not an endpoint".into()],
+            ..SessionConfig::default()
+        };
+        assert!(matches!(cfg.to_zenoh(), Err(ContractError::Config(_))));
+        let cfg = SessionConfig {
+            config_file: Some("/nonexistent/zenoh.json5".into()),
+            ..SessionConfig::default()
+        };
+        assert!(matches!(cfg.to_zenoh(), Err(ContractError::Config(_))));
+    }
+}

@@ -1,0 +1,182 @@
+//! Typed put/get/reply over Zenoh: CDR payloads labelled
+//! `application/cdr`, error replies as [`WireError`], timeouts as errors.
+
+use std::time::{Duration, Instant};
+
+use serde::{de::DeserializeOwned, Serialize};
+use zenoh::bytes::{Encoding, ZBytes};
+use zenoh::query::{Query, QueryTarget};
+use zenoh::Session;
+
+use crate::codec;
+use crate::error::{DecodeError, EncodeError, WireError};
+
+/// Why a request got no usable answer.
+#[derive(Debug, thiserror::Error)]
+pub enum RequestError {
+    /// The server answered with a typed error.
+    #[error(transparent)]
+    Remote(#[from] WireError),
+    /// Nobody serves this key (no queryable matched).
+    #[error("nothing answers on `{0}`")]
+    NoResponder(String),
+    /// A responder exists but did not answer in time.
+    #[error("no reply on `{key}` within {timeout:?}")]
+    Timeout {
+        /// The key queried.
+        key: String,
+        /// The deadline used.
+        timeout: Duration,
+    },
+    /// The reply (or error reply) was not a valid message.
+    #[error("undecodable reply: {0}")]
+    Decode(#[from] DecodeError),
+    /// The request could not be encoded.
+    #[error(transparent)]
+    Encode(#[from] EncodeError),
+    /// Zenoh refused the operation.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+impl RequestError {
+    /// The error as a client sees it: every failure becomes a typed code.
+    pub fn into_wire(self) -> WireError {
+        match self {
+            RequestError::Remote(e) => e,
+            RequestError::NoResponder(key) => {
+                WireError::not_found(format!("no env is serving `{key}`"))
+            }
+            e @ RequestError::Timeout { .. } => WireError::timeout(e.to_string()),
+            e => WireError::internal(e.to_string()),
+        }
+    }
+}
+
+/// Puts one message on `key` (labelled as CDR).
+pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<(), RequestError> {
+    let bytes = codec::encode(msg)?;
+    session
+        .put(key, bytes)
+        .encoding(Encoding::APPLICATION_CDR)
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// Puts one message with a CDR-encoded attachment (e.g. a [`crate::msg::SeqTag`]).
+pub async fn put_with_attachment<T: Serialize, A: Serialize>(
+    session: &Session,
+    key: &str,
+    msg: &T,
+    attachment: &A,
+) -> Result<(), RequestError> {
+    let bytes = codec::encode(msg)?;
+    let attachment = codec::encode(attachment)?;
+    session
+        .put(key, bytes)
+        .encoding(Encoding::APPLICATION_CDR)
+        .attachment(attachment)
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// Sends a request to the queryable on `key` and waits for its first reply.
+pub async fn request<Req: Serialize, Rep: DeserializeOwned>(
+    session: &Session,
+    key: &str,
+    req: &Req,
+    timeout: Duration,
+) -> Result<Rep, RequestError> {
+    let payload = codec::encode(req)?;
+    request_raw(session, key, payload, timeout).await
+}
+
+/// Like [`request`] with an already encoded payload (empty for `spec`).
+pub async fn request_raw<Rep: DeserializeOwned>(
+    session: &Session,
+    key: &str,
+    payload: Vec<u8>,
+    timeout: Duration,
+) -> Result<Rep, RequestError> {
+    let started = Instant::now();
+    let replies = session
+        .get(key)
+        .payload(payload)
+        .encoding(Encoding::APPLICATION_CDR)
+        .target(QueryTarget::BestMatching)
+        .timeout(timeout)
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))?;
+    match replies.recv_async().await {
+        Ok(reply) => match reply.result() {
+            Ok(sample) => Ok(codec::decode_payload(sample.payload())?),
+            // Our servers label typed errors as CDR; anything else comes
+            // from Zenoh itself (its query timeout replies "Timeout").
+            Err(err) if err.encoding() == &Encoding::APPLICATION_CDR => {
+                Err(RequestError::Remote(codec::decode_payload(err.payload())?))
+            }
+            Err(err) => {
+                let text = String::from_utf8_lossy(&err.payload().to_bytes()).into_owned();
+                if text == "Timeout" {
+                    Err(RequestError::Timeout {
+                        key: key.to_owned(),
+                        timeout,
+                    })
+                } else {
+                    Err(RequestError::Zenoh(text))
+                }
+            }
+        },
+        // The reply channel closed empty: either nobody matched (immediately)
+        // or the deadline passed.
+        Err(_) if started.elapsed() >= timeout => Err(RequestError::Timeout {
+            key: key.to_owned(),
+            timeout,
+        }),
+        Err(_) => Err(RequestError::NoResponder(key.to_owned())),
+    }
+}
+
+/// Decodes a query's payload; an absent payload decodes as `T` from no bytes
+/// (which fails for every non-unit type).
+pub fn decode_query<T: DeserializeOwned>(query: &Query) -> Result<T, WireError> {
+    let bytes = query.payload().map(ZBytes::to_bytes).unwrap_or_default();
+    codec::decode(&bytes).map_err(|e| WireError::bad_request(format!("undecodable request: {e}")))
+}
+
+/// Answers a query with a message or a typed error.
+pub async fn reply<T: Serialize>(
+    query: &Query,
+    result: Result<&T, WireError>,
+) -> Result<(), RequestError> {
+    let key = query.key_expr().clone();
+    let outcome = match result.map(codec::encode) {
+        Ok(Ok(bytes)) => {
+            query
+                .reply(key, bytes)
+                .encoding(Encoding::APPLICATION_CDR)
+                .await
+        }
+        Ok(Err(e)) => {
+            let err = WireError::internal(e.to_string());
+            query
+                .reply_err(codec::encode(&err)?)
+                .encoding(Encoding::APPLICATION_CDR)
+                .await
+        }
+        Err(err) => {
+            query
+                .reply_err(codec::encode(&err)?)
+                .encoding(Encoding::APPLICATION_CDR)
+                .await
+        }
+    };
+    outcome.map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// Decodes a sample's CDR attachment, if any.
+pub fn decode_attachment<T: DeserializeOwned>(sample: &zenoh::sample::Sample) -> Option<T> {
+    sample
+        .attachment()
+        .and_then(|a| codec::decode(&a.to_bytes()).ok())
+}

@@ -1,0 +1,202 @@
+//! Round trips for every message, and a table of corruptions every decoder
+//! must reject with a typed error (never a panic, never a huge allocation).
+
+mod common;
+
+use std::fmt::Debug;
+
+use offworld_runtime::codec::{decode, encode, encode_into, CDR_LE_HEADER};
+use offworld_runtime::msg::*;
+use offworld_runtime::DecodeError;
+use serde::{de::DeserializeOwned, Serialize};
+
+fn round_trips<T: Serialize + DeserializeOwned + PartialEq + Debug>(name: &str, msg: T) {
+    let bytes = encode(&msg).expect(name);
+    assert_eq!(bytes[..4], CDR_LE_HEADER, "{name}: header");
+    let back: T = decode(&bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
+    assert_eq!(back, msg, "{name}");
+}
+
+#[test]
+fn every_message_round_trips() {
+    for_each_sample!(round_trips);
+}
+
+#[test]
+fn known_sizes_match_the_ros_layouts() {
+    // Sizes checked against rosbags in ../shared/reference/ros2-interop.md.
+    assert_eq!(encode(&common::twist()).expect("twist").len(), 52);
+    assert_eq!(encode(&common::pose_stamped()).expect("pose").len(), 84);
+    // header 4 + stamp 8 + frame_id (4 + 26 chars + NUL) + pad 1 + h, w 8
+    // + "rgb8" (4 + 5) + is_bigendian 1 + pad 2 + step 4 + data (4 + 18).
+    let image = common::image_rgb();
+    assert_eq!(image.header.frame_id.len(), 26);
+    assert_eq!(
+        encode(&image).expect("image").len(),
+        4 + 8 + 4 + 27 + 1 + 8 + 4 + 5 + 1 + 2 + 4 + 4 + 18
+    );
+}
+
+#[test]
+fn encode_into_reuses_the_buffer() {
+    let frame = common::camera_frame();
+    let mut buf = Vec::with_capacity(4096);
+    let capacity = buf.capacity();
+    encode_into(&frame, &mut buf).expect("encode");
+    let first = buf.clone();
+    encode_into(&frame, &mut buf).expect("encode again");
+    assert_eq!(buf, first, "re-encoding into a used buffer must not append");
+    assert_eq!(
+        buf.capacity(),
+        capacity,
+        "no reallocation for a fitting frame"
+    );
+}
+
+/// Every strict prefix is truncated; every byte flip either fails or decodes
+/// to a message that re-encodes to exactly the flipped bytes.
+fn survives_corruption<T: Serialize + DeserializeOwned + PartialEq + Debug>(name: &str, msg: T) {
+    let bytes = encode(&msg).expect(name);
+    for len in 0..bytes.len() {
+        let err = decode::<T>(&bytes[..len]).expect_err(&format!("{name}: prefix {len} decoded"));
+        match (len, err) {
+            (0..=3, DecodeError::TooShort(n)) => assert_eq!(n, len),
+            (4.., DecodeError::Truncated { .. } | DecodeError::Invalid(_)) => {}
+            (len, err) => panic!("{name}: prefix {len} gave {err:?}"),
+        }
+    }
+    for i in 0..bytes.len() {
+        for flip in [0x01u8, 0x80, 0xff] {
+            let mut bad = bytes.clone();
+            bad[i] ^= flip;
+            match decode::<T>(&bad) {
+                Ok(decoded) => {
+                    let again = encode(&decoded).expect("re-encode");
+                    // Decoding saw exactly the flipped bytes, except those the
+                    // format ignores: header options and alignment padding
+                    // (which the encoder writes as zeros).
+                    let faithful = again.len() == bad.len()
+                        && again[..2] == bad[..2]
+                        && again[4..]
+                            .iter()
+                            .zip(&bad[4..])
+                            .all(|(a, b)| a == b || *a == 0);
+                    assert!(faithful, "{name}: byte {i} ^ {flip:#x} misread");
+                }
+                Err(DecodeError::BadHeader(h)) => assert!(i < 2, "{name}: {h:?} at {i}"),
+                Err(_) => {}
+            }
+        }
+    }
+    let mut trailing = bytes.clone();
+    trailing.extend_from_slice(&[0, 0, 0, 0]);
+    assert_eq!(
+        decode::<T>(&trailing),
+        Err(DecodeError::TrailingBytes(4)),
+        "{name}: trailing"
+    );
+    let mut garbage = bytes.clone();
+    garbage.push(7);
+    assert_eq!(
+        decode::<T>(&garbage),
+        Err(DecodeError::TrailingBytes(1)),
+        "{name}: garbage"
+    );
+    let mut padded = bytes.clone();
+    padded.extend_from_slice(&[0, 0, 0]);
+    assert_eq!(
+        decode::<T>(&padded).as_ref().ok(),
+        Some(&msg),
+        "{name}: alignment padding"
+    );
+    let mut big_endian = bytes;
+    big_endian[1] = 0x00;
+    assert_eq!(
+        decode::<T>(&big_endian),
+        Err(DecodeError::BadHeader([0, 0, 0, 0])),
+        "{name}: big-endian CDR"
+    );
+}
+
+#[test]
+fn every_decoder_rejects_corruption() {
+    for_each_sample!(survives_corruption);
+}
+
+#[test]
+fn hostile_length_prefixes_fail_without_allocating() {
+    // A string/byte/sequence length of u32::MAX must be refused from the
+    // length alone (the `cdr` crate would allocate 4 GiB first).
+    let mut bytes = CDR_LE_HEADER.to_vec();
+    bytes.extend_from_slice(&u32::MAX.to_le_bytes());
+    assert!(matches!(
+        decode::<String>(&bytes),
+        Err(DecodeError::Truncated { .. })
+    ));
+    assert!(matches!(
+        decode::<Vec<f64>>(&bytes),
+        Err(DecodeError::Truncated { .. })
+    ));
+    let mut image = encode(&common::image_rgb()).expect("image");
+    let data_len_at = image.len() - 18 - 4;
+    image[data_len_at..data_len_at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+    assert!(matches!(
+        decode::<Image>(&image),
+        Err(DecodeError::Truncated { .. })
+    ));
+}
+
+#[test]
+fn invalid_values_are_typed() {
+    let mut bytes = encode(&EStop {
+        engaged: true,
+        reason: "x".into(),
+    })
+    .expect("estop");
+    bytes[4] = 2; // bool must be 0 or 1
+    assert!(matches!(
+        decode::<EStop>(&bytes),
+        Err(DecodeError::Invalid(_))
+    ));
+    let mut action = encode(&Action::Discrete(1)).expect("action");
+    action[4] = 9; // no such variant
+    assert!(matches!(
+        decode::<Action>(&action),
+        Err(DecodeError::Invalid(_))
+    ));
+    let mut text = encode(&"ok".to_owned()).expect("string");
+    text[8] = 0xff; // not UTF-8
+    assert!(matches!(
+        decode::<String>(&text),
+        Err(DecodeError::Invalid(_))
+    ));
+    let mut code = encode(&common::wire_error()).expect("error");
+    code[4..6].copy_from_slice(&777u16.to_le_bytes()); // unknown error code
+    assert!(matches!(
+        decode::<offworld_runtime::WireError>(&code),
+        Err(DecodeError::Invalid(_))
+    ));
+    assert_eq!(decode::<Twist>(&[]), Err(DecodeError::TooShort(0)));
+    assert_eq!(decode::<Twist>(&[0, 1, 0]), Err(DecodeError::TooShort(3)));
+}
+
+#[test]
+fn image_geometry_is_validated() {
+    assert_eq!(common::image_rgb().validate(), Ok(PixelEncoding::Rgb8));
+    assert_eq!(
+        common::image_depth().validate(),
+        Ok(PixelEncoding::Depth32FC1)
+    );
+    let mut short = common::image_rgb();
+    short.data.pop();
+    assert!(matches!(
+        short.validate(),
+        Err(ImageError::BadGeometry { .. })
+    ));
+    let mut odd = common::image_rgb();
+    odd.encoding = "yuv422".into();
+    assert_eq!(
+        odd.validate(),
+        Err(ImageError::UnsupportedEncoding("yuv422".into()))
+    );
+}
