@@ -1,1 +1,27 @@
-//! placeholder
+//! The physics twin of the OffWorld enclosure.
+//!
+//! It stands in for the robot and the tracker: it takes the same motion
+//! commands on the same keys and answers with the same frames and poses, so
+//! nothing upstream can tell it from the real enclosure except by namespace.
+//!
+//! - [`world`]: enclosure definitions loaded from `worlds/*.toml`.
+//! - [`terrain`], [`scene`]: the seeded lunar floor and the static boxes.
+//! - [`physics`]: the ROSbot in rapier3d.
+//! - [`camera`]: intrinsics and the ray-cast RGBD renderers.
+//! - [`tracker`]: the simulated Vive tracker.
+//! - [`twin`]: all of it as one deterministic simulator.
+//! - [`node`]: the twin served over Zenoh.
+
+pub mod camera;
+mod error;
+pub mod physics;
+pub mod scene;
+pub mod terrain;
+pub mod tracker;
+pub mod twin;
+pub mod world;
+
+pub use error::SimError;
+pub use physics::PlanarPose;
+pub use twin::{Randomization, SimTwin, TwinConfig};
+pub use world::WorldSpec;

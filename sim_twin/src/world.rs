@@ -269,11 +269,23 @@ mod tests {
 
     #[test]
     fn bad_world_files_are_typed_errors() {
-        assert!(matches!(WorldSpec::builtin("mars"), Err(SimError::UnknownWorld(_))));
-        assert!(matches!(WorldSpec::from_toml("name = 1"), Err(SimError::World(_))));
+        assert!(matches!(
+            WorldSpec::builtin("mars"),
+            Err(SimError::UnknownWorld(_))
+        ));
+        assert!(matches!(
+            WorldSpec::from_toml("name = 1"),
+            Err(SimError::World(_))
+        ));
         let text = include_str!("../worlds/monolith.toml").replace("cells_x = 64", "cells_x = 1");
-        assert!(matches!(WorldSpec::from_toml(&text), Err(SimError::World(_))));
+        assert!(matches!(
+            WorldSpec::from_toml(&text),
+            Err(SimError::World(_))
+        ));
         let text = include_str!("../worlds/monolith.toml").replace("[light]", "[light]\nbogus = 1");
-        assert!(matches!(WorldSpec::from_toml(&text), Err(SimError::World(_))));
+        assert!(matches!(
+            WorldSpec::from_toml(&text),
+            Err(SimError::World(_))
+        ));
     }
 }

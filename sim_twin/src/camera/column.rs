@@ -1,0 +1,260 @@
+//! The fast level-camera renderer: one front-to-back walk per image column.
+//!
+//! For a level camera, every ray of column `u` lies in the vertical plane
+//! through the optical centre along `forward + a_u · right`; with that
+//! unnormalised direction the walk parameter `t` *is* the z-depth. Rows are
+//! ordered by how steeply they look down (`b_v`), so while walking forward
+//! the rows that meet the ground do so in order: each pixel is resolved once,
+//! exactly, on the terrain triangle it hits (the profile of a triangulated
+//! heightfield along a line is piecewise linear between grid-line and
+//! diagonal crossings). Boxes are intersected analytically per column.
+
+use super::{CameraPose, Intrinsics, RgbdFrame, Shading};
+use crate::scene::Scene;
+use crate::world::LightSpec;
+
+/// Renders level-camera RGBD frames; owns its scratch buffers so a frame
+/// costs no allocation.
+#[derive(Debug, Clone)]
+pub struct ColumnRenderer {
+    intrinsics: Intrinsics,
+    shading: Shading,
+    row_slopes: Vec<f32>,
+    col_depth: Vec<f32>,
+    col_grey: Vec<u8>,
+}
+
+const T_START: f32 = 1e-3;
+const MIN_STEP: f32 = 1e-5;
+
+impl ColumnRenderer {
+    /// A renderer for one image size.
+    pub fn new(intrinsics: Intrinsics, light: &LightSpec) -> Self {
+        let h = intrinsics.height as usize;
+        Self {
+            intrinsics,
+            shading: Shading::new(light),
+            row_slopes: (0..intrinsics.height)
+                .map(|v| intrinsics.row_slope(v))
+                .collect(),
+            col_depth: vec![f32::INFINITY; h],
+            col_grey: vec![0; h],
+        }
+    }
+
+    /// The intrinsics rendered with.
+    pub fn intrinsics(&self) -> &Intrinsics {
+        &self.intrinsics
+    }
+
+    /// Renders into `frame` (resized if needed). Pitch and roll of `pose`
+    /// are ignored: this is the level-camera fast path.
+    pub fn render(&mut self, scene: &Scene, pose: &CameraPose, frame: &mut RgbdFrame) {
+        let intr = self.intrinsics;
+        if frame.width != intr.width || frame.height != intr.height {
+            *frame = RgbdFrame::new(intr.width, intr.height);
+        }
+        let (sin_y, cos_y) = pose.yaw.sin_cos();
+        let forward = [cos_y, sin_y];
+        let right = [sin_y, -cos_y];
+        for u in 0..intr.width {
+            let a = intr.col_slope(u);
+            let dir = [forward[0] + a * right[0], forward[1] + a * right[1]];
+            self.render_column(scene, pose.position, dir);
+            self.write_column(frame, u);
+        }
+    }
+
+    fn write_column(&self, frame: &mut RgbdFrame, u: u32) {
+        let intr = &self.intrinsics;
+        let w = intr.width as usize;
+        for (v, (&d, &g)) in self.col_depth.iter().zip(&self.col_grey).enumerate() {
+            let i = v * w + u as usize;
+            frame.depth[i] = if d >= intr.min_range && d <= intr.max_range {
+                d
+            } else {
+                f32::NAN
+            };
+            frame.rgb[i * 3..i * 3 + 3].fill(g);
+        }
+    }
+
+    fn render_column(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
+        self.col_depth.fill(f32::INFINITY);
+        self.col_grey.fill(0);
+        self.boxes(scene, c, dir);
+        self.terrain_walk(scene, c, dir);
+    }
+
+    /// Intersects every box crossed by this column's plane.
+    fn boxes(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
+        let intr = self.intrinsics;
+        for b in &scene.boxes {
+            let Some((te, tx, side_normal)) = slab_2d(c, dir, b.min, b.max) else {
+                continue;
+            };
+            let te = te.max(T_START);
+            if tx <= te {
+                continue;
+            }
+            let (zmin, zmax) = (b.min[2], b.max[2]);
+            // Rows whose ray can pass through the (t, z) rectangle.
+            let b_lo = if c[2] - zmax < 0.0 {
+                (c[2] - zmax) / te
+            } else {
+                (c[2] - zmax) / tx
+            };
+            let b_hi = if c[2] - zmin > 0.0 {
+                (c[2] - zmin) / te
+            } else {
+                (c[2] - zmin) / tx
+            };
+            let v_lo = ((b_lo * intr.fy + intr.cy - 0.5).floor().max(0.0)) as usize;
+            let v_hi = ((b_hi * intr.fy + intr.cy - 0.5).ceil()).min(intr.height as f32 - 1.0);
+            if v_hi < 0.0 {
+                continue;
+            }
+            let albedo = b.albedo;
+            for v in v_lo..=v_hi as usize {
+                let slope = self.row_slopes[v];
+                let (tz_in, tz_out) = if slope > 0.0 {
+                    ((c[2] - zmax) / slope, (c[2] - zmin) / slope)
+                } else if slope < 0.0 {
+                    ((c[2] - zmin) / slope, (c[2] - zmax) / slope)
+                } else if c[2] >= zmin && c[2] <= zmax {
+                    (f32::NEG_INFINITY, f32::INFINITY)
+                } else {
+                    continue;
+                };
+                let entry = te.max(tz_in);
+                if entry > tx.min(tz_out) || entry >= self.col_depth[v] {
+                    continue;
+                }
+                let normal = if te >= tz_in {
+                    side_normal
+                } else if slope > 0.0 {
+                    [0.0, 0.0, 1.0]
+                } else {
+                    [0.0, 0.0, -1.0]
+                };
+                self.col_depth[v] = entry;
+                self.col_grey[v] = self.shading.grey(normal, albedo);
+            }
+        }
+    }
+
+    /// Walks the terrain profile under this column front to back.
+    fn terrain_walk(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
+        let terrain = &*scene.terrain;
+        let albedo = scene.world.terrain.albedo;
+        let shading = self.shading;
+        let grid_min = [terrain.x0, terrain.y0, 0.0];
+        let grid_max = [
+            terrain.x0 + terrain.dx * terrain.nx as f32,
+            terrain.y0 + terrain.dy * terrain.ny as f32,
+            0.0,
+        ];
+        let Some((_, grid_exit, _)) = slab_2d(c, dir, grid_min, grid_max) else {
+            return;
+        };
+        let t_end = grid_exit.min(self.intrinsics.max_range);
+        let max_h = terrain.max_height;
+        // Grid coordinates along the line: u = u0 + t·du, v = v0 + t·dv.
+        let (u0, du) = ((c[0] - terrain.x0) / terrain.dx, dir[0] / terrain.dx);
+        let (v0, dv) = ((c[1] - terrain.y0) / terrain.dy, dir[1] / terrain.dy);
+        let mut next = self.row_slopes.len() as isize - 1;
+        let mut t = T_START;
+        while t < t_end && next >= 0 {
+            // Rows already hit by a box nearer than `t` are final.
+            while next >= 0 && self.col_depth[next as usize] <= t {
+                next -= 1;
+            }
+            if next < 0 {
+                break;
+            }
+            // Skip ahead while even the steepest open ray is above every hill.
+            let slope = self.row_slopes[next as usize];
+            if c[2] - t * slope > max_h {
+                if slope <= 0.0 {
+                    break;
+                }
+                t = t.max((c[2] - max_h) / slope);
+                if t >= t_end {
+                    break;
+                }
+            }
+            let t1 = next_break(t, u0, du, v0, dv).min(t_end);
+            let mid = 0.5 * (t + t1);
+            let plane = terrain.plane_at(c[0] + mid * dir[0], c[1] + mid * dir[1]);
+            let h1 = plane.height(c[0] + t1 * dir[0], c[1] + t1 * dir[1]);
+            // Along the ray: ground = hc + t·s, ray = c.z − t·b.
+            let hc = plane.height(c[0], c[1]);
+            let s = plane.gx * dir[0] + plane.gy * dir[1];
+            let mut grey = None;
+            while next >= 0 {
+                let row = next as usize;
+                let slope = self.row_slopes[row];
+                if c[2] - t1 * slope > h1 {
+                    break; // above ground at t1, and so is every row above it
+                }
+                let hit = ((c[2] - hc) / (slope + s)).clamp(t, t1);
+                if hit < self.col_depth[row] {
+                    self.col_depth[row] = hit;
+                    self.col_grey[row] =
+                        *grey.get_or_insert_with(|| shading.grey(plane.normal(), albedo));
+                }
+                next -= 1;
+            }
+            t = t1;
+        }
+    }
+}
+
+/// Next `t` after `t` where the line crosses a grid line or a cell diagonal.
+#[inline]
+fn next_break(t: f32, u0: f32, du: f32, v0: f32, dv: f32) -> f32 {
+    let step = |val: f32, rate: f32| -> f32 {
+        if rate > 1e-9 {
+            (val.floor() + 1.0 - val) / rate
+        } else if rate < -1e-9 {
+            (val - (val.ceil() - 1.0)) / -rate
+        } else {
+            f32::INFINITY
+        }
+    };
+    let (u, v) = (u0 + t * du, v0 + t * dv);
+    let dt = step(u, du).min(step(v, dv)).min(step(u - v, du - dv));
+    t + dt.max(MIN_STEP)
+}
+
+/// Where the 2D line `c + t·dir` crosses the footprint `[min, max]`:
+/// `(t_enter, t_exit, outward normal of the entry face)`.
+#[inline]
+pub(crate) fn slab_2d(
+    c: [f32; 3],
+    dir: [f32; 2],
+    min: [f32; 3],
+    max: [f32; 3],
+) -> Option<(f32, f32, [f32; 3])> {
+    let mut te = f32::NEG_INFINITY;
+    let mut tx = f32::INFINITY;
+    let mut normal = [0.0, 0.0, 1.0];
+    for axis in 0..2 {
+        let d = dir[axis];
+        if d.abs() < 1e-12 {
+            if c[axis] < min[axis] || c[axis] > max[axis] {
+                return None;
+            }
+            continue;
+        }
+        let (t1, t2) = ((min[axis] - c[axis]) / d, (max[axis] - c[axis]) / d);
+        let (near, far) = if t1 < t2 { (t1, t2) } else { (t2, t1) };
+        if near > te {
+            te = near;
+            normal = [0.0; 3];
+            normal[axis] = if d > 0.0 { -1.0 } else { 1.0 };
+        }
+        tx = tx.min(far);
+    }
+    (te < tx && tx > 0.0).then_some((te, tx, normal))
+}

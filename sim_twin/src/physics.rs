@@ -1,0 +1,309 @@
+//! Robot physics in rapier3d: a rigid chassis (mass, inertia, gravity) that
+//! collides with walls, monolith and boulders, carried over the terrain by
+//! four wheel suspensions (spring-damper on a vertical ray to the exact
+//! terrain surface), driven by a skid-steer velocity servo with acceleration
+//! limits.
+//!
+//! Why not rigid wheel–terrain contact: one contact manifold per heightfield
+//! triangle under the robot costs 5–10× more per substep (see
+//! `../shared/reference/sim-performance-facts.md`). The suspension is
+//! rapier dynamics all the same (forces integrated by the solver), and the
+//! wheel rays only see terrain, so a wheel touching a boulder cannot tip the
+//! chassis: the chassis box collides with boulders instead.
+
+use std::sync::Arc;
+
+use rapier3d::prelude::*;
+
+use crate::scene::Scene;
+use crate::terrain::Terrain;
+use crate::world::RobotSpec;
+
+/// Physics time step, s.
+pub const DT: f32 = 1.0 / 60.0;
+/// Substeps of stillness used to let the suspension settle after a teleport.
+const SETTLE_STEPS: usize = 20;
+/// Suspension stiffness per wheel, N/m.
+const SPRING_K: f32 = 2500.0;
+/// Suspension damping per wheel, N·s/m.
+const SPRING_C: f32 = 110.0;
+/// Wheel travel below the rest position before the wheel loses the ground, m.
+const TRAVEL: f32 = 0.04;
+
+/// A planar robot state in the world frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlanarPose {
+    /// m.
+    pub x: f32,
+    /// m.
+    pub y: f32,
+    /// rad.
+    pub yaw: f32,
+}
+
+/// The full body pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodyPose {
+    /// base_link origin in the world, m.
+    pub position: [f32; 3],
+    /// Orientation quaternion (x, y, z, w).
+    pub orientation: [f32; 4],
+    /// Heading, rad.
+    pub yaw: f32,
+    /// Nose-down pitch, rad.
+    pub pitch: f32,
+    /// Roll (right side down positive), rad.
+    pub roll: f32,
+}
+
+/// What the servo is doing: commanded and current wheel-odometry speeds.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ServoState {
+    /// Target forward speed, m/s.
+    pub target_linear: f32,
+    /// Target yaw rate, rad/s.
+    pub target_angular: f32,
+    /// Ramped forward speed, m/s.
+    pub linear: f32,
+    /// Ramped yaw rate, rad/s.
+    pub angular: f32,
+}
+
+/// The robot in its rapier world.
+pub struct RobotPhysics {
+    world: PhysicsWorld,
+    robot: RigidBodyHandle,
+    spec: RobotSpec,
+    terrain: Arc<Terrain>,
+    scene_boxes: Vec<crate::scene::SceneBox>,
+    wheels: [Vector; 4],
+    /// Static sag so that the chassis rests with base_link at wheel-radius height.
+    sag: f32,
+    servo: ServoState,
+    /// Wheel odometry: the servo's speeds integrated (slip included, as on
+    /// a real skid-steer robot), in the frame of the first pose.
+    odom: PlanarPose,
+    /// Simulated time since creation, s.
+    time: f64,
+}
+
+impl RobotPhysics {
+    /// A world for `scene` with the robot at `start`.
+    pub fn new(scene: &Scene, start: PlanarPose) -> Self {
+        let spec = scene.world.robot.clone();
+        let (hw, ht) = (spec.wheel_base * 0.5, spec.track_width * 0.5);
+        let sag = spec.mass() * 9.81 / (4.0 * SPRING_K);
+        let mut physics = Self {
+            world: PhysicsWorld::new(),
+            robot: RigidBodyHandle::invalid(),
+            spec,
+            terrain: scene.terrain.clone(),
+            scene_boxes: scene.boxes.clone(),
+            wheels: [
+                Vector::new(hw, ht, 0.0),
+                Vector::new(hw, -ht, 0.0),
+                Vector::new(-hw, ht, 0.0),
+                Vector::new(-hw, -ht, 0.0),
+            ],
+            sag,
+            servo: ServoState::default(),
+            odom: PlanarPose {
+                x: 0.0,
+                y: 0.0,
+                yaw: 0.0,
+            },
+            time: 0.0,
+        };
+        physics.teleport(start);
+        physics
+    }
+
+    /// Rebuilds the world with the robot resting at `pose`. Rebuilding (not
+    /// moving) makes what follows independent of history: same pose + same
+    /// commands → same result.
+    pub fn teleport(&mut self, pose: PlanarPose) {
+        let mut world = PhysicsWorld::new();
+        world.gravity = Vector::new(0.0, 0.0, -9.81);
+        world.integration_parameters.dt = DT;
+        for b in &self.scene_boxes {
+            let [hx, hy, hz] = b.half_extents();
+            let [x, y, z] = b.center();
+            world.insert(
+                RigidBodyBuilder::fixed().translation(Vector::new(x, y, z)),
+                ColliderBuilder::cuboid(hx, hy, hz).friction(0.5),
+            );
+        }
+        let [sx, sy, sz] = self.spec.size;
+        let r = self.spec.wheel_radius;
+        let chassis_h = sz - self.spec.ground_clearance;
+        // base_link is at axle height: the box spans from ground clearance
+        // above the wheel bottoms to the top of the robot.
+        let chassis_z = -r + self.spec.ground_clearance + chassis_h * 0.5;
+        let z = self.terrain.height_at(pose.x, pose.y) + r;
+        let body = RigidBodyBuilder::dynamic()
+            .pose(Pose::from_parts(
+                Vector::new(pose.x, pose.y, z),
+                Rotation::from_rotation_z(pose.yaw),
+            ))
+            .can_sleep(false)
+            .angular_damping(2.0);
+        let collider = ColliderBuilder::cuboid(sx * 0.5, sy * 0.5, chassis_h * 0.5)
+            .translation(Vector::new(0.0, 0.0, chassis_z))
+            .mass(self.spec.mass())
+            .friction(0.3);
+        let (robot, _) = world.insert(body, collider);
+        self.world = world;
+        self.robot = robot;
+        self.servo = ServoState::default();
+        for _ in 0..SETTLE_STEPS {
+            self.substep();
+        }
+    }
+
+    /// Drives at (`linear`, `angular`) for `duration` s, then commands zero
+    /// and runs until the servo has stopped. Speeds beyond the robot's limits
+    /// are clamped. Returns the simulated time taken, s.
+    pub fn drive(&mut self, linear: f32, angular: f32, duration: f32) -> f32 {
+        let linear = linear.clamp(-self.spec.max_linear_speed, self.spec.max_linear_speed);
+        let angular = angular.clamp(-self.spec.max_angular_speed, self.spec.max_angular_speed);
+        let steps = (duration.max(0.0) / DT).round() as usize;
+        self.servo.target_linear = linear;
+        self.servo.target_angular = angular;
+        for _ in 0..steps {
+            self.substep();
+        }
+        self.servo.target_linear = 0.0;
+        self.servo.target_angular = 0.0;
+        let mut stop_steps = 0;
+        while (self.servo.linear != 0.0 || self.servo.angular != 0.0) && stop_steps < 600 {
+            self.substep();
+            stop_steps += 1;
+        }
+        // One more step so the chassis comes to rest on its springs.
+        self.substep();
+        (steps + stop_steps + 1) as f32 * DT
+    }
+
+    /// Sets the servo targets without stepping (real-time mode steps itself).
+    pub fn set_targets(&mut self, linear: f32, angular: f32) {
+        self.servo.target_linear =
+            linear.clamp(-self.spec.max_linear_speed, self.spec.max_linear_speed);
+        self.servo.target_angular =
+            angular.clamp(-self.spec.max_angular_speed, self.spec.max_angular_speed);
+    }
+
+    /// One fixed physics step.
+    pub fn substep(&mut self) {
+        self.ramp_servo();
+        let Some(body) = self.world.bodies.get_mut(self.robot) else {
+            return;
+        };
+        let pose = *body.position();
+        let mut grounded = 0;
+        for wheel in self.wheels {
+            let p = pose.transform_point(wheel);
+            let ground = self.terrain.height_at(p.x, p.y);
+            // Positive when the spring is compressed past its free length.
+            let compression = ground + self.spec.wheel_radius + self.sag - p.z;
+            if compression <= 0.0 || compression > TRAVEL + self.sag + 0.1 {
+                continue;
+            }
+            grounded += 1;
+            let vz = body.velocity_at_point(p).z;
+            let force = (SPRING_K * compression - SPRING_C * vz).max(0.0);
+            body.apply_impulse_at_point(Vector::new(0.0, 0.0, force * DT), p, true);
+        }
+        if grounded > 0 {
+            // Traction: the wheels set the planar velocity (no lateral slip),
+            // gravity and the springs own the vertical motion.
+            let heading = pose.rotation * Vector::X;
+            let flat = Vector::new(heading.x, heading.y, 0.0).normalize_or_zero();
+            let v = body.linvel();
+            let planar = flat * self.servo.linear;
+            body.set_linvel(Vector::new(planar.x, planar.y, v.z), true);
+            let w = body.angvel();
+            body.set_angvel(Vector::new(w.x, w.y, self.servo.angular), true);
+        }
+        self.world.step();
+        self.time += f64::from(DT);
+    }
+
+    fn ramp_servo(&mut self) {
+        let ramp = |current: f32, target: f32, max_delta: f32| {
+            current + (target - current).clamp(-max_delta, max_delta)
+        };
+        let s = &mut self.servo;
+        s.linear = ramp(s.linear, s.target_linear, self.spec.max_linear_accel * DT);
+        s.angular = ramp(
+            s.angular,
+            s.target_angular,
+            self.spec.max_angular_accel * DT,
+        );
+        let o = &mut self.odom;
+        o.yaw += s.angular * DT;
+        o.x += s.linear * o.yaw.cos() * DT;
+        o.y += s.linear * o.yaw.sin() * DT;
+    }
+
+    /// Wheel odometry pose (odom frame).
+    pub fn odometry(&self) -> PlanarPose {
+        self.odom
+    }
+
+    /// The robot's pose.
+    pub fn body_pose(&self) -> BodyPose {
+        let Some(body) = self.world.bodies.get(self.robot) else {
+            return BodyPose {
+                position: [0.0; 3],
+                orientation: [0.0, 0.0, 0.0, 1.0],
+                yaw: 0.0,
+                pitch: 0.0,
+                roll: 0.0,
+            };
+        };
+        let pose = body.position();
+        let t = pose.translation;
+        let q = pose.rotation;
+        let forward = q * Vector::X;
+        let left = q * Vector::Y;
+        let yaw = forward.y.atan2(forward.x);
+        let pitch = (-forward.z).asin();
+        let roll = (-left.z).asin();
+        BodyPose {
+            position: [t.x, t.y, t.z],
+            orientation: [q.x, q.y, q.z, q.w],
+            yaw,
+            pitch,
+            roll,
+        }
+    }
+
+    /// Planar pose.
+    pub fn planar_pose(&self) -> PlanarPose {
+        let p = self.body_pose();
+        PlanarPose {
+            x: p.position[0],
+            y: p.position[1],
+            yaw: p.yaw,
+        }
+    }
+
+    /// Transforms a point from base_link to the world.
+    pub fn to_world(&self, local: [f32; 3]) -> [f32; 3] {
+        self.world
+            .bodies
+            .get(self.robot)
+            .map(|b| b.position().transform_point(Vector::from(local)).to_array())
+            .unwrap_or(local)
+    }
+
+    /// The servo (wheel odometry) state.
+    pub fn servo(&self) -> ServoState {
+        self.servo
+    }
+
+    /// Simulated seconds since creation.
+    pub fn time(&self) -> f64 {
+        self.time
+    }
+}
