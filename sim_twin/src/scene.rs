@@ -84,7 +84,8 @@ impl Scene {
             albedo: e.wall_albedo,
             kind: SurfaceKind::Wall,
         };
-        let floor = -0.2;
+        // Walls stand on the lowest ground (terrain heights are ≥ 0).
+        let floor = 0.0;
         let mut boxes = vec![
             wall([e.x_min - t, e.y_min - t, floor], [e.x_min, e.y_max + t, h]),
             wall([e.x_max, e.y_min - t, floor], [e.x_max + t, e.y_max + t, h]),

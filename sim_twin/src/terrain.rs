@@ -29,6 +29,10 @@ pub struct Terrain {
     heights: Vec<f32>,
     /// Highest vertex.
     pub max_height: f32,
+    /// The two triangle planes of every cell, `(iy·nx + ix)·2 + upper`.
+    planes: Vec<TerrainPlane>,
+    /// Highest corner of every cell, `iy·nx + ix` (lets rays skip cells).
+    cell_max: Vec<f32>,
 }
 
 impl Terrain {
@@ -57,31 +61,44 @@ impl Terrain {
             }
         }
         let heights = shape_heights(&raw, spec.max_height, spec.mean_height);
-        let max_height = heights.iter().copied().fold(0.0, f32::max);
-        Self {
-            x0: enclosure.x_min,
-            y0: enclosure.y_min,
-            dx: size_x / nx as f32,
-            dy: size_y / ny as f32,
-            nx,
-            ny,
-            heights,
-            max_height,
-        }
+        Self::from_heights(enclosure, nx, ny, heights)
     }
 
-    /// A flat terrain at height `h` (tests and calibration).
-    pub fn flat(enclosure: &EnclosureSpec, nx: usize, ny: usize, h: f32) -> Self {
-        Self {
+    fn from_heights(enclosure: &EnclosureSpec, nx: usize, ny: usize, heights: Vec<f32>) -> Self {
+        let max_height = heights.iter().copied().fold(0.0, f32::max);
+        let mut terrain = Self {
             x0: enclosure.x_min,
             y0: enclosure.y_min,
             dx: (enclosure.x_max - enclosure.x_min) / nx as f32,
             dy: (enclosure.y_max - enclosure.y_min) / ny as f32,
             nx,
             ny,
-            heights: vec![h; (nx + 1) * (ny + 1)],
-            max_height: h,
-        }
+            heights,
+            max_height,
+            planes: Vec::new(),
+            cell_max: Vec::new(),
+        };
+        terrain.cell_max = (0..ny)
+            .flat_map(|iy| (0..nx).map(move |ix| (ix, iy)))
+            .map(|(ix, iy)| {
+                let t = &terrain;
+                t.vertex(ix, iy)
+                    .max(t.vertex(ix + 1, iy))
+                    .max(t.vertex(ix, iy + 1))
+                    .max(t.vertex(ix + 1, iy + 1))
+            })
+            .collect();
+        terrain.planes = (0..ny)
+            .flat_map(|iy| (0..nx).map(move |ix| (ix, iy)))
+            .flat_map(|(ix, iy)| [false, true].map(|upper| (ix, iy, upper)))
+            .map(|(ix, iy, upper)| terrain.compute_plane(ix, iy, upper))
+            .collect();
+        terrain
+    }
+
+    /// A flat terrain at height `h` (tests and calibration).
+    pub fn flat(enclosure: &EnclosureSpec, nx: usize, ny: usize, h: f32) -> Self {
+        Self::from_heights(enclosure, nx, ny, vec![h; (nx + 1) * (ny + 1)])
     }
 
     /// Vertex height.
@@ -109,6 +126,16 @@ impl Terrain {
     /// The plane of one triangle: `upper` is the half with x-frac ≤ y-frac.
     #[inline]
     pub fn cell_plane(&self, ix: usize, iy: usize, upper: bool) -> TerrainPlane {
+        self.planes[(iy * self.nx + ix) * 2 + upper as usize]
+    }
+
+    /// Highest corner of a cell.
+    #[inline]
+    pub fn cell_max(&self, ix: usize, iy: usize) -> f32 {
+        self.cell_max[iy * self.nx + ix]
+    }
+
+    fn compute_plane(&self, ix: usize, iy: usize, upper: bool) -> TerrainPlane {
         let h00 = self.vertex(ix, iy);
         let h10 = self.vertex(ix + 1, iy);
         let h01 = self.vertex(ix, iy + 1);
@@ -301,10 +328,8 @@ mod tests {
         use parry3d::math::Vec3;
         use parry3d::query::{Ray, RayCast};
         let t = terrain();
-        assert_eq!(
-            t.height_at(t.x0 + 3.0 * t.dx, t.y0 + 5.0 * t.dy),
-            t.vertex(3, 5)
-        );
+        let at_vertex = t.height_at(t.x0 + 3.0 * t.dx, t.y0 + 5.0 * t.dy);
+        assert!((at_vertex - t.vertex(3, 5)).abs() < 1e-5);
         let (shape, pose) = t.to_parry();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         for _ in 0..500 {

@@ -35,7 +35,10 @@ fn fast_renderer_matches_exact_reference_for_a_level_camera() {
     for _ in 0..16 {
         let (x, y) = (rng.random_range(-1.5..1.7), rng.random_range(-1.3..0.9));
         let inside_a_box = scene.boxes.iter().any(|b| {
-            x >= b.min[0] - 0.01 && x <= b.max[0] + 0.01 && y >= b.min[1] - 0.01 && y <= b.max[1] + 0.01
+            x >= b.min[0] - 0.01
+                && x <= b.max[0] + 0.01
+                && y >= b.min[1] - 0.01
+                && y <= b.max[1] + 0.01
         });
         if inside_a_box {
             continue; // a camera inside a boulder sees nothing comparable
@@ -67,7 +70,10 @@ fn monolith_seen_at_its_distance_at_the_image_centre() {
             let pose = CameraPose::level([camera_x, m.center()[1], 0.05 + 0.04 + 0.096], 0.0);
             renderer.render(&scene, &pose, &mut frame);
             let centre = frame.depth_at(w / 2, h / 2);
-            assert!((centre - distance).abs() < 1e-3, "{w}x{h}: {centre} at {distance}");
+            assert!(
+                (centre - distance).abs() < 1e-3,
+                "{w}x{h}: {centre} at {distance}"
+            );
             // Dark monolith: albedo 0.1 → a grey level of at most 26.
             let grey = frame.rgb[((h / 2 * w + w / 2) * 3) as usize];
             assert!(grey <= 26, "monolith grey {grey}");
@@ -79,7 +85,10 @@ fn monolith_seen_at_its_distance_at_the_image_centre() {
 fn native_intrinsics_are_the_reference_camera() {
     let world = WorldSpec::builtin("monolith").expect("world");
     let intr = Intrinsics::native(&world.camera);
-    assert_eq!((intr.width, intr.height, intr.cx, intr.cy), (320, 240, 160.0, 120.0));
+    assert_eq!(
+        (intr.width, intr.height, intr.cx, intr.cy),
+        (320, 240, 160.0, 120.0)
+    );
     assert!((intr.fx - 277.1).abs() < 0.1 && (intr.fy - 277.1).abs() < 0.1);
     // 84×84 is the native view resized: anisotropic focal lengths.
     let small = Intrinsics::resized(&world.camera, 84, 84);
@@ -113,8 +122,18 @@ fn same_seed_and_commands_give_byte_identical_frames() {
         let run = || {
             let mut t = twin("monolith_obstacle", (84, 84), randomization);
             let mut frames = vec![frame_bytes(&mut t)];
-            t.teleport(PlanarPose { x: 0.9, y: 0.6, yaw: 2.0 }).expect("teleport");
-            for (v, w, d) in [(0.1, 0.0, 0.6), (0.07, 1.25, 1.2), (0.07, -1.25, 1.2), (-0.1, 0.0, 0.6)] {
+            t.teleport(PlanarPose {
+                x: 0.9,
+                y: 0.6,
+                yaw: 2.0,
+            })
+            .expect("teleport");
+            for (v, w, d) in [
+                (0.1, 0.0, 0.6),
+                (0.07, 1.25, 1.2),
+                (0.07, -1.25, 1.2),
+                (-0.1, 0.0, 0.6),
+            ] {
                 t.execute(v, w, d).expect("motion");
                 frames.push(frame_bytes(&mut t));
             }
@@ -132,11 +151,21 @@ fn noise_knobs_are_off_by_default_and_change_frames_when_on() {
     let mut noisy = twin(
         "monolith",
         (84, 84),
-        Randomization { seed: 1, depth_noise: 0.05, depth_dropout: 0.1, ..Randomization::default() },
+        Randomization {
+            seed: 1,
+            depth_noise: 0.05,
+            depth_dropout: 0.1,
+            ..Randomization::default()
+        },
     );
     let (c, n) = (clean.render().clone(), noisy.render().clone());
     assert_eq!(c.rgb, n.rgb, "depth noise leaves colour alone");
-    let dropped = n.depth.iter().zip(&c.depth).filter(|(n, c)| n.is_nan() && !c.is_nan()).count();
+    let dropped = n
+        .depth
+        .iter()
+        .zip(&c.depth)
+        .filter(|(n, c)| n.is_nan() && !c.is_nan())
+        .count();
     let valid = c.depth.iter().filter(|d| !d.is_nan()).count();
     let share = dropped as f32 / valid as f32;
     assert!((share - 0.1).abs() < 0.03, "dropout share {share}");
@@ -147,11 +176,31 @@ fn noise_knobs_are_off_by_default_and_change_frames_when_on() {
 fn bad_commands_are_typed_errors_and_change_nothing() {
     let mut t = twin("monolith", (32, 24), Randomization::default());
     let before = t.ground_truth();
-    for (v, w, d) in [(f64::NAN, 0.0, 1.0), (0.1, f64::INFINITY, 1.0), (0.1, 0.0, -1.0), (0.1, 0.0, 1e9)] {
-        assert!(matches!(t.execute(v, w, d), Err(offworld_sim_twin::SimError::BadCommand(_))));
+    for (v, w, d) in [
+        (f64::NAN, 0.0, 1.0),
+        (0.1, f64::INFINITY, 1.0),
+        (0.1, 0.0, -1.0),
+        (0.1, 0.0, 1e9),
+    ] {
+        assert!(matches!(
+            t.execute(v, w, d),
+            Err(offworld_sim_twin::SimError::BadCommand(_))
+        ));
     }
-    assert!(t.teleport(PlanarPose { x: 9.0, y: 0.0, yaw: 0.0 }).is_err());
-    assert!(t.teleport(PlanarPose { x: f32::NAN, y: 0.0, yaw: 0.0 }).is_err());
+    assert!(t
+        .teleport(PlanarPose {
+            x: 9.0,
+            y: 0.0,
+            yaw: 0.0
+        })
+        .is_err());
+    assert!(t
+        .teleport(PlanarPose {
+            x: f32::NAN,
+            y: 0.0,
+            yaw: 0.0
+        })
+        .is_err());
     assert_eq!(t.ground_truth(), before);
 }
 
@@ -160,9 +209,33 @@ fn bad_commands_are_typed_errors_and_change_nothing() {
 #[test]
 fn golden_low_resolution_frames() {
     let poses = [
-        ("obstacle_west", "monolith_obstacle", PlanarPose { x: -1.2, y: 0.2, yaw: -0.3 }),
-        ("open_east", "monolith", PlanarPose { x: 1.2, y: -0.8, yaw: 2.6 }),
-        ("open_corner", "monolith", PlanarPose { x: -1.4, y: -1.2, yaw: 0.8 }),
+        (
+            "obstacle_west",
+            "monolith_obstacle",
+            PlanarPose {
+                x: -1.2,
+                y: 0.2,
+                yaw: -0.3,
+            },
+        ),
+        (
+            "open_east",
+            "monolith",
+            PlanarPose {
+                x: 1.2,
+                y: -0.8,
+                yaw: 2.6,
+            },
+        ),
+        (
+            "open_corner",
+            "monolith",
+            PlanarPose {
+                x: -1.4,
+                y: -1.2,
+                yaw: 0.8,
+            },
+        ),
     ];
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden");
     for (name, world, pose) in poses {
@@ -176,7 +249,11 @@ fn golden_low_resolution_frames() {
             .iter()
             .enumerate()
             .map(|(i, d)| {
-                let mm = if d.is_nan() { -1 } else { (d * 1000.0).round() as i64 };
+                let mm = if d.is_nan() {
+                    -1
+                } else {
+                    (d * 1000.0).round() as i64
+                };
                 format!("{mm} {}\n", f.rgb[i * 3])
             })
             .collect();
@@ -185,7 +262,8 @@ fn golden_low_resolution_frames() {
             std::fs::write(&path, &text).expect("write golden");
             continue;
         }
-        let golden = std::fs::read_to_string(&path).expect("golden file (UPDATE_GOLDEN=1 to create)");
+        let golden =
+            std::fs::read_to_string(&path).expect("golden file (UPDATE_GOLDEN=1 to create)");
         let mut mismatches = 0;
         for (got, want) in text.lines().zip(golden.lines()) {
             let parse = |l: &str| -> (i64, i64) {
@@ -198,6 +276,9 @@ fn golden_low_resolution_frames() {
             }
         }
         assert_eq!(golden.lines().count(), 32 * 24, "{name}");
-        assert_eq!(mismatches, 0, "{name}: {mismatches} pixels differ from the golden frame");
+        assert_eq!(
+            mismatches, 0,
+            "{name}: {mismatches} pixels differ from the golden frame"
+        );
     }
 }

@@ -11,6 +11,7 @@
 
 use super::{CameraPose, Intrinsics, RgbdFrame, Shading};
 use crate::scene::Scene;
+use crate::terrain::Terrain;
 use crate::world::LightSpec;
 
 /// Renders level-camera RGBD frames; owns its scratch buffers so a frame
@@ -20,12 +21,12 @@ pub struct ColumnRenderer {
     intrinsics: Intrinsics,
     shading: Shading,
     row_slopes: Vec<f32>,
+    inv_row_slopes: Vec<f32>,
     col_depth: Vec<f32>,
     col_grey: Vec<u8>,
 }
 
 const T_START: f32 = 1e-3;
-const MIN_STEP: f32 = 1e-5;
 
 impl ColumnRenderer {
     /// A renderer for one image size.
@@ -36,6 +37,9 @@ impl ColumnRenderer {
             shading: Shading::new(light),
             row_slopes: (0..intrinsics.height)
                 .map(|v| intrinsics.row_slope(v))
+                .collect(),
+            inv_row_slopes: (0..intrinsics.height)
+                .map(|v| 1.0 / intrinsics.row_slope(v))
                 .collect(),
             col_depth: vec![f32::INFINITY; h],
             col_grey: vec![0; h],
@@ -114,15 +118,19 @@ impl ColumnRenderer {
             if v_hi < 0.0 {
                 continue;
             }
-            let albedo = b.albedo;
+            // Shade each face once per column, not once per pixel.
+            let grey_side = self.shading.grey(side_normal, b.albedo);
+            let grey_top = self.shading.grey([0.0, 0.0, 1.0], b.albedo);
+            let grey_bottom = self.shading.grey([0.0, 0.0, -1.0], b.albedo);
             for v in v_lo..=v_hi as usize {
                 let slope = self.row_slopes[v];
-                let (tz_in, tz_out) = if slope > 0.0 {
-                    ((c[2] - zmax) / slope, (c[2] - zmin) / slope)
+                let inv = self.inv_row_slopes[v];
+                let (tz_in, tz_out, cap_grey) = if slope > 0.0 {
+                    ((c[2] - zmax) * inv, (c[2] - zmin) * inv, grey_top)
                 } else if slope < 0.0 {
-                    ((c[2] - zmin) / slope, (c[2] - zmax) / slope)
+                    ((c[2] - zmin) * inv, (c[2] - zmax) * inv, grey_bottom)
                 } else if c[2] >= zmin && c[2] <= zmax {
-                    (f32::NEG_INFINITY, f32::INFINITY)
+                    (f32::NEG_INFINITY, f32::INFINITY, grey_side)
                 } else {
                     continue;
                 };
@@ -130,20 +138,14 @@ impl ColumnRenderer {
                 if entry > tx.min(tz_out) || entry >= self.col_depth[v] {
                     continue;
                 }
-                let normal = if te >= tz_in {
-                    side_normal
-                } else if slope > 0.0 {
-                    [0.0, 0.0, 1.0]
-                } else {
-                    [0.0, 0.0, -1.0]
-                };
                 self.col_depth[v] = entry;
-                self.col_grey[v] = self.shading.grey(normal, albedo);
+                self.col_grey[v] = if te >= tz_in { grey_side } else { cap_grey };
             }
         }
     }
 
-    /// Walks the terrain profile under this column front to back.
+    /// Walks the terrain profile under this column front to back, cell by
+    /// cell (a grid DDA), splitting each cell at its diagonal.
     fn terrain_walk(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
         let terrain = &*scene.terrain;
         let albedo = scene.world.terrain.albedo;
@@ -154,17 +156,16 @@ impl ColumnRenderer {
             terrain.y0 + terrain.dy * terrain.ny as f32,
             0.0,
         ];
-        let Some((_, grid_exit, _)) = slab_2d(c, dir, grid_min, grid_max) else {
+        let Some((grid_enter, grid_exit, _)) = slab_2d(c, dir, grid_min, grid_max) else {
             return;
         };
         let t_end = grid_exit.min(self.intrinsics.max_range);
         let max_h = terrain.max_height;
-        // Grid coordinates along the line: u = u0 + t·du, v = v0 + t·dv.
-        let (u0, du) = ((c[0] - terrain.x0) / terrain.dx, dir[0] / terrain.dx);
-        let (v0, dv) = ((c[1] - terrain.y0) / terrain.dy, dir[1] / terrain.dy);
+        let line = GridLine::new(terrain, c, dir);
         let mut next = self.row_slopes.len() as isize - 1;
-        let mut t = T_START;
-        while t < t_end && next >= 0 {
+        let mut t = T_START.max(grid_enter);
+        let mut cell = line.cell_at(t, terrain);
+        'walk: while t < t_end {
             // Rows already hit by a box nearer than `t` are final.
             while next >= 0 && self.col_depth[next as usize] <= t {
                 next -= 1;
@@ -178,53 +179,175 @@ impl ColumnRenderer {
                 if slope <= 0.0 {
                     break;
                 }
-                t = t.max((c[2] - max_h) / slope);
+                t = (c[2] - max_h) / slope;
                 if t >= t_end {
                     break;
                 }
+                cell = line.cell_at(t, terrain);
             }
-            let t1 = next_break(t, u0, du, v0, dv).min(t_end);
-            let mid = 0.5 * (t + t1);
-            let plane = terrain.plane_at(c[0] + mid * dir[0], c[1] + mid * dir[1]);
-            let h1 = plane.height(c[0] + t1 * dir[0], c[1] + t1 * dir[1]);
-            // Along the ray: ground = hc + t·s, ray = c.z − t·b.
-            let hc = plane.height(c[0], c[1]);
-            let s = plane.gx * dir[0] + plane.gy * dir[1];
-            let mut grey = None;
-            while next >= 0 {
-                let row = next as usize;
-                let slope = self.row_slopes[row];
-                if c[2] - t1 * slope > h1 {
-                    break; // above ground at t1, and so is every row above it
+            let cell_end = cell.t_next_x.min(cell.t_next_y).min(t_end);
+            // The open ray is lowest at the cell's far edge: above the
+            // cell's highest corner there, it cannot touch this cell.
+            if c[2] - cell_end * slope > terrain.cell_max(cell.ix, cell.iy) {
+                t = cell_end;
+                if !cell.advance(terrain) {
+                    break;
                 }
-                let hit = ((c[2] - hc) / (slope + s)).clamp(t, t1);
-                if hit < self.col_depth[row] {
-                    self.col_depth[row] = hit;
-                    self.col_grey[row] =
-                        *grey.get_or_insert_with(|| shading.grey(plane.normal(), albedo));
-                }
-                next -= 1;
+                continue;
             }
-            t = t1;
+            // The cell's diagonal (u − v = ix − iy) may split it in two.
+            let k = cell.ix as f32 - cell.iy as f32;
+            let t_diag = line.diagonal_t(k);
+            let mut segment_start = t;
+            for segment_end in [t_diag, cell_end] {
+                if segment_end <= segment_start || segment_end > cell_end {
+                    continue;
+                }
+                let mid = 0.5 * (segment_start + segment_end);
+                let upper = line.w_at(mid) <= k;
+                let plane = terrain.cell_plane(cell.ix, cell.iy, upper);
+                let h1 = plane.height(c[0] + segment_end * dir[0], c[1] + segment_end * dir[1]);
+                // Along the ray: ground = hc + t·s, ray = c.z − t·b.
+                let hc = plane.height(c[0], c[1]);
+                let s = plane.gx * dir[0] + plane.gy * dir[1];
+                let mut grey = None;
+                while next >= 0 {
+                    let row = next as usize;
+                    let slope = self.row_slopes[row];
+                    if c[2] - segment_end * slope > h1 {
+                        break; // above ground here, and so is every row above it
+                    }
+                    let hit = ((c[2] - hc) / (slope + s)).clamp(segment_start, segment_end);
+                    if hit < self.col_depth[row] {
+                        self.col_depth[row] = hit;
+                        self.col_grey[row] =
+                            *grey.get_or_insert_with(|| shading.grey(plane.normal(), albedo));
+                    }
+                    next -= 1;
+                }
+                if next < 0 {
+                    break 'walk;
+                }
+                segment_start = segment_end;
+            }
+            t = cell_end;
+            if !cell.advance(terrain) {
+                break;
+            }
         }
     }
 }
 
-/// Next `t` after `t` where the line crosses a grid line or a cell diagonal.
-#[inline]
-fn next_break(t: f32, u0: f32, du: f32, v0: f32, dv: f32) -> f32 {
-    let step = |val: f32, rate: f32| -> f32 {
-        if rate > 1e-9 {
-            (val.floor() + 1.0 - val) / rate
-        } else if rate < -1e-9 {
-            (val - (val.ceil() - 1.0)) / -rate
+/// A column's line in grid coordinates: `u = u0 + t·du`, `v = v0 + t·dv`.
+struct GridLine {
+    u0: f32,
+    v0: f32,
+    du: f32,
+    dv: f32,
+    inv_du: f32,
+    inv_dv: f32,
+    inv_dw: f32,
+}
+
+/// The DDA's current cell and the `t` of its next x / y boundary crossings.
+struct Cell {
+    ix: usize,
+    iy: usize,
+    step_x: isize,
+    step_y: isize,
+    t_next_x: f32,
+    t_next_y: f32,
+    t_delta_x: f32,
+    t_delta_y: f32,
+}
+
+impl GridLine {
+    fn new(terrain: &Terrain, c: [f32; 3], dir: [f32; 2]) -> Self {
+        let (du, dv) = (dir[0] / terrain.dx, dir[1] / terrain.dy);
+        let inv = |d: f32| {
+            if d.abs() > 1e-12 {
+                1.0 / d
+            } else {
+                f32::INFINITY
+            }
+        };
+        Self {
+            u0: (c[0] - terrain.x0) / terrain.dx,
+            v0: (c[1] - terrain.y0) / terrain.dy,
+            du,
+            dv,
+            inv_du: inv(du),
+            inv_dv: inv(dv),
+            inv_dw: inv(du - dv),
+        }
+    }
+
+    #[inline]
+    fn w_at(&self, t: f32) -> f32 {
+        (self.u0 - self.v0) + t * (self.du - self.dv)
+    }
+
+    /// Where `u − v = k` (a cell diagonal), or infinity.
+    #[inline]
+    fn diagonal_t(&self, k: f32) -> f32 {
+        let t = (k - (self.u0 - self.v0)) * self.inv_dw;
+        if t.is_finite() {
+            t
         } else {
             f32::INFINITY
         }
-    };
-    let (u, v) = (u0 + t * du, v0 + t * dv);
-    let dt = step(u, du).min(step(v, dv)).min(step(u - v, du - dv));
-    t + dt.max(MIN_STEP)
+    }
+
+    /// The cell containing the line at `t` and its next boundary crossings.
+    fn cell_at(&self, t: f32, terrain: &Terrain) -> Cell {
+        let (u, v) = (self.u0 + t * self.du, self.v0 + t * self.dv);
+        let ix = (u.max(0.0) as usize).min(terrain.nx - 1);
+        let iy = (v.max(0.0) as usize).min(terrain.ny - 1);
+        let axis = |i: usize, d: f32, inv: f32, origin: f32| -> (isize, f32, f32) {
+            if d > 1e-12 {
+                (1, (i as f32 + 1.0 - origin) * inv, inv)
+            } else if d < -1e-12 {
+                (-1, (i as f32 - origin) * inv, -inv)
+            } else {
+                (0, f32::INFINITY, f32::INFINITY)
+            }
+        };
+        let (step_x, t_next_x, t_delta_x) = axis(ix, self.du, self.inv_du, self.u0);
+        let (step_y, t_next_y, t_delta_y) = axis(iy, self.dv, self.inv_dv, self.v0);
+        Cell {
+            ix,
+            iy,
+            step_x,
+            step_y,
+            t_next_x: t_next_x.max(t),
+            t_next_y: t_next_y.max(t),
+            t_delta_x,
+            t_delta_y,
+        }
+    }
+}
+
+impl Cell {
+    /// Steps to the next cell; false when leaving the grid.
+    #[inline]
+    fn advance(&mut self, terrain: &Terrain) -> bool {
+        if self.t_next_x < self.t_next_y {
+            let ix = self.ix as isize + self.step_x;
+            if ix < 0 || ix >= terrain.nx as isize {
+                return false;
+            }
+            self.ix = ix as usize;
+            self.t_next_x += self.t_delta_x;
+        } else {
+            let iy = self.iy as isize + self.step_y;
+            if iy < 0 || iy >= terrain.ny as isize {
+                return false;
+            }
+            self.iy = iy as usize;
+            self.t_next_y += self.t_delta_y;
+        }
+        true
+    }
 }
 
 /// Where the 2D line `c + t·dir` crosses the footprint `[min, max]`:

@@ -1,0 +1,99 @@
+//! Sim twin throughput, single thread: full env steps (one discrete action
+//! of physics + one RGBD render), render-only, physics-only, and RSS.
+//!
+//! `cargo bench -p offworld-sim-twin --bench twin_step`
+
+use std::time::Instant;
+
+use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig};
+
+/// The discrete action table (linear, angular, duration).
+const ACTIONS: [(f64, f64, f64); 4] = [
+    (0.07, 1.25, 1.2),
+    (0.07, -1.25, 1.2),
+    (0.1, 0.0, 0.6),
+    (-0.1, 0.0, 0.6),
+];
+
+fn twin(world: &str, res: (u32, u32)) -> SimTwin {
+    let mut config = TwinConfig::builtin(world).expect("world");
+    config.resolution = Some(res);
+    SimTwin::new(config).expect("twin")
+}
+
+/// Median rate over `runs` runs of `n` iterations each.
+fn rate(runs: usize, n: usize, mut f: impl FnMut(usize)) -> f64 {
+    let mut rates: Vec<f64> = (0..runs)
+        .map(|r| {
+            let start = Instant::now();
+            for i in 0..n {
+                f(r * n + i);
+            }
+            n as f64 / start.elapsed().as_secs_f64()
+        })
+        .collect();
+    rates.sort_by(f64::total_cmp);
+    rates[runs / 2]
+}
+
+/// A reproducible pseudo-random action stream that keeps the robot inside.
+fn env_step(t: &mut SimTwin, i: usize) {
+    // Re-spawn every 100 steps like an episode reset.
+    if i % 100 == 0 {
+        let k = (i / 100) as f32;
+        t.teleport(PlanarPose {
+            x: -1.0 + (k * 0.37) % 2.0,
+            y: -1.0 + (k * 0.53) % 1.6,
+            yaw: k,
+        })
+        .expect("spawn");
+    }
+    let (v, w, d) = ACTIONS[(i * 7 + i / 3) % 4];
+    t.execute(v, w, d).expect("motion");
+    t.render();
+}
+
+fn rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+fn main() {
+    let world = std::env::args()
+        .nth(1)
+        .filter(|a| !a.starts_with('-'))
+        .unwrap_or_else(|| "monolith_obstacle".into());
+    println!("sim_twin bench, world `{world}`, single thread, median of 5 runs");
+    let rss_before = rss_mb();
+    let mut full = twin(&world, (320, 240));
+    let rss_after = rss_mb();
+    let steps_full = rate(5, 400, |i| env_step(&mut full, i));
+    let mut small = twin(&world, (84, 84));
+    let steps_small = rate(5, 1000, |i| env_step(&mut small, i));
+    let render_full = rate(5, 400, |_| {
+        full.render();
+    });
+    let render_small = rate(5, 2000, |_| {
+        small.render();
+    });
+    let physics = rate(5, 1000, |i| {
+        let (v, w, d) = ACTIONS[i % 4];
+        small.execute(v, w, d).expect("motion");
+    });
+    println!("env steps/s  320x240 RGBD : {steps_full:8.0}");
+    println!("env steps/s  84x84 RGBD   : {steps_small:8.0}");
+    println!("render fps   320x240      : {render_full:8.0}");
+    println!("render fps   84x84        : {render_small:8.0}");
+    println!("physics actions/s         : {physics:8.0}");
+    println!(
+        "RSS: {rss_after:.1} MB after building one twin ({:.1} MB for the twin), {:.1} MB now",
+        rss_after - rss_before,
+        rss_mb()
+    );
+}
