@@ -1,7 +1,5 @@
 //! Queries an env's `spec`, as a client would.
 
-mod common;
-
 use std::time::Duration;
 
 use clap::Parser;
@@ -21,7 +19,7 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
-    let session = common::client_config(args.common).open().await?;
+    let session = args.common.client_config().open().await?;
     let key = args.env.key(Topic::Spec);
     // Give the connection a moment to learn the remote queryable.
     tokio::time::sleep(Duration::from_millis(300)).await;

@@ -1,7 +1,5 @@
 //! Publishes the four discrete motions of the Monolith task in a loop.
 
-mod common;
-
 use std::time::Duration;
 
 use clap::Parser;
@@ -24,7 +22,7 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
-    let session = common::client_config(args.common).open().await?;
+    let session = args.common.client_config().open().await?;
     let key = args.env.key(Topic::Cmd);
     let table = [
         (0.07, 1.25, 1.2),

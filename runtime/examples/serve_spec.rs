@@ -1,7 +1,5 @@
 //! Serves an env's `spec` queryable, as a controller would.
 
-mod common;
-
 use clap::Parser;
 use offworld_runtime::msg::{ActionSpace, EnvSpec};
 use offworld_runtime::{wire, CommonArgs, EnvId, Topic};
@@ -19,7 +17,7 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
-    let session = common::server_config(args.common).open().await?;
+    let session = args.common.server_config().open().await?;
     let key = args.env.key(Topic::Spec);
     let spec = EnvSpec {
         env_id: args.env.to_string(),

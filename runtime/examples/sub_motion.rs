@@ -2,8 +2,6 @@
 //! Run with `cargo run --release -p offworld-runtime --example sub_motion`,
 //! then `--example pub_motion` in another shell.
 
-mod common;
-
 use clap::Parser;
 use offworld_runtime::msg::MotionCommand;
 use offworld_runtime::{codec, CommonArgs, EnvId, Topic};
@@ -21,7 +19,7 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
-    let session = common::server_config(args.common).open().await?;
+    let session = args.common.server_config().open().await?;
     let key = args.env.key(Topic::Cmd);
     let subscriber = session
         .declare_subscriber(&key)

@@ -182,6 +182,34 @@ pub struct CommonArgs {
     pub multicast_scouting: bool,
 }
 
+/// Where standalone processes meet when no endpoint is given: servers
+/// (controller, routers) listen here and everything else connects here.
+pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+
+impl CommonArgs {
+    fn is_unset(&self) -> bool {
+        self.listen.is_empty() && self.connect.is_empty() && self.config.is_none()
+    }
+
+    /// The session of a serving process: listens on [`DEFAULT_ENDPOINT`]
+    /// unless endpoints or a config file are given.
+    pub fn server_config(mut self) -> SessionConfig {
+        if self.is_unset() {
+            self.listen.push(DEFAULT_ENDPOINT.into());
+        }
+        self.into()
+    }
+
+    /// The session of a connecting process: connects to [`DEFAULT_ENDPOINT`]
+    /// unless endpoints or a config file are given.
+    pub fn client_config(mut self) -> SessionConfig {
+        if self.is_unset() {
+            self.connect.push(DEFAULT_ENDPOINT.into());
+        }
+        self.into()
+    }
+}
+
 impl From<CommonArgs> for SessionConfig {
     fn from(args: CommonArgs) -> Self {
         Self {

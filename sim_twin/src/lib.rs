@@ -14,6 +14,7 @@
 
 pub mod camera;
 mod error;
+pub mod node;
 pub mod physics;
 pub mod scene;
 pub mod terrain;
@@ -22,6 +23,7 @@ pub mod twin;
 pub mod world;
 
 pub use error::SimError;
+pub use node::{Clock, TwinNode};
 pub use physics::PlanarPose;
 pub use twin::{Randomization, SimTwin, TwinConfig};
 pub use world::WorldSpec;

@@ -1,0 +1,535 @@
+//! The twin served over Zenoh under an env's namespace, speaking exactly
+//! what the real robot + tracker speak:
+//!
+//! - subscribes `cmd` ([`MotionCommand`]), executes it, then publishes
+//!   `odom` (`nav_msgs/Odometry`), `pose` (`geometry_msgs/PoseStamped`, both
+//!   with a [`SeqTag`] attachment) and `obs` ([`CameraFrame`], same `seq`);
+//! - serves `goto` ([`GotoRequest`]): the sim teleports;
+//! - obeys `estop` (per env and site-wide): motion is refused, frames still
+//!   answer;
+//! - declares the liveliness token `alive/sim_twin`.
+//!
+//! Two clocks: [`Clock::Lockstep`] simulates a command's duration as fast as
+//! possible (training); [`Clock::RealTime`] paces physics by the wall clock
+//! and publishes tracker poses at the tracker rate (behaves like hardware).
+//! The simulation runs on its own named thread; Zenoh callbacks only enqueue.
+
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use offworld_runtime::codec;
+use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
+use offworld_runtime::msg::{
+    CameraFrame, EStop, GotoReply, GotoRequest, Header, Image, MotionCommand, Odometry,
+    PixelEncoding, Point, Pose, Pose2D, PoseStamped, PoseWithCovariance, Quaternion, SeqTag, Time,
+    Twist, TwistWithCovariance,
+};
+use offworld_runtime::wire;
+use offworld_runtime::zenoh::bytes::Encoding;
+use offworld_runtime::zenoh::liveliness::LivelinessToken;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::query::{Query, Queryable};
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::{Session, Wait};
+use offworld_runtime::WireError;
+
+use crate::error::SimError;
+use crate::physics::{BodyPose, PlanarPose, DT};
+use crate::twin::SimTwin;
+
+/// How simulated time relates to wall time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Clock {
+    /// As fast as possible: a command is simulated, then answered.
+    #[default]
+    Lockstep,
+    /// Paced by the wall clock, like hardware.
+    RealTime,
+}
+
+/// Queued work for the simulation thread.
+enum Event {
+    Command(Sample),
+    Goto(Query),
+    EStop(Sample),
+    Shutdown,
+}
+
+/// Bound of the event queue (commands arrive one per step).
+const QUEUE: usize = 256;
+
+/// A running twin node; stops when dropped.
+pub struct TwinNode {
+    env: EnvId,
+    events: SyncSender<Event>,
+    thread: Option<JoinHandle<()>>,
+    _declarations: Declarations,
+}
+
+struct Declarations {
+    _cmd: Subscriber<()>,
+    _estop: Subscriber<()>,
+    _global_estop: Subscriber<()>,
+    _goto: Queryable<()>,
+    _token: LivelinessToken,
+}
+
+impl TwinNode {
+    /// Serves `twin` as `env` on `session` until dropped.
+    pub fn spawn(
+        session: &Session,
+        env: EnvId,
+        twin: SimTwin,
+        clock: Clock,
+    ) -> Result<Self, SimError> {
+        let (tx, rx) = sync_channel::<Event>(QUEUE);
+        let zerr = |e: offworld_runtime::zenoh::Error| SimError::Zenoh(e.to_string());
+        let forward = |tx: &SyncSender<Event>, make: fn(Sample) -> Event| {
+            let tx = tx.clone();
+            move |sample: Sample| {
+                if tx.try_send(make(sample)).is_err() {
+                    tracing::warn!("sim twin queue full: dropped a message");
+                }
+            }
+        };
+        let cmd = session
+            .declare_subscriber(env.key(Topic::Cmd))
+            .callback(forward(&tx, Event::Command))
+            .wait()
+            .map_err(zerr)?;
+        let estop = session
+            .declare_subscriber(env.key(Topic::EStop))
+            .callback(forward(&tx, Event::EStop))
+            .wait()
+            .map_err(zerr)?;
+        let global_estop = session
+            .declare_subscriber(global_estop_key())
+            .callback(forward(&tx, Event::EStop))
+            .wait()
+            .map_err(zerr)?;
+        let goto_tx = tx.clone();
+        let goto = session
+            .declare_queryable(env.key(Topic::Goto))
+            .callback(move |query: Query| {
+                if let Err(e) = goto_tx.try_send(Event::Goto(query)) {
+                    tracing::warn!("sim twin queue full: dropped a goto");
+                    if let std::sync::mpsc::TrySendError::Full(Event::Goto(q)) = e {
+                        reply_blocking::<GotoReply>(
+                            &q,
+                            Err(WireError::busy("sim twin overloaded")),
+                        );
+                    }
+                }
+            })
+            .wait()
+            .map_err(zerr)?;
+        let token = session
+            .liveliness()
+            .declare_token(env.alive_key(Component::SimTwin))
+            .wait()
+            .map_err(zerr)?;
+        let worker = Worker::new(session.clone(), env.clone(), twin, clock)?;
+        let thread = std::thread::Builder::new()
+            .name(format!("sim_twin/{env}"))
+            .spawn(move || worker.run(rx))
+            .map_err(|e| SimError::Io(e.to_string()))?;
+        Ok(Self {
+            env,
+            events: tx,
+            thread: Some(thread),
+            _declarations: Declarations {
+                _cmd: cmd,
+                _estop: estop,
+                _global_estop: global_estop,
+                _goto: goto,
+                _token: token,
+            },
+        })
+    }
+
+    /// The env served.
+    pub fn env(&self) -> &EnvId {
+        &self.env
+    }
+}
+
+impl Drop for TwinNode {
+    fn drop(&mut self) {
+        // Blocking send: the worker drains fast, and must see the shutdown.
+        let _ = self.events.send(Event::Shutdown);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+fn reply_blocking<T: serde::Serialize>(query: &Query, result: Result<&T, WireError>) {
+    let payload = match result.map(codec::encode) {
+        Ok(Ok(bytes)) => Ok(bytes),
+        Ok(Err(e)) => Err(WireError::internal(e.to_string())),
+        Err(e) => Err(e),
+    };
+    let outcome = match payload {
+        Ok(bytes) => query
+            .reply(query.key_expr().clone(), bytes)
+            .encoding(Encoding::APPLICATION_CDR)
+            .wait(),
+        Err(err) => match codec::encode(&err) {
+            Ok(bytes) => query
+                .reply_err(bytes)
+                .encoding(Encoding::APPLICATION_CDR)
+                .wait(),
+            Err(e) => Err(e.to_string().into()),
+        },
+    };
+    if let Err(e) = outcome {
+        tracing::warn!("reply failed: {e}");
+    }
+}
+
+/// A motion being executed on the real-time clock.
+struct ActiveMotion {
+    seq: u64,
+    drive_until: f64,
+}
+
+/// The simulation thread's state.
+struct Worker {
+    session: Session,
+    env: EnvId,
+    twin: SimTwin,
+    clock: Clock,
+    estopped: bool,
+    keys: Keys,
+    frame_msg: CameraFrame,
+    buffer: Vec<u8>,
+    rejected: u64,
+}
+
+struct Keys {
+    obs: String,
+    odom: String,
+    pose: String,
+}
+
+impl Worker {
+    fn new(session: Session, env: EnvId, twin: SimTwin, clock: Clock) -> Result<Self, SimError> {
+        let keys = Keys {
+            obs: env.key(Topic::Obs),
+            odom: env.key(Topic::Odom),
+            pose: env.key(Topic::Pose),
+        };
+        Ok(Self {
+            session,
+            env,
+            twin,
+            clock,
+            estopped: false,
+            keys,
+            frame_msg: CameraFrame::default(),
+            buffer: Vec::new(),
+            rejected: 0,
+        })
+    }
+
+    fn run(mut self, events: Receiver<Event>) {
+        tracing::info!(env = %self.env, clock = ?self.clock, "sim twin serving");
+        match self.clock {
+            Clock::Lockstep => self.run_lockstep(events),
+            Clock::RealTime => self.run_real_time(events),
+        }
+        tracing::info!(env = %self.env, rejected = self.rejected, "sim twin stopped");
+    }
+
+    fn run_lockstep(&mut self, events: Receiver<Event>) {
+        while let Ok(event) = events.recv() {
+            match event {
+                Event::Command(sample) => {
+                    if let Some(cmd) = self.decode_command(&sample) {
+                        let (v, w) = self.allowed(&cmd);
+                        if let Err(e) = self.twin.execute(v, w, cmd.duration_s) {
+                            self.reject(&e);
+                            continue;
+                        }
+                        self.answer(cmd.seq);
+                    }
+                }
+                Event::Goto(query) => self.goto(&query),
+                Event::EStop(sample) => self.estop(&sample),
+                Event::Shutdown => return,
+            }
+        }
+    }
+
+    fn run_real_time(&mut self, events: Receiver<Event>) {
+        let start = Instant::now();
+        let sim_start = self.twin.physics().time();
+        let tracker_period = 1.0 / f64::from(self.twin.tracker_config().rate_hz.max(1.0));
+        let mut next_pose = 0.0;
+        let mut motion: Option<ActiveMotion> = None;
+        loop {
+            let now = start.elapsed().as_secs_f64();
+            let sim_now = self.twin.physics().time() - sim_start;
+            let next_step = sim_now + f64::from(DT);
+            let wait = (next_step.min(next_pose) - now).max(0.0);
+            match events.recv_timeout(Duration::from_secs_f64(wait)) {
+                Ok(Event::Command(sample)) => {
+                    if let Some(cmd) = self.decode_command(&sample) {
+                        if !(cmd.duration_s.is_finite() && (0.0..=10.0).contains(&cmd.duration_s)) {
+                            self.reject(&SimError::BadCommand(format!(
+                                "duration {}",
+                                cmd.duration_s
+                            )));
+                            continue;
+                        }
+                        let (v, w) = self.allowed(&cmd);
+                        // A new command replaces the one in progress, as on hardware.
+                        self.twin.physics_mut().set_targets(v as f32, w as f32);
+                        motion = Some(ActiveMotion {
+                            seq: cmd.seq,
+                            drive_until: now + cmd.duration_s,
+                        });
+                    }
+                }
+                Ok(Event::Goto(query)) => self.goto(&query),
+                Ok(Event::EStop(sample)) => {
+                    self.estop(&sample);
+                    if self.estopped {
+                        self.twin.physics_mut().set_targets(0.0, 0.0);
+                    }
+                }
+                Ok(Event::Shutdown) | Err(RecvTimeoutError::Disconnected) => return,
+                Err(RecvTimeoutError::Timeout) => {}
+            }
+            let now = start.elapsed().as_secs_f64();
+            while self.twin.physics().time() - sim_start + f64::from(DT) <= now {
+                if let Some(m) = &motion {
+                    if now >= m.drive_until {
+                        self.twin.physics_mut().set_targets(0.0, 0.0);
+                    }
+                }
+                self.twin.physics_mut().substep();
+            }
+            if let Some(m) = &motion {
+                let servo = self.twin.physics().servo();
+                let stopped = servo.linear == 0.0
+                    && servo.angular == 0.0
+                    && servo.target_linear == 0.0
+                    && servo.target_angular == 0.0;
+                if now >= m.drive_until && stopped {
+                    let seq = m.seq;
+                    motion = None;
+                    self.answer(seq);
+                }
+            }
+            if now >= next_pose {
+                let reading = self.twin.tracker_reading();
+                self.publish_pose(&reading, None);
+                next_pose = now + tracker_period;
+            }
+        }
+    }
+
+    /// The velocities actually allowed (zero while e-stopped).
+    fn allowed(&self, cmd: &MotionCommand) -> (f64, f64) {
+        if self.estopped {
+            tracing::warn!(seq = cmd.seq, "e-stop engaged: motion refused");
+            (0.0, 0.0)
+        } else {
+            (cmd.linear_x, cmd.angular_z)
+        }
+    }
+
+    fn decode_command(&mut self, sample: &Sample) -> Option<MotionCommand> {
+        match codec::decode_payload::<MotionCommand>(sample.payload()) {
+            Ok(cmd) => Some(cmd),
+            Err(e) => {
+                self.rejected += 1;
+                tracing::warn!(env = %self.env, "rejected a malformed command: {e}");
+                None
+            }
+        }
+    }
+
+    fn reject(&mut self, e: &SimError) {
+        self.rejected += 1;
+        tracing::warn!(env = %self.env, "rejected a command: {e}");
+    }
+
+    fn estop(&mut self, sample: &Sample) {
+        match codec::decode_payload::<EStop>(sample.payload()) {
+            Ok(stop) => {
+                tracing::warn!(env = %self.env, engaged = stop.engaged, reason = %stop.reason, "e-stop");
+                self.estopped = stop.engaged;
+            }
+            Err(e) => {
+                // A garbled e-stop is treated as engaged: safety first.
+                tracing::error!(env = %self.env, "malformed e-stop, engaging: {e}");
+                self.estopped = true;
+            }
+        }
+    }
+
+    fn goto(&mut self, query: &Query) {
+        let result = wire::decode_query::<GotoRequest>(query).and_then(|req| {
+            let target = PlanarPose {
+                x: req.target.x as f32,
+                y: req.target.y as f32,
+                yaw: req.target.yaw as f32,
+            };
+            self.twin.teleport(target).map_err(WireError::from)?;
+            let p = self.twin.ground_truth();
+            Ok(GotoReply {
+                seq: req.seq,
+                achieved: Pose2D {
+                    x: f64::from(p.position[0]),
+                    y: f64::from(p.position[1]),
+                    yaw: f64::from(p.yaw),
+                },
+                elapsed_s: 0.0,
+            })
+        });
+        reply_blocking(query, result.as_ref().map_err(Clone::clone));
+    }
+
+    /// Publishes odometry, pose and camera frames answering `seq`.
+    fn answer(&mut self, seq: u64) {
+        let stamp = Time::now();
+        let tag = SeqTag { seq };
+        let odom = self.odometry(stamp);
+        self.put(&self.keys.odom.clone(), &odom, Some(tag));
+        let reading = self.twin.tracker_reading();
+        self.publish_pose(&reading, Some(tag));
+        self.fill_frame(seq, stamp);
+        if let Err(e) = codec::encode_into(&self.frame_msg, &mut self.buffer) {
+            tracing::error!("cannot encode frame: {e}");
+            return;
+        }
+        let put = self
+            .session
+            .put(&self.keys.obs, self.buffer.clone())
+            .encoding(Encoding::APPLICATION_CDR)
+            .wait();
+        if let Err(e) = put {
+            tracing::warn!("obs put failed: {e}");
+        }
+    }
+
+    fn publish_pose(&mut self, reading: &BodyPose, tag: Option<SeqTag>) {
+        let [x, y, z] = reading.position.map(f64::from);
+        let [qx, qy, qz, qw] = reading.orientation.map(f64::from);
+        let msg = PoseStamped {
+            header: Header::new(Time::now(), "world"),
+            pose: Pose {
+                position: Point { x, y, z },
+                orientation: Quaternion {
+                    x: qx,
+                    y: qy,
+                    z: qz,
+                    w: qw,
+                },
+            },
+        };
+        self.put(&self.keys.pose.clone(), &msg, tag);
+    }
+
+    fn put<T: serde::Serialize>(&self, key: &str, msg: &T, tag: Option<SeqTag>) {
+        let bytes = match codec::encode(msg) {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::error!("cannot encode for {key}: {e}");
+                return;
+            }
+        };
+        let mut put = self
+            .session
+            .put(key, bytes)
+            .encoding(Encoding::APPLICATION_CDR);
+        if let Some(tag) = tag {
+            match codec::encode(&tag) {
+                Ok(a) => put = put.attachment(a),
+                Err(e) => tracing::error!("cannot encode tag: {e}"),
+            }
+        }
+        if let Err(e) = put.wait() {
+            tracing::warn!("put on {key} failed: {e}");
+        }
+    }
+
+    fn odometry(&self, stamp: Time) -> Odometry {
+        let o = self.twin.physics().odometry();
+        let servo = self.twin.physics().servo();
+        let q = Quaternion::from_yaw(f64::from(o.yaw));
+        Odometry {
+            header: Header::new(stamp, "odom"),
+            child_frame_id: "base_link".into(),
+            pose: PoseWithCovariance {
+                pose: Pose {
+                    position: Point {
+                        x: f64::from(o.x),
+                        y: f64::from(o.y),
+                        z: 0.0,
+                    },
+                    orientation: q,
+                },
+                covariance: [0.0; 36],
+            },
+            twist: TwistWithCovariance {
+                twist: Twist::planar(f64::from(servo.linear), f64::from(servo.angular)),
+                covariance: [0.0; 36],
+            },
+        }
+    }
+
+    /// Renders into the reused frame message (no allocation after the first).
+    fn fill_frame(&mut self, seq: u64, stamp: Time) {
+        let frame = self.twin.render();
+        let (w, h) = (frame.width, frame.height);
+        let msg = &mut self.frame_msg;
+        msg.seq = seq;
+        fill_image(
+            &mut msg.color,
+            stamp,
+            "camera_color_optical_frame",
+            w,
+            h,
+            PixelEncoding::Rgb8,
+        );
+        msg.color.data.clear();
+        msg.color.data.extend_from_slice(&frame.rgb);
+        fill_image(
+            &mut msg.depth,
+            stamp,
+            "camera_depth_optical_frame",
+            w,
+            h,
+            PixelEncoding::Depth32FC1,
+        );
+        msg.depth.data.clear();
+        msg.depth
+            .data
+            .extend(frame.depth.iter().flat_map(|d| d.to_le_bytes()));
+    }
+}
+
+fn fill_image(
+    image: &mut Image,
+    stamp: Time,
+    frame_id: &str,
+    w: u32,
+    h: u32,
+    encoding: PixelEncoding,
+) {
+    image.header.stamp = stamp;
+    if image.header.frame_id != frame_id {
+        image.header.frame_id = frame_id.to_owned();
+    }
+    image.width = w;
+    image.height = h;
+    if image.encoding != encoding.as_str() {
+        image.encoding = encoding.as_str().to_owned();
+    }
+    image.is_bigendian = 0;
+    image.step = w * encoding.bytes_per_pixel();
+}

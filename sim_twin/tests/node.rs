@@ -1,0 +1,277 @@
+//! The twin node over real Zenoh sessions on loopback: commands in, frames
+//! and poses out with matching sequence numbers; goto; e-stop; bad input.
+
+use std::time::Duration;
+
+use offworld_runtime::codec;
+use offworld_runtime::msg::*;
+use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::wire::{self, RequestError};
+use offworld_runtime::zenoh::handlers::FifoChannelHandler;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{Component, EnvId, ErrorCode, SessionConfig, Topic};
+use offworld_sim_twin::{Clock, PlanarPose, SimTwin, TwinConfig, TwinNode};
+
+struct Client {
+    session: Session,
+    env: EnvId,
+    obs: Subscriber<FifoChannelHandler<Sample>>,
+    pose: Subscriber<FifoChannelHandler<Sample>>,
+    odom: Subscriber<FifoChannelHandler<Sample>>,
+}
+
+impl Client {
+    async fn new(session: Session, env: EnvId) -> Self {
+        let sub = |topic| {
+            let key = env.key(topic);
+            let session = session.clone();
+            async move { session.declare_subscriber(key).await.expect("subscriber") }
+        };
+        Self {
+            obs: sub(Topic::Obs).await,
+            pose: sub(Topic::Pose).await,
+            odom: sub(Topic::Odom).await,
+            session,
+            env,
+        }
+    }
+
+    async fn command(&self, seq: u64, linear_x: f64, angular_z: f64, duration_s: f64) {
+        let cmd = MotionCommand {
+            seq,
+            linear_x,
+            angular_z,
+            duration_s,
+        };
+        wire::put(&self.session, &self.env.key(Topic::Cmd), &cmd)
+            .await
+            .expect("put");
+    }
+
+    /// Waits for the obs answering `seq`; returns (frame, pose, odom).
+    async fn answer(&self, seq: u64) -> Option<(CameraFrame, PoseStamped, Odometry)> {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        let frame = loop {
+            let sample = tokio::time::timeout_at(deadline, self.obs.recv_async())
+                .await
+                .ok()?
+                .ok()?;
+            let frame: CameraFrame = codec::decode_payload(sample.payload()).expect("frame");
+            if frame.seq == seq {
+                break frame;
+            }
+        };
+        let tagged = |sub: &Subscriber<FifoChannelHandler<Sample>>| -> Option<Sample> {
+            let mut found = None;
+            while let Ok(Some(s)) = sub.try_recv() {
+                if wire::decode_attachment::<SeqTag>(&s) == Some(SeqTag { seq }) {
+                    found = Some(s);
+                }
+            }
+            found
+        };
+        let pose = codec::decode_payload(tagged(&self.pose)?.payload()).expect("pose");
+        let odom = codec::decode_payload(tagged(&self.odom)?.payload()).expect("odom");
+        Some((frame, pose, odom))
+    }
+
+    /// First contact: repeats an observe-only command until answered.
+    async fn connect(&self) -> (CameraFrame, PoseStamped, Odometry) {
+        for attempt in 0..50u64 {
+            self.command(1_000_000 + attempt, 0.0, 0.0, 0.0).await;
+            if let Ok(Some(a)) =
+                tokio::time::timeout(Duration::from_millis(200), self.answer(1_000_000 + attempt))
+                    .await
+            {
+                return a;
+            }
+        }
+        panic!("twin never answered");
+    }
+}
+
+async fn setup(world: &str, res: (u32, u32)) -> (TwinNode, Client, Session) {
+    let port = free_loopback_port().expect("port");
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let server = SessionConfig::listening(&endpoint)
+        .open()
+        .await
+        .expect("server");
+    let client = SessionConfig::connecting(&endpoint)
+        .open()
+        .await
+        .expect("client");
+    let env = EnvId::sim("node-test").expect("env");
+    let mut config = TwinConfig::builtin(world).expect("world");
+    config.resolution = Some(res);
+    config.start = PlanarPose {
+        x: -1.0,
+        y: 0.5,
+        yaw: 0.0,
+    };
+    let node = TwinNode::spawn(
+        &server,
+        env.clone(),
+        SimTwin::new(config).expect("twin"),
+        Clock::Lockstep,
+    )
+    .expect("node");
+    (node, Client::new(client, env).await, server)
+}
+
+fn planar(p: &PoseStamped) -> (f64, f64, f64) {
+    (
+        p.pose.position.x,
+        p.pose.position.y,
+        p.pose.orientation.yaw(),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commands_in_frames_and_poses_out_with_matching_seq() {
+    let (_node, client, _server) = setup("monolith", (64, 48)).await;
+    let (frame, pose0, _) = client.connect().await;
+    assert_eq!((frame.color.width, frame.color.height), (64, 48));
+    assert_eq!(frame.color.validate(), Ok(PixelEncoding::Rgb8));
+    assert_eq!(frame.depth.validate(), Ok(PixelEncoding::Depth32FC1));
+    let (x0, y0, yaw0) = planar(&pose0);
+    // The chassis settles on its springs: base_link shifts by millimetres.
+    assert!(
+        (x0 + 1.0).abs() < 0.01 && (y0 - 0.5).abs() < 0.01 && yaw0.abs() < 0.02,
+        "{x0} {y0} {yaw0}"
+    );
+
+    client.command(7, 0.10, 0.0, 0.6).await; // FORWARD
+    let (frame, pose, odom) = client.answer(7).await.expect("answer to seq 7");
+    assert_eq!(frame.seq, 7);
+    let (x, y, _) = planar(&pose);
+    let moved = ((x - x0).powi(2) + (y - y0).powi(2)).sqrt();
+    assert!((moved - 0.06).abs() < 0.01, "moved {moved}");
+    assert_eq!(pose.header.frame_id, "world");
+    assert_eq!(odom.child_frame_id, "base_link");
+    assert!(
+        odom.pose.pose.position.x > 0.05,
+        "wheel odometry counted the motion"
+    );
+
+    client.command(8, 0.07, 1.25, 1.2).await; // LEFT
+    let (_, pose, _) = client.answer(8).await.expect("answer to seq 8");
+    let turned = pose.pose.orientation.yaw() - yaw0;
+    assert!((turned - 1.5).abs() < 0.1, "turned {turned}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
+    let (_node, client, _server) = setup("monolith_obstacle", (32, 24)).await;
+    client.connect().await;
+    let goto_key = client.env.key(Topic::Goto);
+    let request = GotoRequest {
+        seq: 3,
+        target: Pose2D {
+            x: 0.5,
+            y: -0.6,
+            yaw: 2.0,
+        },
+        timeout_s: 5.0,
+    };
+    let reply: GotoReply =
+        wire::request(&client.session, &goto_key, &request, Duration::from_secs(5))
+            .await
+            .expect("goto");
+    assert_eq!(reply.seq, 3);
+    assert!((reply.achieved.x - 0.5).abs() < 0.01 && (reply.achieved.y + 0.6).abs() < 0.01);
+    assert!((reply.achieved.yaw - 2.0).abs() < 0.05);
+
+    // Outside the enclosure: a typed error.
+    let outside = GotoRequest {
+        target: Pose2D {
+            x: 5.0,
+            y: 0.0,
+            yaw: 0.0,
+        },
+        ..request
+    };
+    match wire::request::<_, GotoReply>(
+        &client.session,
+        &goto_key,
+        &outside,
+        Duration::from_secs(5),
+    )
+    .await
+    {
+        Err(RequestError::Remote(e)) => assert_eq!(e.code, ErrorCode::BadRequest),
+        other => panic!("expected BadRequest, got {other:?}"),
+    }
+    // Garbage goto payload: a typed error.
+    match wire::request_raw::<GotoReply>(
+        &client.session,
+        &goto_key,
+        vec![1, 2, 3],
+        Duration::from_secs(5),
+    )
+    .await
+    {
+        Err(RequestError::Remote(e)) => assert_eq!(e.code, ErrorCode::BadRequest),
+        other => panic!("expected BadRequest, got {other:?}"),
+    }
+    // Garbage and impossible commands are dropped; the node keeps serving.
+    client
+        .session
+        .put(client.env.key(Topic::Cmd), vec![0u8, 1, 0, 0, 42])
+        .await
+        .expect("put");
+    client.command(9, f64::NAN, 0.0, 1.0).await;
+    client.command(10, 0.1, 0.0, 1e9).await;
+    client.command(11, 0.0, 0.0, 0.0).await;
+    let (_, pose, _) = client.answer(11).await.expect("still serving");
+    let (x, y, _) = planar(&pose);
+    assert!(
+        (x - 0.5).abs() < 0.01 && (y + 0.6).abs() < 0.01,
+        "nothing moved the robot"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn estop_refuses_motion_and_liveliness_is_declared() {
+    let (_node, client, _server) = setup("monolith", (32, 24)).await;
+    let (_, before, _) = client.connect().await;
+    let alive = client
+        .session
+        .liveliness()
+        .get(client.env.alive_key(Component::SimTwin))
+        .await
+        .expect("liveliness get");
+    assert!(alive.recv_async().await.is_ok(), "sim twin token visible");
+
+    let stop = EStop {
+        engaged: true,
+        reason: "test".into(),
+    };
+    wire::put(&client.session, &client.env.key(Topic::EStop), &stop)
+        .await
+        .expect("estop");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    client.command(20, 0.5, 0.0, 1.0).await;
+    let (_, pose, _) = client.answer(20).await.expect("frames still answer");
+    assert!(
+        (planar(&pose).0 - planar(&before).0).abs() < 1e-3,
+        "robot moved under e-stop"
+    );
+
+    let release = EStop {
+        engaged: false,
+        reason: "clear".into(),
+    };
+    wire::put(&client.session, &client.env.key(Topic::EStop), &release)
+        .await
+        .expect("release");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    client.command(21, 0.5, 0.0, 1.0).await;
+    let (_, pose, _) = client.answer(21).await.expect("answer");
+    assert!(
+        planar(&pose).0 - planar(&before).0 > 0.3,
+        "robot moves after release"
+    );
+}
