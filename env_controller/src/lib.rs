@@ -1,1 +1,29 @@
-//! placeholder
+//! The OffWorld gym server.
+//!
+//! It owns the task: episodes, rewards, termination and resets computed from
+//! the robot's pose; sessions, leases and access; experiment records in
+//! SQLite. It drives whatever embodies the robot under an env's namespace —
+//! the sim twin or the real robot + tracker agents — and never knows which.
+//!
+//! - [`task`]: the four tasks as data; action validation and mapping.
+//! - [`episode`]: reward/termination rules and the seeded spawn sampler.
+//! - [`observation`]: client observations from camera frames.
+//! - [`link`]: commands out, frames and poses back.
+//! - [`store`]: users, experiments, episodes, leaderboard.
+//! - [`env`]: one env's sessions, leases and request handlers.
+//! - [`server`]: many envs served over Zenoh.
+
+pub mod env;
+pub mod episode;
+mod error;
+pub mod link;
+pub mod observation;
+pub mod server;
+pub mod store;
+pub mod task;
+
+pub use env::{EnvOptions, EnvServer};
+pub use error::ControllerError;
+pub use server::Controller;
+pub use store::Store;
+pub use task::Task;

@@ -192,11 +192,13 @@ pub enum Topic {
     Close,
     /// Queryable on the controller: [`crate::msg::AdminRequest`] → [`crate::msg::EnvStatus`].
     Admin,
+    /// Queryable on the controller: () → [`crate::msg::Leaderboard`].
+    Leaderboard,
 }
 
 impl Topic {
     /// Every topic, in declaration order.
-    pub const ALL: [Topic; 16] = [
+    pub const ALL: [Topic; 17] = [
         Topic::Cmd,
         Topic::Obs,
         Topic::Odom,
@@ -213,6 +215,7 @@ impl Topic {
         Topic::Step,
         Topic::Close,
         Topic::Admin,
+        Topic::Leaderboard,
     ];
 
     /// The key chunk of this topic.
@@ -234,6 +237,7 @@ impl Topic {
             Topic::Step => "step",
             Topic::Close => "close",
             Topic::Admin => "admin",
+            Topic::Leaderboard => "leaderboard",
         }
     }
 }

@@ -390,3 +390,29 @@ pub enum AdminRequest {
         token: String,
     },
 }
+
+/// One ranked experiment (test mode only).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LeaderboardEntry {
+    /// Experiment name.
+    pub experiment: String,
+    /// Owner's user name.
+    pub user: String,
+    /// Learning type string (`end2end`, …).
+    pub learning_type: String,
+    /// Episodes evaluated.
+    pub episodes: u64,
+    /// Fraction of episodes that reached the monolith.
+    pub success_rate: f64,
+    /// Mean episode return.
+    pub mean_return: f64,
+}
+
+/// Test-mode experiments of one env, best first (success rate, then mean return).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Leaderboard {
+    /// `sim/monolith-0` etc.
+    pub env_id: String,
+    /// Ranked entries.
+    pub entries: Vec<LeaderboardEntry>,
+}

@@ -1,0 +1,510 @@
+//! One env served: sessions and leases, episodes, and the request handlers
+//! behind the `open`/`spec`/`reset`/`step`/`close`/`status`/`admin`/
+//! `leaderboard` queryables. Requests to one env are serialised.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use offworld_runtime::keys::{EnvId, Topic};
+use offworld_runtime::msg::{
+    AdminRequest, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard,
+    MotionCommand, ObsArray, ObsOptions, OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo,
+    StepReply, StepRequest,
+};
+use offworld_runtime::{wire, WireError};
+use offworld_runtime::zenoh::Session;
+use rand::Rng;
+use tokio::sync::Mutex as AsyncMutex;
+
+use crate::episode::{judge, EndReason, SpawnSampler};
+use crate::link::{Answer, LinkTimeouts, RobotLink};
+use crate::observation::{assemble, validate_options};
+use crate::store::{now_ms, EpisodeRecord, Experiment, Store, User, ANONYMOUS};
+use crate::task::Task;
+
+/// Per-env policy.
+#[derive(Debug, Clone, Copy)]
+pub struct EnvOptions {
+    /// A lease lapses after this long without a request.
+    pub lease_idle: Duration,
+    /// After the holder disconnects, the lease waits this long for them.
+    pub reconnect_grace: Duration,
+    /// Admit clients without a token (sim envs only).
+    pub allow_anonymous: bool,
+    /// Robot-side timeouts.
+    pub timeouts: LinkTimeouts,
+    /// Seed of the spawn sampler before any `reset(seed)`.
+    pub seed: u64,
+}
+
+impl Default for EnvOptions {
+    fn default() -> Self {
+        Self {
+            lease_idle: Duration::from_secs(300),
+            reconnect_grace: Duration::from_secs(120),
+            allow_anonymous: false,
+            timeouts: LinkTimeouts::default(),
+            seed: 0,
+        }
+    }
+}
+
+struct Lease {
+    session_id: String,
+    client_id: String,
+    user: User,
+    experiment: Experiment,
+    obs: ObsOptions,
+    expires: Instant,
+    expires_unix_ms: i64,
+    disconnected: bool,
+}
+
+struct Episode {
+    index: u64,
+    seed: Option<u64>,
+    steps: u32,
+    episode_return: f64,
+    over: bool,
+    requested: Pose2D,
+    achieved: Pose2D,
+    started_ms: i64,
+}
+
+struct State {
+    lease: Option<Lease>,
+    maintenance: Option<String>,
+    episode: Option<Episode>,
+    sampler: SpawnSampler,
+    seq: u64,
+    observation: ObsArray,
+    last_status: Option<EnvState>,
+}
+
+/// One env: its task, robot link, state and store.
+pub struct EnvServer {
+    env: EnvId,
+    task: Task,
+    options: EnvOptions,
+    session: Session,
+    link: RobotLink,
+    store: Arc<Mutex<Store>>,
+    state: AsyncMutex<State>,
+}
+
+fn unix_ms_in(d: Duration) -> i64 {
+    now_ms() + d.as_millis() as i64
+}
+
+fn format_unix_ms(ms: i64) -> String {
+    let t = std::time::UNIX_EPOCH + Duration::from_millis(ms.max(0) as u64);
+    humantime::format_rfc3339_seconds(t).to_string()
+}
+
+impl EnvServer {
+    /// Connects to the env's robot side and prepares the state.
+    pub async fn new(
+        session: &Session,
+        env: EnvId,
+        task: Task,
+        options: EnvOptions,
+        store: Arc<Mutex<Store>>,
+    ) -> Result<Self, crate::ControllerError> {
+        let link = RobotLink::connect(session, &env, options.timeouts).await?;
+        Ok(Self {
+            env,
+            task,
+            options,
+            session: session.clone(),
+            link,
+            store,
+            state: AsyncMutex::new(State {
+                lease: None,
+                maintenance: None,
+                episode: None,
+                sampler: SpawnSampler::new(options.seed),
+                seq: 0,
+                observation: ObsArray::default(),
+                last_status: None,
+            }),
+        })
+    }
+
+    /// The env served.
+    pub fn env(&self) -> &EnvId {
+        &self.env
+    }
+
+    /// The robot link (tests wait on it).
+    pub fn link(&self) -> &RobotLink {
+        &self.link
+    }
+
+    /// The env's spec.
+    pub fn spec(&self) -> EnvSpec {
+        EnvSpec {
+            env_id: self.env.to_string(),
+            task: self.task.name.clone(),
+            world: self.task.world.name.clone(),
+            action_space: self.task.action_space(),
+            native_height: self.task.world.camera.height,
+            native_width: self.task.world.camera.width,
+            depth_max_m: self.task.episode.depth_max_m,
+            max_episode_steps: self.task.episode.max_steps,
+        }
+    }
+
+    fn store<T>(&self, f: impl FnOnce(&mut Store) -> Result<T, crate::ControllerError>) -> Result<T, WireError> {
+        let mut store = self.store.lock().map_err(|_| WireError::internal("store lock poisoned"))?;
+        f(&mut store).map_err(WireError::from)
+    }
+
+    fn state_of(&self, state: &State) -> EnvState {
+        if let Some(message) = &state.maintenance {
+            return EnvState::Maintenance { message: message.clone() };
+        }
+        if !self.link.online() {
+            return EnvState::Offline { reason: "no robot or sim twin is serving this env".into() };
+        }
+        match &state.lease {
+            Some(l) if l.expires > Instant::now() => EnvState::Leased { until_unix_ms: l.expires_unix_ms },
+            _ => EnvState::Free,
+        }
+    }
+
+    /// Current status.
+    pub async fn status(&self) -> EnvStatus {
+        let state = self.state.lock().await;
+        EnvStatus { env_id: self.env.to_string(), state: self.state_of(&state) }
+    }
+
+    async fn publish_status(&self, state: &mut State) {
+        let current = self.state_of(state);
+        if state.last_status.as_ref() == Some(&current) {
+            return;
+        }
+        state.last_status = Some(current.clone());
+        let status = EnvStatus { env_id: self.env.to_string(), state: current };
+        if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Status), &status).await {
+            tracing::warn!("status publish failed: {e}");
+        }
+    }
+
+    /// Publishes the status if it changed (liveliness of the robot side).
+    pub async fn refresh_status(&self) {
+        let mut state = self.state.lock().await;
+        self.publish_status(&mut state).await;
+    }
+
+    fn authenticate(&self, token: &str) -> Result<User, WireError> {
+        if token.is_empty() && !self.options.allow_anonymous {
+            return Err(WireError::unauthorized(format!("{} needs an access token", self.env)));
+        }
+        let user = self.store(|s| s.authenticate(token))?;
+        match user {
+            Some(u) if u.name == ANONYMOUS && !self.options.allow_anonymous => {
+                Err(WireError::unauthorized("anonymous access is not allowed here"))
+            }
+            Some(u) => Ok(u),
+            None => Err(WireError::unauthorized("unknown access token")),
+        }
+    }
+
+    /// Checks that `session_id` holds the lease and renews it.
+    fn holder<'a>(&self, state: &'a mut State, session_id: &str) -> Result<&'a mut Lease, WireError> {
+        let now = Instant::now();
+        match state.lease.as_mut() {
+            Some(l) if l.session_id == session_id && l.expires > now && !l.disconnected => {
+                l.expires = now + self.options.lease_idle;
+                l.expires_unix_ms = unix_ms_in(self.options.lease_idle);
+                Ok(l)
+            }
+            Some(l) if l.session_id == session_id => {
+                Err(WireError::unauthorized("your lease expired; open the env again to continue"))
+            }
+            _ => Err(WireError::unauthorized("this session does not hold the env's lease")),
+        }
+    }
+
+    /// `open`: authenticate, take the lease, create or resume the experiment.
+    pub async fn open(&self, req: OpenRequest) -> Result<OpenReply, WireError> {
+        let user = self.authenticate(&req.token)?;
+        validate_options(&req.obs)?;
+        let mut state = self.state.lock().await;
+        if let Some(message) = &state.maintenance {
+            return Err(WireError::unavailable(format!("{} is in maintenance: {message}", self.env)));
+        }
+        if !self.link.online() {
+            return Err(WireError::unavailable(format!("{} is offline: no robot or sim twin", self.env)));
+        }
+        let now = Instant::now();
+        if let Some(lease) = &state.lease {
+            let live = lease.expires > now;
+            if live && lease.user.id != user.id {
+                return Err(WireError::busy(format!(
+                    "{} is leased by another user until {}",
+                    self.env,
+                    format_unix_ms(lease.expires_unix_ms)
+                )));
+            }
+            if live && lease.user.id == user.id && user.name == ANONYMOUS && !lease.disconnected {
+                return Err(WireError::busy(format!("{} is in use by another anonymous session", self.env)));
+            }
+        }
+        // The same user reconnecting takes the lease over; the old
+        // session's unfinished episode is recorded as aborted.
+        self.abort_episode(&mut state, "session replaced").await;
+        let name = if req.experiment_name.is_empty() {
+            format!("run-{}", now_ms())
+        } else {
+            req.experiment_name.clone()
+        };
+        let env_id = self.env.to_string();
+        let experiment = self.store(|s| {
+            s.open_experiment(&user, &env_id, &self.task.name, &name, req.resume_experiment, req.learning_type, req.algorithm_mode)
+        })?;
+        let session_id: String = {
+            let mut rng = rand::rng();
+            (0..24).map(|_| format!("{:x}", rng.random_range(0..16u8))).collect()
+        };
+        let lease_until_unix_ms = unix_ms_in(self.options.lease_idle);
+        tracing::info!(env = %self.env, user = %user.name, experiment = %experiment.name, "lease granted");
+        let info = experiment_info(&experiment);
+        state.lease = Some(Lease {
+            session_id: session_id.clone(),
+            client_id: req.client_id.clone(),
+            user,
+            experiment,
+            obs: req.obs,
+            expires: now + self.options.lease_idle,
+            expires_unix_ms: lease_until_unix_ms,
+            disconnected: false,
+        });
+        state.episode = None;
+        self.publish_status(&mut state).await;
+        Ok(OpenReply { session_id, lease_until_unix_ms, spec: self.spec(), experiment: info })
+    }
+
+    /// `reset`: spawn (seeded), move the robot there, observe.
+    pub async fn reset(&self, req: ResetRequest) -> Result<ResetReply, WireError> {
+        let mut state = self.state.lock().await;
+        self.holder(&mut state, &req.session_id)?;
+        if let Some(message) = &state.maintenance {
+            return Err(WireError::unavailable(format!("in maintenance: {message}")));
+        }
+        self.abort_episode(&mut state, "reset before the episode ended").await;
+        let seed = match req.seed {
+            Seed::Fixed(s) => {
+                state.sampler.reseed(s);
+                Some(s)
+            }
+            Seed::Continue => None,
+        };
+        let target = state
+            .sampler
+            .sample(&self.task)
+            .ok_or_else(|| WireError::internal("no valid spawn pose in this world"))?;
+        state.seq += 1;
+        let arrived = self.link.goto(state.seq, target).await?;
+        state.seq += 1;
+        let observe = MotionCommand { seq: state.seq, linear_x: 0.0, angular_z: 0.0, duration_s: 0.0 };
+        let answer = self.link.execute(&observe).await?;
+        let lease = self.holder(&mut state, &req.session_id)?;
+        let (index, obs) = (lease.experiment.episodes, lease.obs);
+        let experiment = lease.experiment.name.clone();
+        let achieved = answer.pose.planar();
+        tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, "reset");
+        state.episode = Some(Episode {
+            index,
+            seed,
+            steps: 0,
+            episode_return: 0.0,
+            over: false,
+            requested: target,
+            achieved,
+            started_ms: now_ms(),
+        });
+        let observation = self.observe(&mut state, &answer, &obs)?;
+        self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None).await;
+        Ok(ResetReply { observation, info: StepInfo { episode_id: index, step: 0 } })
+    }
+
+    fn observe(&self, state: &mut State, answer: &Answer, obs: &ObsOptions) -> Result<ObsArray, WireError> {
+        assemble(&answer.frame, obs, self.task.episode.depth_max_m, &mut state.observation)?;
+        Ok(state.observation.clone())
+    }
+
+    /// `step`: act, observe, judge.
+    pub async fn step(&self, req: StepRequest) -> Result<StepReply, WireError> {
+        let mut state = self.state.lock().await;
+        let lease = self.holder(&mut state, &req.session_id)?;
+        let (obs, experiment) = (lease.obs, lease.experiment.name.clone());
+        if let Some(message) = &state.maintenance {
+            return Err(WireError::unavailable(format!("in maintenance: {message}")));
+        }
+        match &state.episode {
+            None => return Err(WireError::invalid_state("call reset() before step()")),
+            Some(e) if e.over => return Err(WireError::invalid_state("the episode has ended; call reset()")),
+            Some(_) => {}
+        }
+        let motion = self.task.motion(&req.action, state.seq + 1)?;
+        state.seq += 1;
+        let answer = match self.link.execute(&motion).await {
+            Ok(a) => a,
+            Err(e) => {
+                // The robot is stopped by the link; the episode cannot be scored.
+                self.abort_episode(&mut state, &format!("aborted: {}", e.message)).await;
+                return Err(e);
+            }
+        };
+        let pose = answer.pose.planar();
+        let Some(episode) = state.episode.as_mut() else {
+            return Err(WireError::internal("episode vanished"));
+        };
+        episode.steps += 1;
+        let outcome = judge(&self.task, pose.x, pose.y, episode.steps);
+        episode.episode_return += outcome.reward;
+        let (index, steps, ret) = (episode.index, episode.steps, episode.episode_return);
+        let observation = self.observe(&mut state, &answer, &obs)?;
+        self.publish_event(&experiment, index, steps, outcome.reward, ret, outcome.terminated, outcome.truncated, outcome.end.as_ref())
+            .await;
+        if let Some(end) = &outcome.end {
+            self.finish_episode(&mut state, end)?;
+        }
+        Ok(StepReply {
+            seq: req.seq,
+            observation,
+            reward: outcome.reward,
+            terminated: outcome.terminated,
+            truncated: outcome.truncated,
+            info: StepInfo { episode_id: index, step: steps },
+        })
+    }
+
+    /// `close`: record, release the lease.
+    pub async fn close(&self, req: CloseRequest) -> Result<CloseReply, WireError> {
+        let mut state = self.state.lock().await;
+        self.holder(&mut state, &req.session_id)?;
+        self.abort_episode(&mut state, "closed").await;
+        let lease = state.lease.take().ok_or_else(|| WireError::internal("lease vanished"))?;
+        tracing::info!(env = %self.env, user = %lease.user.name, "lease released");
+        self.publish_status(&mut state).await;
+        Ok(CloseReply { experiment: experiment_info(&lease.experiment) })
+    }
+
+    /// `admin`: operators put the env into or out of maintenance.
+    pub async fn admin(&self, req: AdminRequest) -> Result<EnvStatus, WireError> {
+        let token = match &req {
+            AdminRequest::SetMaintenance { token, .. } | AdminRequest::ClearMaintenance { token } => token,
+        };
+        let user = self.store(|s| s.authenticate(token))?;
+        if !user.as_ref().is_some_and(User::is_operator) {
+            return Err(WireError::unauthorized("operator token required"));
+        }
+        let mut state = self.state.lock().await;
+        match req {
+            AdminRequest::SetMaintenance { message, .. } => {
+                tracing::warn!(env = %self.env, %message, "maintenance on");
+                self.link.stop().await;
+                self.abort_episode(&mut state, "maintenance").await;
+                state.maintenance = Some(message);
+            }
+            AdminRequest::ClearMaintenance { .. } => state.maintenance = None,
+        }
+        self.publish_status(&mut state).await;
+        Ok(EnvStatus { env_id: self.env.to_string(), state: self.state_of(&state) })
+    }
+
+    /// `leaderboard`: test-mode experiments ranked.
+    pub fn leaderboard(&self) -> Result<Leaderboard, WireError> {
+        let env_id = self.env.to_string();
+        let entries = self.store(|s| s.leaderboard(&env_id))?;
+        Ok(Leaderboard { env_id, entries })
+    }
+
+    /// The holder's client vanished: stop the robot, record the episode as
+    /// aborted, keep the lease for the reconnect grace period.
+    pub async fn client_disconnected(&self, client_id: &str) {
+        let mut state = self.state.lock().await;
+        let holder = state.lease.as_ref().is_some_and(|l| l.client_id == client_id && !l.disconnected);
+        if !holder {
+            return;
+        }
+        tracing::warn!(env = %self.env, client_id, "lease holder disconnected; robot stopped");
+        self.link.stop().await;
+        self.abort_episode(&mut state, "client disconnected").await;
+        if let Some(lease) = state.lease.as_mut() {
+            lease.disconnected = true;
+            lease.expires = Instant::now() + self.options.reconnect_grace;
+            lease.expires_unix_ms = unix_ms_in(self.options.reconnect_grace);
+        }
+        self.publish_status(&mut state).await;
+    }
+
+    /// Records an unfinished episode as ended for `reason`.
+    async fn abort_episode(&self, state: &mut State, reason: &str) {
+        let running = state.episode.as_ref().is_some_and(|e| !e.over);
+        if running {
+            if let Err(e) = self.finish_episode(state, &EndReason::Aborted(reason.to_owned())) {
+                tracing::error!(env = %self.env, "could not record the aborted episode: {}", e.message);
+            }
+        }
+    }
+
+    fn finish_episode(&self, state: &mut State, end: &EndReason) -> Result<(), WireError> {
+        let (Some(episode), Some(lease)) = (state.episode.as_mut(), state.lease.as_mut()) else {
+            return Ok(());
+        };
+        episode.over = true;
+        let record = EpisodeRecord {
+            experiment_id: lease.experiment.id,
+            episode_index: episode.index,
+            seed: episode.seed,
+            steps: episode.steps,
+            episode_return: episode.episode_return,
+            success: *end == EndReason::Success,
+            end_reason: end.as_str().to_owned(),
+            requested_start: [episode.requested.x, episode.requested.y, episode.requested.yaw],
+            achieved_start: [episode.achieved.x, episode.achieved.y, episode.achieved.yaw],
+            started_ms: episode.started_ms,
+            ended_ms: now_ms(),
+        };
+        let mut store = self.store.lock().map_err(|_| WireError::internal("store lock poisoned"))?;
+        store.record_episode(&record).map_err(WireError::from)?;
+        lease.experiment.episodes += 1;
+        lease.experiment.steps += u64::from(episode.steps);
+        Ok(())
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    async fn publish_event(
+        &self,
+        experiment: &str,
+        episode_id: u64,
+        step: u32,
+        reward: f64,
+        episode_return: f64,
+        terminated: bool,
+        truncated: bool,
+        end: Option<&EndReason>,
+    ) {
+        let event = EpisodeEvent {
+            experiment: experiment.to_owned(),
+            episode_id,
+            step,
+            reward,
+            episode_return,
+            terminated,
+            truncated,
+            success: end == Some(&EndReason::Success),
+            end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
+        };
+        if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Reward), &event).await {
+            tracing::warn!("reward publish failed: {e}");
+        }
+    }
+}
+
+fn experiment_info(e: &Experiment) -> ExperimentInfo {
+    ExperimentInfo { id: e.id, name: e.name.clone(), episodes: e.episodes, steps: e.steps }
+}

@@ -1,0 +1,39 @@
+//! Errors of the controller.
+
+use offworld_runtime::WireError;
+
+/// What can go wrong inside the controller.
+#[derive(Debug, thiserror::Error)]
+pub enum ControllerError {
+    /// Bad configuration (task, world, tokens).
+    #[error("configuration: {0}")]
+    Config(String),
+    /// The database failed.
+    #[error("store: {0}")]
+    Store(String),
+    /// Something that must exist does not.
+    #[error("{0}")]
+    NotFound(String),
+    /// Something that must not exist does.
+    #[error("{0}")]
+    Conflict(String),
+    /// Zenoh refused an operation.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+impl From<ControllerError> for WireError {
+    fn from(e: ControllerError) -> Self {
+        match e {
+            ControllerError::NotFound(m) => WireError::not_found(m),
+            ControllerError::Conflict(m) => WireError::bad_request(m),
+            ControllerError::Config(m) => WireError::bad_request(m),
+            // Store and Zenoh details stay in the server log.
+            ControllerError::Store(m) => {
+                tracing::error!("store failure: {m}");
+                WireError::internal("the experiment store failed; the episode was not recorded")
+            }
+            ControllerError::Zenoh(m) => WireError::internal(format!("zenoh: {m}")),
+        }
+    }
+}

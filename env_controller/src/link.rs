@@ -1,0 +1,241 @@
+//! The controller's view of whatever embodies the robot under an env's
+//! namespace (sim twin, or robot_agent + tracker_agent): it sends motion
+//! commands and waits for the frame and the pose that answer them. It never
+//! knows which embodiment it drives.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use offworld_runtime::codec;
+use offworld_runtime::keys::{Component, EnvId, Topic};
+use offworld_runtime::msg::{CameraFrame, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, TrackingStatus};
+use offworld_runtime::wire;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::sample::{Sample, SampleKind};
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::WireError;
+use tokio::sync::watch;
+
+use crate::error::ControllerError;
+
+/// A pose as received.
+#[derive(Debug, Clone)]
+pub struct PoseSample {
+    /// The message.
+    pub pose: PoseStamped,
+    /// The command it answers, if the embodiment tags poses (sim twin).
+    pub seq: Option<u64>,
+    /// When it arrived.
+    pub received: Instant,
+}
+
+impl PoseSample {
+    /// Planar pose.
+    pub fn planar(&self) -> Pose2D {
+        let p = &self.pose.pose;
+        Pose2D { x: p.position.x, y: p.position.y, yaw: p.orientation.yaw() }
+    }
+}
+
+/// What answered a command.
+pub struct Answer {
+    /// The camera frames captured after the motion.
+    pub frame: Arc<CameraFrame>,
+    /// The robot's pose after the motion.
+    pub pose: PoseSample,
+}
+
+/// Timeouts of the link.
+#[derive(Debug, Clone, Copy)]
+pub struct LinkTimeouts {
+    /// Added to a motion's duration while waiting for its frame.
+    pub answer_margin: Duration,
+    /// How long to wait for a fresh pose after the frame arrived.
+    pub pose_wait: Duration,
+    /// Longest reset drive.
+    pub goto: Duration,
+}
+
+impl Default for LinkTimeouts {
+    fn default() -> Self {
+        Self {
+            answer_margin: Duration::from_secs(5),
+            pose_wait: Duration::from_millis(500),
+            goto: Duration::from_secs(60),
+        }
+    }
+}
+
+/// Subscriptions to one env's robot-side keys.
+pub struct RobotLink {
+    session: Session,
+    env: EnvId,
+    frames: watch::Receiver<Option<Arc<CameraFrame>>>,
+    poses: watch::Receiver<Option<PoseSample>>,
+    tracking_lost: Arc<AtomicBool>,
+    embodiment_alive: watch::Receiver<bool>,
+    timeouts: LinkTimeouts,
+    _subscribers: Vec<Subscriber<()>>,
+}
+
+impl RobotLink {
+    /// Subscribes to `obs`, `pose`, `tracking` and the embodiment's
+    /// liveliness tokens of `env`.
+    pub async fn connect(session: &Session, env: &EnvId, timeouts: LinkTimeouts) -> Result<Self, ControllerError> {
+        let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
+        let (frame_tx, frames) = watch::channel(None);
+        let obs = session
+            .declare_subscriber(env.key(Topic::Obs))
+            .callback(move |sample: Sample| match codec::decode_payload::<CameraFrame>(sample.payload()) {
+                Ok(frame) => {
+                    frame_tx.send_replace(Some(Arc::new(frame)));
+                }
+                Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
+            })
+            .await
+            .map_err(zerr)?;
+        let (pose_tx, poses) = watch::channel(None);
+        let pose = session
+            .declare_subscriber(env.key(Topic::Pose))
+            .callback(move |sample: Sample| match codec::decode_payload::<PoseStamped>(sample.payload()) {
+                Ok(pose) => {
+                    let seq = wire::decode_attachment::<SeqTag>(&sample).map(|t| t.seq);
+                    pose_tx.send_replace(Some(PoseSample { pose, seq, received: Instant::now() }));
+                }
+                Err(e) => tracing::warn!("rejected a malformed pose: {e}"),
+            })
+            .await
+            .map_err(zerr)?;
+        let tracking_lost = Arc::new(AtomicBool::new(false));
+        let lost = tracking_lost.clone();
+        let tracking = session
+            .declare_subscriber(env.key(Topic::Tracking))
+            .callback(move |sample: Sample| match codec::decode_payload::<TrackingStatus>(sample.payload()) {
+                Ok(status) => lost.store(!status.tracking, Ordering::SeqCst),
+                Err(e) => tracing::warn!("rejected a malformed tracking status: {e}"),
+            })
+            .await
+            .map_err(zerr)?;
+        // The env is online while a sim twin or a robot agent declares itself.
+        let (alive_tx, embodiment_alive) = watch::channel(false);
+        let twin_key = env.alive_key(Component::SimTwin);
+        let robot_key = env.alive_key(Component::RobotAgent);
+        let present = std::sync::Mutex::new(std::collections::BTreeSet::<String>::new());
+        let liveliness = session
+            .liveliness()
+            .declare_subscriber(format!("{}/alive/*", env.prefix()))
+            .history(true)
+            .callback(move |sample: Sample| {
+                let key = sample.key_expr().as_str().to_owned();
+                if key != twin_key && key != robot_key {
+                    return;
+                }
+                let Ok(mut set) = present.lock() else { return };
+                match sample.kind() {
+                    SampleKind::Put => set.insert(key),
+                    SampleKind::Delete => set.remove(&key),
+                };
+                alive_tx.send_replace(!set.is_empty());
+            })
+            .await
+            .map_err(zerr)?;
+        Ok(Self {
+            session: session.clone(),
+            env: env.clone(),
+            frames,
+            poses,
+            tracking_lost,
+            embodiment_alive,
+            timeouts,
+            _subscribers: vec![obs, pose, tracking, liveliness],
+        })
+    }
+
+    /// Whether a twin or robot agent is present.
+    pub fn online(&self) -> bool {
+        *self.embodiment_alive.borrow()
+    }
+
+    /// Waits (bounded) until the embodiment is present.
+    pub async fn wait_online(&self, timeout: Duration) -> bool {
+        let mut alive = self.embodiment_alive.clone();
+        tokio::time::timeout(timeout, alive.wait_for(|a| *a)).await.is_ok_and(|r| r.is_ok())
+    }
+
+    /// Sends `cmd` and waits for the frame and pose answering it.
+    pub async fn execute(&self, cmd: &MotionCommand) -> Result<Answer, WireError> {
+        if self.tracking_lost.load(Ordering::SeqCst) {
+            self.stop().await;
+            return Err(WireError::unavailable("tracking lost: the robot's pose is unknown"));
+        }
+        let mut frames = self.frames.clone();
+        frames.mark_unchanged();
+        wire::put(&self.session, &self.env.key(Topic::Cmd), cmd)
+            .await
+            .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
+        let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
+        let seq = cmd.seq;
+        let frame = tokio::time::timeout(limit, async {
+            loop {
+                if frames.changed().await.is_err() {
+                    return None;
+                }
+                let frame = frames.borrow_and_update().clone();
+                if let Some(frame) = frame.filter(|f| f.seq == seq) {
+                    return Some(frame);
+                }
+            }
+        })
+        .await
+        .ok()
+        .flatten()
+        .ok_or_else(|| {
+            WireError::timeout(format!("the robot did not answer command {seq} within {:.1} s", limit.as_secs_f64()))
+        })?;
+        let arrived = Instant::now();
+        // A tagged pose answers this command exactly; an untagged one (a
+        // tracker streaming) must have arrived after the frame.
+        let fresh = |p: &Option<PoseSample>| {
+            p.as_ref().is_some_and(|p| p.seq == Some(seq) || (p.seq.is_none() && p.received >= arrived))
+        };
+        let mut poses = self.poses.clone();
+        let pose = match tokio::time::timeout(self.timeouts.pose_wait, poses.wait_for(fresh)).await {
+            Ok(Ok(p)) => p.clone(),
+            _ => None,
+        };
+        let Some(pose) = pose else {
+            self.stop().await;
+            return Err(WireError::unavailable(format!(
+                "tracking lost: no pose for command {seq} within {:.1} s",
+                self.timeouts.pose_wait.as_secs_f64()
+            )));
+        };
+        if self.tracking_lost.load(Ordering::SeqCst) {
+            self.stop().await;
+            return Err(WireError::unavailable("tracking lost during the step"));
+        }
+        Ok(Answer { frame, pose })
+    }
+
+    /// Moves the robot to a spawn pose (sim: teleport; real: drive there).
+    pub async fn goto(&self, seq: u64, target: Pose2D) -> Result<GotoReply, WireError> {
+        let request = GotoRequest { seq, target, timeout_s: self.timeouts.goto.as_secs_f64() };
+        wire::request(&self.session, &self.env.key(Topic::Goto), &request, self.timeouts.goto + Duration::from_secs(1))
+            .await
+            .map_err(|e| match e.into_wire() {
+                e if e.code == offworld_runtime::ErrorCode::NotFound => {
+                    WireError::unavailable(format!("no robot or twin serves {}: {}", self.env, e.message))
+                }
+                e => e,
+            })
+    }
+
+    /// Commands zero velocity at once (best effort).
+    pub async fn stop(&self) {
+        let halt = MotionCommand { seq: u64::MAX, linear_x: 0.0, angular_z: 0.0, duration_s: 0.0 };
+        if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Cmd), &halt).await {
+            tracing::error!(env = %self.env, "cannot send stop: {e}");
+        }
+    }
+}

@@ -1,0 +1,166 @@
+//! The controller: serves any number of envs from one process on one Zenoh
+//! session. Per env: one task per queryable (requests to an env are
+//! serialised by its state lock), a watcher of client liveliness tokens, a
+//! heartbeat for the robot's watchdog, and status publication.
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use offworld_runtime::keys::{Component, EnvId, Topic};
+use offworld_runtime::msg::{AdminRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest, Time};
+use offworld_runtime::zenoh::liveliness::LivelinessToken;
+use offworld_runtime::zenoh::query::Query;
+use offworld_runtime::zenoh::sample::SampleKind;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{wire, WireError};
+use tokio::task::JoinHandle;
+
+use crate::env::{EnvOptions, EnvServer};
+use crate::error::ControllerError;
+use crate::store::Store;
+use crate::task::Task;
+
+/// How often the controller's heartbeat reaches each robot.
+pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(50);
+
+/// A running controller; stops serving when dropped.
+pub struct Controller {
+    session: Session,
+    store: Arc<Mutex<Store>>,
+    envs: Vec<ServedEnv>,
+}
+
+struct ServedEnv {
+    server: Arc<EnvServer>,
+    tasks: Vec<JoinHandle<()>>,
+    _token: LivelinessToken,
+}
+
+impl Drop for ServedEnv {
+    fn drop(&mut self) {
+        for task in &self.tasks {
+            task.abort();
+        }
+    }
+}
+
+impl Controller {
+    /// A controller on `session` recording into `store`.
+    pub fn new(session: Session, store: Store) -> Self {
+        Self { session, store: Arc::new(Mutex::new(store)), envs: Vec::new() }
+    }
+
+    /// The shared store.
+    pub fn store(&self) -> Arc<Mutex<Store>> {
+        self.store.clone()
+    }
+
+    /// Starts serving `env` with `task`. Must be called inside a tokio runtime.
+    pub async fn serve(&mut self, env: EnvId, task: Task, options: EnvOptions) -> Result<Arc<EnvServer>, ControllerError> {
+        if self.envs.iter().any(|e| e.server.env() == &env) {
+            return Err(ControllerError::Conflict(format!("{env} is already served")));
+        }
+        let server = Arc::new(EnvServer::new(&self.session, env.clone(), task, options, self.store.clone()).await?);
+        let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
+        let mut tasks = Vec::new();
+        for topic in [
+            Topic::Open,
+            Topic::Spec,
+            Topic::Reset,
+            Topic::Step,
+            Topic::Close,
+            Topic::Status,
+            Topic::Admin,
+            Topic::Leaderboard,
+        ] {
+            let queryable = self.session.declare_queryable(env.key(topic)).await.map_err(zerr)?;
+            let server = server.clone();
+            tasks.push(tokio::spawn(async move {
+                while let Ok(query) = queryable.recv_async().await {
+                    handle(&server, topic, &query).await;
+                }
+            }));
+        }
+        // Client liveliness: a vanished lease holder stops the robot.
+        let clients = self
+            .session
+            .liveliness()
+            .declare_subscriber(format!("{}/alive/client/*", env.prefix()))
+            .await
+            .map_err(zerr)?;
+        let watcher = server.clone();
+        tasks.push(tokio::spawn(async move {
+            while let Ok(sample) = clients.recv_async().await {
+                if sample.kind() == SampleKind::Delete {
+                    if let Some(client_id) = sample.key_expr().as_str().rsplit('/').next() {
+                        watcher.client_disconnected(client_id).await;
+                    }
+                }
+            }
+        }));
+        // Heartbeat for the robot's watchdog, and status on change.
+        let session = self.session.clone();
+        let beat_server = server.clone();
+        let heartbeat_key = env.key(Topic::Heartbeat);
+        tasks.push(tokio::spawn(async move {
+            let mut interval = tokio::time::interval(HEARTBEAT_PERIOD);
+            let mut counter = 0u64;
+            loop {
+                interval.tick().await;
+                counter += 1;
+                let beat = Heartbeat { stamp: Time::now(), counter };
+                if let Err(e) = wire::put(&session, &heartbeat_key, &beat).await {
+                    tracing::warn!("heartbeat failed: {e}");
+                }
+                if counter % 10 == 0 {
+                    beat_server.refresh_status().await;
+                }
+            }
+        }));
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(env.alive_key(Component::Controller))
+            .await
+            .map_err(zerr)?;
+        tracing::info!(%env, task = %server.spec().task, "serving");
+        self.envs.push(ServedEnv { server: server.clone(), tasks, _token: token });
+        Ok(server)
+    }
+
+    /// The envs served.
+    pub fn envs(&self) -> impl Iterator<Item = &Arc<EnvServer>> {
+        self.envs.iter().map(|e| &e.server)
+    }
+}
+
+async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
+    let sent = match topic {
+        Topic::Open => respond(query, async { server.open(wire::decode_query::<OpenRequest>(query)?).await }).await,
+        Topic::Spec => respond(query, async { Ok(server.spec()) }).await,
+        Topic::Reset => respond(query, async { server.reset(wire::decode_query::<ResetRequest>(query)?).await }).await,
+        Topic::Step => respond(query, async { server.step(wire::decode_query::<StepRequest>(query)?).await }).await,
+        Topic::Close => respond(query, async { server.close(wire::decode_query::<CloseRequest>(query)?).await }).await,
+        Topic::Status => respond(query, async { Ok(server.status().await) }).await,
+        Topic::Admin => respond(query, async { server.admin(wire::decode_query::<AdminRequest>(query)?).await }).await,
+        Topic::Leaderboard => respond(query, async { server.leaderboard() }).await,
+        other => {
+            tracing::error!(?other, "no handler");
+            Ok(())
+        }
+    };
+    if let Err(e) = sent {
+        tracing::warn!(env = %server.env(), ?topic, "reply failed: {e}");
+    }
+}
+
+async fn respond<T: serde::Serialize>(
+    query: &Query,
+    work: impl std::future::Future<Output = Result<T, WireError>>,
+) -> Result<(), offworld_runtime::RequestError> {
+    let result = work.await;
+    if let Err(e) = &result {
+        tracing::debug!(key = %query.key_expr(), "request refused: {e}");
+    }
+    wire::reply(query, result.as_ref().map_err(Clone::clone)).await
+}
