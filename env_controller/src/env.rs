@@ -7,12 +7,12 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard,
-    MotionCommand, ObsArray, ObsOptions, OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo,
-    StepReply, StepRequest,
+    AdminRequest, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, EpisodeEvent,
+    ExperimentInfo, Leaderboard, MotionCommand, ObsArray, ObsOptions, OpenReply, OpenRequest,
+    Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
 };
-use offworld_runtime::{wire, WireError};
 use offworld_runtime::zenoh::Session;
+use offworld_runtime::{wire, WireError};
 use rand::Rng;
 use tokio::sync::Mutex as AsyncMutex;
 
@@ -154,20 +154,32 @@ impl EnvServer {
         }
     }
 
-    fn store<T>(&self, f: impl FnOnce(&mut Store) -> Result<T, crate::ControllerError>) -> Result<T, WireError> {
-        let mut store = self.store.lock().map_err(|_| WireError::internal("store lock poisoned"))?;
+    fn store<T>(
+        &self,
+        f: impl FnOnce(&mut Store) -> Result<T, crate::ControllerError>,
+    ) -> Result<T, WireError> {
+        let mut store = self
+            .store
+            .lock()
+            .map_err(|_| WireError::internal("store lock poisoned"))?;
         f(&mut store).map_err(WireError::from)
     }
 
     fn state_of(&self, state: &State) -> EnvState {
         if let Some(message) = &state.maintenance {
-            return EnvState::Maintenance { message: message.clone() };
+            return EnvState::Maintenance {
+                message: message.clone(),
+            };
         }
         if !self.link.online() {
-            return EnvState::Offline { reason: "no robot or sim twin is serving this env".into() };
+            return EnvState::Offline {
+                reason: "no robot or sim twin is serving this env".into(),
+            };
         }
         match &state.lease {
-            Some(l) if l.expires > Instant::now() => EnvState::Leased { until_unix_ms: l.expires_unix_ms },
+            Some(l) if l.expires > Instant::now() => EnvState::Leased {
+                until_unix_ms: l.expires_unix_ms,
+            },
             _ => EnvState::Free,
         }
     }
@@ -175,7 +187,10 @@ impl EnvServer {
     /// Current status.
     pub async fn status(&self) -> EnvStatus {
         let state = self.state.lock().await;
-        EnvStatus { env_id: self.env.to_string(), state: self.state_of(&state) }
+        EnvStatus {
+            env_id: self.env.to_string(),
+            state: self.state_of(&state),
+        }
     }
 
     async fn publish_status(&self, state: &mut State) {
@@ -184,7 +199,10 @@ impl EnvServer {
             return;
         }
         state.last_status = Some(current.clone());
-        let status = EnvStatus { env_id: self.env.to_string(), state: current };
+        let status = EnvStatus {
+            env_id: self.env.to_string(),
+            state: current,
+        };
         if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Status), &status).await {
             tracing::warn!("status publish failed: {e}");
         }
@@ -198,20 +216,27 @@ impl EnvServer {
 
     fn authenticate(&self, token: &str) -> Result<User, WireError> {
         if token.is_empty() && !self.options.allow_anonymous {
-            return Err(WireError::unauthorized(format!("{} needs an access token", self.env)));
+            return Err(WireError::unauthorized(format!(
+                "{} needs an access token",
+                self.env
+            )));
         }
         let user = self.store(|s| s.authenticate(token))?;
         match user {
-            Some(u) if u.name == ANONYMOUS && !self.options.allow_anonymous => {
-                Err(WireError::unauthorized("anonymous access is not allowed here"))
-            }
+            Some(u) if u.name == ANONYMOUS && !self.options.allow_anonymous => Err(
+                WireError::unauthorized("anonymous access is not allowed here"),
+            ),
             Some(u) => Ok(u),
             None => Err(WireError::unauthorized("unknown access token")),
         }
     }
 
     /// Checks that `session_id` holds the lease and renews it.
-    fn holder<'a>(&self, state: &'a mut State, session_id: &str) -> Result<&'a mut Lease, WireError> {
+    fn holder<'a>(
+        &self,
+        state: &'a mut State,
+        session_id: &str,
+    ) -> Result<&'a mut Lease, WireError> {
         let now = Instant::now();
         match state.lease.as_mut() {
             Some(l) if l.session_id == session_id && l.expires > now && !l.disconnected => {
@@ -219,10 +244,12 @@ impl EnvServer {
                 l.expires_unix_ms = unix_ms_in(self.options.lease_idle);
                 Ok(l)
             }
-            Some(l) if l.session_id == session_id => {
-                Err(WireError::unauthorized("your lease expired; open the env again to continue"))
-            }
-            _ => Err(WireError::unauthorized("this session does not hold the env's lease")),
+            Some(l) if l.session_id == session_id => Err(WireError::unauthorized(
+                "your lease expired; open the env again to continue",
+            )),
+            _ => Err(WireError::unauthorized(
+                "this session does not hold the env's lease",
+            )),
         }
     }
 
@@ -232,10 +259,16 @@ impl EnvServer {
         validate_options(&req.obs)?;
         let mut state = self.state.lock().await;
         if let Some(message) = &state.maintenance {
-            return Err(WireError::unavailable(format!("{} is in maintenance: {message}", self.env)));
+            return Err(WireError::unavailable(format!(
+                "{} is in maintenance: {message}",
+                self.env
+            )));
         }
         if !self.link.online() {
-            return Err(WireError::unavailable(format!("{} is offline: no robot or sim twin", self.env)));
+            return Err(WireError::unavailable(format!(
+                "{} is offline: no robot or sim twin",
+                self.env
+            )));
         }
         let now = Instant::now();
         if let Some(lease) = &state.lease {
@@ -248,7 +281,10 @@ impl EnvServer {
                 )));
             }
             if live && lease.user.id == user.id && user.name == ANONYMOUS && !lease.disconnected {
-                return Err(WireError::busy(format!("{} is in use by another anonymous session", self.env)));
+                return Err(WireError::busy(format!(
+                    "{} is in use by another anonymous session",
+                    self.env
+                )));
             }
         }
         // The same user reconnecting takes the lease over; the old
@@ -261,11 +297,21 @@ impl EnvServer {
         };
         let env_id = self.env.to_string();
         let experiment = self.store(|s| {
-            s.open_experiment(&user, &env_id, &self.task.name, &name, req.resume_experiment, req.learning_type, req.algorithm_mode)
+            s.open_experiment(
+                &user,
+                &env_id,
+                &self.task.name,
+                &name,
+                req.resume_experiment,
+                req.learning_type,
+                req.algorithm_mode,
+            )
         })?;
         let session_id: String = {
             let mut rng = rand::rng();
-            (0..24).map(|_| format!("{:x}", rng.random_range(0..16u8))).collect()
+            (0..24)
+                .map(|_| format!("{:x}", rng.random_range(0..16u8)))
+                .collect()
         };
         let lease_until_unix_ms = unix_ms_in(self.options.lease_idle);
         tracing::info!(env = %self.env, user = %user.name, experiment = %experiment.name, "lease granted");
@@ -282,7 +328,12 @@ impl EnvServer {
         });
         state.episode = None;
         self.publish_status(&mut state).await;
-        Ok(OpenReply { session_id, lease_until_unix_ms, spec: self.spec(), experiment: info })
+        Ok(OpenReply {
+            session_id,
+            lease_until_unix_ms,
+            spec: self.spec(),
+            experiment: info,
+        })
     }
 
     /// `reset`: spawn (seeded), move the robot there, observe.
@@ -292,7 +343,8 @@ impl EnvServer {
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!("in maintenance: {message}")));
         }
-        self.abort_episode(&mut state, "reset before the episode ended").await;
+        self.abort_episode(&mut state, "reset before the episode ended")
+            .await;
         let seed = match req.seed {
             Seed::Fixed(s) => {
                 state.sampler.reseed(s);
@@ -307,7 +359,12 @@ impl EnvServer {
         state.seq += 1;
         let arrived = self.link.goto(state.seq, target).await?;
         state.seq += 1;
-        let observe = MotionCommand { seq: state.seq, linear_x: 0.0, angular_z: 0.0, duration_s: 0.0 };
+        let observe = MotionCommand {
+            seq: state.seq,
+            linear_x: 0.0,
+            angular_z: 0.0,
+            duration_s: 0.0,
+        };
         let answer = self.link.execute(&observe).await?;
         let lease = self.holder(&mut state, &req.session_id)?;
         let (index, obs) = (lease.experiment.episodes, lease.obs);
@@ -325,12 +382,29 @@ impl EnvServer {
             started_ms: now_ms(),
         });
         let observation = self.observe(&mut state, &answer, &obs)?;
-        self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None).await;
-        Ok(ResetReply { observation, info: StepInfo { episode_id: index, step: 0 } })
+        self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
+            .await;
+        Ok(ResetReply {
+            observation,
+            info: StepInfo {
+                episode_id: index,
+                step: 0,
+            },
+        })
     }
 
-    fn observe(&self, state: &mut State, answer: &Answer, obs: &ObsOptions) -> Result<ObsArray, WireError> {
-        assemble(&answer.frame, obs, self.task.episode.depth_max_m, &mut state.observation)?;
+    fn observe(
+        &self,
+        state: &mut State,
+        answer: &Answer,
+        obs: &ObsOptions,
+    ) -> Result<ObsArray, WireError> {
+        assemble(
+            &answer.frame,
+            obs,
+            self.task.episode.depth_max_m,
+            &mut state.observation,
+        )?;
         Ok(state.observation.clone())
     }
 
@@ -344,7 +418,11 @@ impl EnvServer {
         }
         match &state.episode {
             None => return Err(WireError::invalid_state("call reset() before step()")),
-            Some(e) if e.over => return Err(WireError::invalid_state("the episode has ended; call reset()")),
+            Some(e) if e.over => {
+                return Err(WireError::invalid_state(
+                    "the episode has ended; call reset()",
+                ))
+            }
             Some(_) => {}
         }
         let motion = self.task.motion(&req.action, state.seq + 1)?;
@@ -353,7 +431,8 @@ impl EnvServer {
             Ok(a) => a,
             Err(e) => {
                 // The robot is stopped by the link; the episode cannot be scored.
-                self.abort_episode(&mut state, &format!("aborted: {}", e.message)).await;
+                self.abort_episode(&mut state, &format!("aborted: {}", e.message))
+                    .await;
                 return Err(e);
             }
         };
@@ -366,8 +445,17 @@ impl EnvServer {
         episode.episode_return += outcome.reward;
         let (index, steps, ret) = (episode.index, episode.steps, episode.episode_return);
         let observation = self.observe(&mut state, &answer, &obs)?;
-        self.publish_event(&experiment, index, steps, outcome.reward, ret, outcome.terminated, outcome.truncated, outcome.end.as_ref())
-            .await;
+        self.publish_event(
+            &experiment,
+            index,
+            steps,
+            outcome.reward,
+            ret,
+            outcome.terminated,
+            outcome.truncated,
+            outcome.end.as_ref(),
+        )
+        .await;
         if let Some(end) = &outcome.end {
             self.finish_episode(&mut state, end)?;
         }
@@ -377,7 +465,10 @@ impl EnvServer {
             reward: outcome.reward,
             terminated: outcome.terminated,
             truncated: outcome.truncated,
-            info: StepInfo { episode_id: index, step: steps },
+            info: StepInfo {
+                episode_id: index,
+                step: steps,
+            },
         })
     }
 
@@ -386,16 +477,22 @@ impl EnvServer {
         let mut state = self.state.lock().await;
         self.holder(&mut state, &req.session_id)?;
         self.abort_episode(&mut state, "closed").await;
-        let lease = state.lease.take().ok_or_else(|| WireError::internal("lease vanished"))?;
+        let lease = state
+            .lease
+            .take()
+            .ok_or_else(|| WireError::internal("lease vanished"))?;
         tracing::info!(env = %self.env, user = %lease.user.name, "lease released");
         self.publish_status(&mut state).await;
-        Ok(CloseReply { experiment: experiment_info(&lease.experiment) })
+        Ok(CloseReply {
+            experiment: experiment_info(&lease.experiment),
+        })
     }
 
     /// `admin`: operators put the env into or out of maintenance.
     pub async fn admin(&self, req: AdminRequest) -> Result<EnvStatus, WireError> {
         let token = match &req {
-            AdminRequest::SetMaintenance { token, .. } | AdminRequest::ClearMaintenance { token } => token,
+            AdminRequest::SetMaintenance { token, .. }
+            | AdminRequest::ClearMaintenance { token } => token,
         };
         let user = self.store(|s| s.authenticate(token))?;
         if !user.as_ref().is_some_and(User::is_operator) {
@@ -412,7 +509,10 @@ impl EnvServer {
             AdminRequest::ClearMaintenance { .. } => state.maintenance = None,
         }
         self.publish_status(&mut state).await;
-        Ok(EnvStatus { env_id: self.env.to_string(), state: self.state_of(&state) })
+        Ok(EnvStatus {
+            env_id: self.env.to_string(),
+            state: self.state_of(&state),
+        })
     }
 
     /// `leaderboard`: test-mode experiments ranked.
@@ -426,7 +526,10 @@ impl EnvServer {
     /// aborted, keep the lease for the reconnect grace period.
     pub async fn client_disconnected(&self, client_id: &str) {
         let mut state = self.state.lock().await;
-        let holder = state.lease.as_ref().is_some_and(|l| l.client_id == client_id && !l.disconnected);
+        let holder = state
+            .lease
+            .as_ref()
+            .is_some_and(|l| l.client_id == client_id && !l.disconnected);
         if !holder {
             return;
         }
@@ -464,12 +567,19 @@ impl EnvServer {
             episode_return: episode.episode_return,
             success: *end == EndReason::Success,
             end_reason: end.as_str().to_owned(),
-            requested_start: [episode.requested.x, episode.requested.y, episode.requested.yaw],
+            requested_start: [
+                episode.requested.x,
+                episode.requested.y,
+                episode.requested.yaw,
+            ],
             achieved_start: [episode.achieved.x, episode.achieved.y, episode.achieved.yaw],
             started_ms: episode.started_ms,
             ended_ms: now_ms(),
         };
-        let mut store = self.store.lock().map_err(|_| WireError::internal("store lock poisoned"))?;
+        let mut store = self
+            .store
+            .lock()
+            .map_err(|_| WireError::internal("store lock poisoned"))?;
         store.record_episode(&record).map_err(WireError::from)?;
         lease.experiment.episodes += 1;
         lease.experiment.steps += u64::from(episode.steps);
@@ -506,5 +616,10 @@ impl EnvServer {
 }
 
 fn experiment_info(e: &Experiment) -> ExperimentInfo {
-    ExperimentInfo { id: e.id, name: e.name.clone(), episodes: e.episodes, steps: e.steps }
+    ExperimentInfo {
+        id: e.id,
+        name: e.name.clone(),
+        episodes: e.episodes,
+        steps: e.steps,
+    }
 }

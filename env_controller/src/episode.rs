@@ -51,17 +51,37 @@ pub fn judge(task: &Task, x: f64, y: f64, step: u32) -> Outcome {
     let m = task.world.monolith.center;
     let distance = ((x - f64::from(m[0])).powi(2) + (y - f64::from(m[1])).powi(2)).sqrt();
     if distance <= f64::from(t.success_radius) {
-        return Outcome { reward: 1.0, terminated: true, truncated: false, end: Some(EndReason::Success) };
+        return Outcome {
+            reward: 1.0,
+            terminated: true,
+            truncated: false,
+            end: Some(EndReason::Success),
+        };
     }
     // Bounds are f32 data: compare in f32 so a pose exactly on the line is inside.
     let inside = |v: f64, r: [f32; 2]| (v as f32) >= r[0] && (v as f32) <= r[1];
     if !(inside(x, t.boundary_x) && inside(y, t.boundary_y)) {
-        return Outcome { reward: 0.0, terminated: true, truncated: false, end: Some(EndReason::OutOfBounds) };
+        return Outcome {
+            reward: 0.0,
+            terminated: true,
+            truncated: false,
+            end: Some(EndReason::OutOfBounds),
+        };
     }
     if step >= task.episode.max_steps {
-        return Outcome { reward: 0.0, terminated: false, truncated: true, end: Some(EndReason::StepLimit) };
+        return Outcome {
+            reward: 0.0,
+            terminated: false,
+            truncated: true,
+            end: Some(EndReason::StepLimit),
+        };
     }
-    Outcome { reward: 0.0, terminated: false, truncated: false, end: None }
+    Outcome {
+        reward: 0.0,
+        terminated: false,
+        truncated: false,
+        end: None,
+    }
 }
 
 /// Samples spawn poses with the episode's RNG.
@@ -77,7 +97,9 @@ const MAX_TRIES: usize = 100_000;
 impl SpawnSampler {
     /// A sampler seeded with `seed`.
     pub fn new(seed: u64) -> Self {
-        Self { rng: ChaCha8Rng::seed_from_u64(seed) }
+        Self {
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        }
     }
 
     /// Restarts the stream from `seed` (gymnasium's `reset(seed=…)`).
@@ -104,7 +126,11 @@ impl SpawnSampler {
                 (dx * dx + dy * dy).sqrt() >= t.spawn_min_boulder_distance
             });
             if clear {
-                return Some(Pose2D { x: f64::from(x), y: f64::from(y), yaw });
+                return Some(Pose2D {
+                    x: f64::from(x),
+                    y: f64::from(y),
+                    yaw,
+                });
             }
         }
         None
@@ -129,20 +155,56 @@ mod tests {
             (mx, my + 0.40, 5, 1.0, true, false, Some(EndReason::Success)),
             (mx + 0.41, my, 5, 0.0, false, false, None),
             // Success wins on the last step.
-            (mx + 0.2, my, 100, 1.0, true, false, Some(EndReason::Success)),
+            (
+                mx + 0.2,
+                my,
+                100,
+                1.0,
+                true,
+                false,
+                Some(EndReason::Success),
+            ),
             (1.81, 0.0, 5, 0.0, true, false, Some(EndReason::OutOfBounds)),
-            (-1.61, 0.0, 5, 0.0, true, false, Some(EndReason::OutOfBounds)),
+            (
+                -1.61,
+                0.0,
+                5,
+                0.0,
+                true,
+                false,
+                Some(EndReason::OutOfBounds),
+            ),
             (0.0, 1.01, 5, 0.0, true, false, Some(EndReason::OutOfBounds)),
-            (0.0, -1.46, 5, 0.0, true, false, Some(EndReason::OutOfBounds)),
+            (
+                0.0,
+                -1.46,
+                5,
+                0.0,
+                true,
+                false,
+                Some(EndReason::OutOfBounds),
+            ),
             (1.80, 1.00, 5, 0.0, false, false, None),
             (1.0, 0.5, 99, 0.0, false, false, None),
             (1.0, 0.5, 100, 0.0, false, true, Some(EndReason::StepLimit)),
             // Out of bounds on the last step is a termination, not a truncation.
-            (1.9, 0.5, 100, 0.0, true, false, Some(EndReason::OutOfBounds)),
+            (
+                1.9,
+                0.5,
+                100,
+                0.0,
+                true,
+                false,
+                Some(EndReason::OutOfBounds),
+            ),
         ];
         for (x, y, step, reward, terminated, truncated, end) in cases {
             let o = judge(&t, x, y, step);
-            assert_eq!((o.reward, o.terminated, o.truncated, o.end.clone()), (reward, terminated, truncated, end), "at ({x}, {y}) step {step}");
+            assert_eq!(
+                (o.reward, o.terminated, o.truncated, o.end.clone()),
+                (reward, terminated, truncated, end),
+                "at ({x}, {y}) step {step}"
+            );
         }
     }
 
@@ -151,23 +213,36 @@ mod tests {
         for name in ["MonolithDiscrete", "MonolithObstacleDiscrete"] {
             let t = task(name);
             let mut sampler = SpawnSampler::new(42);
-            let poses: Vec<Pose2D> = (0..2000).map(|_| sampler.sample(&t).expect("spawn")).collect();
+            let poses: Vec<Pose2D> = (0..2000)
+                .map(|_| sampler.sample(&t).expect("spawn"))
+                .collect();
             let m = t.world.monolith.center;
             for p in &poses {
-                assert!((-1.52..=1.72).contains(&p.x) && (-1.37..=0.92).contains(&p.y), "{p:?}");
+                assert!(
+                    (-1.52..=1.72).contains(&p.x) && (-1.37..=0.92).contains(&p.y),
+                    "{p:?}"
+                );
                 assert!((0.0..std::f64::consts::TAU).contains(&p.yaw));
                 let d = ((p.x - f64::from(m[0])).powi(2) + (p.y - f64::from(m[1])).powi(2)).sqrt();
                 assert!(d >= 0.5, "{p:?} too close to the monolith");
                 for b in &t.world.boulders {
-                    let dx = ((p.x - f64::from(b.center[0])).abs() - f64::from(b.size[0]) * 0.5).max(0.0);
-                    let dy = ((p.y - f64::from(b.center[1])).abs() - f64::from(b.size[1]) * 0.5).max(0.0);
-                    assert!((dx * dx + dy * dy).sqrt() >= 0.299, "{p:?} too close to a boulder");
+                    let dx = ((p.x - f64::from(b.center[0])).abs() - f64::from(b.size[0]) * 0.5)
+                        .max(0.0);
+                    let dy = ((p.y - f64::from(b.center[1])).abs() - f64::from(b.size[1]) * 0.5)
+                        .max(0.0);
+                    assert!(
+                        (dx * dx + dy * dy).sqrt() >= 0.299,
+                        "{p:?} too close to a boulder"
+                    );
                 }
             }
             // Uniform heading: each quarter turn gets about a quarter of spawns.
             for q in 0..4 {
                 let lo = q as f64 * std::f64::consts::FRAC_PI_2;
-                let n = poses.iter().filter(|p| p.yaw >= lo && p.yaw < lo + std::f64::consts::FRAC_PI_2).count();
+                let n = poses
+                    .iter()
+                    .filter(|p| p.yaw >= lo && p.yaw < lo + std::f64::consts::FRAC_PI_2)
+                    .count();
                 assert!((400..600).contains(&n), "quarter {q}: {n}");
             }
             let mut again = SpawnSampler::new(42);

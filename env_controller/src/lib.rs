@@ -12,7 +12,9 @@
 //! - [`store`]: users, experiments, episodes, leaderboard.
 //! - [`env`]: one env's sessions, leases and request handlers.
 //! - [`server`]: many envs served over Zenoh.
+//! - [`embedded`]: twins + controller in one process.
 
+pub mod embedded;
 pub mod env;
 pub mod episode;
 mod error;

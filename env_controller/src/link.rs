@@ -9,7 +9,9 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Topic};
-use offworld_runtime::msg::{CameraFrame, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, TrackingStatus};
+use offworld_runtime::msg::{
+    CameraFrame, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, TrackingStatus,
+};
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
@@ -34,7 +36,11 @@ impl PoseSample {
     /// Planar pose.
     pub fn planar(&self) -> Pose2D {
         let p = &self.pose.pose;
-        Pose2D { x: p.position.x, y: p.position.y, yaw: p.orientation.yaw() }
+        Pose2D {
+            x: p.position.x,
+            y: p.position.y,
+            yaw: p.orientation.yaw(),
+        }
     }
 }
 
@@ -82,28 +88,40 @@ pub struct RobotLink {
 impl RobotLink {
     /// Subscribes to `obs`, `pose`, `tracking` and the embodiment's
     /// liveliness tokens of `env`.
-    pub async fn connect(session: &Session, env: &EnvId, timeouts: LinkTimeouts) -> Result<Self, ControllerError> {
+    pub async fn connect(
+        session: &Session,
+        env: &EnvId,
+        timeouts: LinkTimeouts,
+    ) -> Result<Self, ControllerError> {
         let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
         let (frame_tx, frames) = watch::channel(None);
         let obs = session
             .declare_subscriber(env.key(Topic::Obs))
-            .callback(move |sample: Sample| match codec::decode_payload::<CameraFrame>(sample.payload()) {
-                Ok(frame) => {
-                    frame_tx.send_replace(Some(Arc::new(frame)));
+            .callback(move |sample: Sample| {
+                match codec::decode_payload::<CameraFrame>(sample.payload()) {
+                    Ok(frame) => {
+                        frame_tx.send_replace(Some(Arc::new(frame)));
+                    }
+                    Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
                 }
-                Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
             })
             .await
             .map_err(zerr)?;
         let (pose_tx, poses) = watch::channel(None);
         let pose = session
             .declare_subscriber(env.key(Topic::Pose))
-            .callback(move |sample: Sample| match codec::decode_payload::<PoseStamped>(sample.payload()) {
-                Ok(pose) => {
-                    let seq = wire::decode_attachment::<SeqTag>(&sample).map(|t| t.seq);
-                    pose_tx.send_replace(Some(PoseSample { pose, seq, received: Instant::now() }));
+            .callback(move |sample: Sample| {
+                match codec::decode_payload::<PoseStamped>(sample.payload()) {
+                    Ok(pose) => {
+                        let seq = wire::decode_attachment::<SeqTag>(&sample).map(|t| t.seq);
+                        pose_tx.send_replace(Some(PoseSample {
+                            pose,
+                            seq,
+                            received: Instant::now(),
+                        }));
+                    }
+                    Err(e) => tracing::warn!("rejected a malformed pose: {e}"),
                 }
-                Err(e) => tracing::warn!("rejected a malformed pose: {e}"),
             })
             .await
             .map_err(zerr)?;
@@ -111,9 +129,11 @@ impl RobotLink {
         let lost = tracking_lost.clone();
         let tracking = session
             .declare_subscriber(env.key(Topic::Tracking))
-            .callback(move |sample: Sample| match codec::decode_payload::<TrackingStatus>(sample.payload()) {
-                Ok(status) => lost.store(!status.tracking, Ordering::SeqCst),
-                Err(e) => tracing::warn!("rejected a malformed tracking status: {e}"),
+            .callback(move |sample: Sample| {
+                match codec::decode_payload::<TrackingStatus>(sample.payload()) {
+                    Ok(status) => lost.store(!status.tracking, Ordering::SeqCst),
+                    Err(e) => tracing::warn!("rejected a malformed tracking status: {e}"),
+                }
             })
             .await
             .map_err(zerr)?;
@@ -160,14 +180,18 @@ impl RobotLink {
     /// Waits (bounded) until the embodiment is present.
     pub async fn wait_online(&self, timeout: Duration) -> bool {
         let mut alive = self.embodiment_alive.clone();
-        tokio::time::timeout(timeout, alive.wait_for(|a| *a)).await.is_ok_and(|r| r.is_ok())
+        tokio::time::timeout(timeout, alive.wait_for(|a| *a))
+            .await
+            .is_ok_and(|r| r.is_ok())
     }
 
     /// Sends `cmd` and waits for the frame and pose answering it.
     pub async fn execute(&self, cmd: &MotionCommand) -> Result<Answer, WireError> {
         if self.tracking_lost.load(Ordering::SeqCst) {
             self.stop().await;
-            return Err(WireError::unavailable("tracking lost: the robot's pose is unknown"));
+            return Err(WireError::unavailable(
+                "tracking lost: the robot's pose is unknown",
+            ));
         }
         let mut frames = self.frames.clone();
         frames.mark_unchanged();
@@ -191,16 +215,21 @@ impl RobotLink {
         .ok()
         .flatten()
         .ok_or_else(|| {
-            WireError::timeout(format!("the robot did not answer command {seq} within {:.1} s", limit.as_secs_f64()))
+            WireError::timeout(format!(
+                "the robot did not answer command {seq} within {:.1} s",
+                limit.as_secs_f64()
+            ))
         })?;
         let arrived = Instant::now();
         // A tagged pose answers this command exactly; an untagged one (a
         // tracker streaming) must have arrived after the frame.
         let fresh = |p: &Option<PoseSample>| {
-            p.as_ref().is_some_and(|p| p.seq == Some(seq) || (p.seq.is_none() && p.received >= arrived))
+            p.as_ref()
+                .is_some_and(|p| p.seq == Some(seq) || (p.seq.is_none() && p.received >= arrived))
         };
         let mut poses = self.poses.clone();
-        let pose = match tokio::time::timeout(self.timeouts.pose_wait, poses.wait_for(fresh)).await {
+        let pose = match tokio::time::timeout(self.timeouts.pose_wait, poses.wait_for(fresh)).await
+        {
             Ok(Ok(p)) => p.clone(),
             _ => None,
         };
@@ -220,20 +249,34 @@ impl RobotLink {
 
     /// Moves the robot to a spawn pose (sim: teleport; real: drive there).
     pub async fn goto(&self, seq: u64, target: Pose2D) -> Result<GotoReply, WireError> {
-        let request = GotoRequest { seq, target, timeout_s: self.timeouts.goto.as_secs_f64() };
-        wire::request(&self.session, &self.env.key(Topic::Goto), &request, self.timeouts.goto + Duration::from_secs(1))
-            .await
-            .map_err(|e| match e.into_wire() {
-                e if e.code == offworld_runtime::ErrorCode::NotFound => {
-                    WireError::unavailable(format!("no robot or twin serves {}: {}", self.env, e.message))
-                }
-                e => e,
-            })
+        let request = GotoRequest {
+            seq,
+            target,
+            timeout_s: self.timeouts.goto.as_secs_f64(),
+        };
+        wire::request(
+            &self.session,
+            &self.env.key(Topic::Goto),
+            &request,
+            self.timeouts.goto + Duration::from_secs(1),
+        )
+        .await
+        .map_err(|e| match e.into_wire() {
+            e if e.code == offworld_runtime::ErrorCode::NotFound => WireError::unavailable(
+                format!("no robot or twin serves {}: {}", self.env, e.message),
+            ),
+            e => e,
+        })
     }
 
     /// Commands zero velocity at once (best effort).
     pub async fn stop(&self) {
-        let halt = MotionCommand { seq: u64::MAX, linear_x: 0.0, angular_z: 0.0, duration_s: 0.0 };
+        let halt = MotionCommand {
+            seq: u64::MAX,
+            linear_x: 0.0,
+            angular_z: 0.0,
+            duration_s: 0.0,
+        };
         if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Cmd), &halt).await {
             tracing::error!(env = %self.env, "cannot send stop: {e}");
         }

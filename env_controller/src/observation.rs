@@ -2,7 +2,9 @@
 //! selection, server-side resize (nearest pixel centre, so depth is never
 //! blended across edges), and depth as uint8 or metres.
 
-use offworld_runtime::msg::{CameraFrame, Channels, DType, DepthFormat, Image, ObsArray, ObsOptions, PixelEncoding};
+use offworld_runtime::msg::{
+    CameraFrame, Channels, DType, DepthFormat, Image, ObsArray, ObsOptions, PixelEncoding,
+};
 use offworld_runtime::WireError;
 
 /// Largest observation side accepted.
@@ -20,13 +22,21 @@ pub fn validate_options(opts: &ObsOptions) -> Result<(), WireError> {
 }
 
 /// Reads one depth pixel in metres (NaN / 0 mm = invalid → None).
-fn depth_reader(image: &Image, encoding: PixelEncoding) -> impl Fn(usize, usize) -> Option<f32> + '_ {
+fn depth_reader(
+    image: &Image,
+    encoding: PixelEncoding,
+) -> impl Fn(usize, usize) -> Option<f32> + '_ {
     let step = image.step as usize;
     move |x, y| {
         let d = match encoding {
             PixelEncoding::Depth32FC1 => {
                 let i = y * step + x * 4;
-                f32::from_le_bytes([image.data[i], image.data[i + 1], image.data[i + 2], image.data[i + 3]])
+                f32::from_le_bytes([
+                    image.data[i],
+                    image.data[i + 1],
+                    image.data[i + 2],
+                    image.data[i + 3],
+                ])
             }
             _ => {
                 let i = y * step + x * 2;
@@ -44,14 +54,22 @@ fn depth_reader(image: &Image, encoding: PixelEncoding) -> impl Fn(usize, usize)
 
 /// Assembles `out` from `frame` per `opts`. Invalid depth becomes 0 in
 /// both formats; uint8 depth is `clip(d / depth_max_m, 0, 1) · 255`.
-pub fn assemble(frame: &CameraFrame, opts: &ObsOptions, depth_max_m: f32, out: &mut ObsArray) -> Result<(), WireError> {
+pub fn assemble(
+    frame: &CameraFrame,
+    opts: &ObsOptions,
+    depth_max_m: f32,
+    out: &mut ObsArray,
+) -> Result<(), WireError> {
     let bad = |what: String| WireError::internal(format!("robot sent a bad frame: {what}"));
     let color_enc = frame.color.validate().map_err(|e| bad(e.to_string()))?;
     let depth_enc = frame.depth.validate().map_err(|e| bad(e.to_string()))?;
     if !matches!(color_enc, PixelEncoding::Rgb8 | PixelEncoding::Bgr8) {
         return Err(bad(format!("colour encoding {}", frame.color.encoding)));
     }
-    if !matches!(depth_enc, PixelEncoding::Depth32FC1 | PixelEncoding::Depth16UC1) {
+    if !matches!(
+        depth_enc,
+        PixelEncoding::Depth32FC1 | PixelEncoding::Depth16UC1
+    ) {
         return Err(bad(format!("depth encoding {}", frame.depth.encoding)));
     }
     let (sw, sh) = (frame.color.width as usize, frame.color.height as usize);
@@ -77,7 +95,11 @@ pub fn assemble(frame: &CameraFrame, opts: &ObsOptions, depth_max_m: f32, out: &
         Channels::RgbOnly => (true, false),
         Channels::Rgbd => (true, true),
     };
-    let rgb_order: [usize; 3] = if color_enc == PixelEncoding::Bgr8 { [2, 1, 0] } else { [0, 1, 2] };
+    let rgb_order: [usize; 3] = if color_enc == PixelEncoding::Bgr8 {
+        [2, 1, 0]
+    } else {
+        [0, 1, 2]
+    };
     let scale = 255.0 / depth_max_m.max(1e-6);
     for y in 0..h {
         let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
@@ -96,7 +118,9 @@ pub fn assemble(frame: &CameraFrame, opts: &ObsOptions, depth_max_m: f32, out: &
             if want_depth {
                 let d = depth_at(sx, sy);
                 match dtype {
-                    DType::U8 => out.data.push(d.map_or(0, |d| (d * scale).clamp(0.0, 255.0) as u8)),
+                    DType::U8 => out
+                        .data
+                        .push(d.map_or(0, |d| (d * scale).clamp(0.0, 255.0) as u8)),
                     DType::F32 => out.data.extend_from_slice(&d.unwrap_or(0.0).to_le_bytes()),
                 }
             }
@@ -118,7 +142,11 @@ mod tests {
         for y in 0..h {
             for x in 0..w {
                 rgb.extend_from_slice(&[x as u8, y as u8, 7]);
-                let d = if (x, y) == (3, 1) { f32::NAN } else { 0.5 * (x + 1) as f32 };
+                let d = if (x, y) == (3, 1) {
+                    f32::NAN
+                } else {
+                    0.5 * (x + 1) as f32
+                };
                 depth.extend_from_slice(&d.to_le_bytes());
             }
         }
@@ -133,22 +161,58 @@ mod tests {
     fn channels_formats_and_resize() {
         let f = frame();
         let mut out = ObsArray::default();
-        let opts = |channels, width, height, depth_format| ObsOptions { channels, width, height, depth_format };
-        assemble(&f, &opts(Channels::DepthOnly, 4, 2, DepthFormat::Uint8), 2.0, &mut out).expect("ok");
-        assert_eq!((out.height, out.width, out.channels, out.dtype), (2, 4, 1, DType::U8));
+        let opts = |channels, width, height, depth_format| ObsOptions {
+            channels,
+            width,
+            height,
+            depth_format,
+        };
+        assemble(
+            &f,
+            &opts(Channels::DepthOnly, 4, 2, DepthFormat::Uint8),
+            2.0,
+            &mut out,
+        )
+        .expect("ok");
+        assert_eq!(
+            (out.height, out.width, out.channels, out.dtype),
+            (2, 4, 1, DType::U8)
+        );
         // 0.5 m of 2 m → 63; 2.0 m → 255; NaN → 0.
         assert_eq!(out.data, vec![63, 127, 191, 255, 63, 127, 191, 0]);
-        assemble(&f, &opts(Channels::Rgbd, 2, 1, DepthFormat::Uint8), 2.0, &mut out).expect("ok");
+        assemble(
+            &f,
+            &opts(Channels::Rgbd, 2, 1, DepthFormat::Uint8),
+            2.0,
+            &mut out,
+        )
+        .expect("ok");
         // Pixel centres of a 2×1 output fall on source (1, 1) and (3, 1);
         // (3, 1) has no depth return → 0.
         assert_eq!(out.data, vec![1, 1, 7, 127, 3, 1, 7, 0]);
         assert!(out.is_consistent());
-        assemble(&f, &opts(Channels::Rgbd, 4, 2, DepthFormat::Meters), 2.0, &mut out).expect("ok");
+        assemble(
+            &f,
+            &opts(Channels::Rgbd, 4, 2, DepthFormat::Meters),
+            2.0,
+            &mut out,
+        )
+        .expect("ok");
         assert_eq!(out.dtype, DType::F32);
-        let floats: Vec<f32> = out.data.chunks(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let floats: Vec<f32> = out
+            .data
+            .chunks(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
         assert_eq!(&floats[..4], &[0.0, 0.0, 7.0, 0.5]);
         assert_eq!(floats[floats.len() - 1], 0.0, "invalid depth is 0 m");
-        assemble(&f, &opts(Channels::RgbOnly, 4, 2, DepthFormat::Uint8), 2.0, &mut out).expect("ok");
+        assemble(
+            &f,
+            &opts(Channels::RgbOnly, 4, 2, DepthFormat::Uint8),
+            2.0,
+            &mut out,
+        )
+        .expect("ok");
         assert_eq!(out.data.len(), 4 * 2 * 3);
     }
 
@@ -156,13 +220,29 @@ mod tests {
     fn bgr_and_millimetre_depth_are_normalised() {
         let mut f = frame();
         f.color.encoding = "bgr8".into();
-        let mm: Vec<u8> = [500u16, 1000, 0, 2000, 500, 1000, 1500, 2000].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let mm: Vec<u8> = [500u16, 1000, 0, 2000, 500, 1000, 1500, 2000]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
         f.depth = Image::packed(Header::default(), 4, 2, PixelEncoding::Depth16UC1, mm);
         let mut out = ObsArray::default();
-        let opts = ObsOptions { channels: Channels::Rgbd, width: 4, height: 2, depth_format: DepthFormat::Meters };
+        let opts = ObsOptions {
+            channels: Channels::Rgbd,
+            width: 4,
+            height: 2,
+            depth_format: DepthFormat::Meters,
+        };
         assemble(&f, &opts, 2.0, &mut out).expect("ok");
-        let floats: Vec<f32> = out.data.chunks(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        assert_eq!(&floats[..4], &[7.0, 0.0, 0.0, 0.5], "bgr swapped to rgb, mm to m");
+        let floats: Vec<f32> = out
+            .data
+            .chunks(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        assert_eq!(
+            &floats[..4],
+            &[7.0, 0.0, 0.0, 0.5],
+            "bgr swapped to rgb, mm to m"
+        );
         assert_eq!(floats[2 * 4 + 3], 0.0, "0 mm is invalid");
     }
 
@@ -176,7 +256,11 @@ mod tests {
         f.color.encoding = "mono8".into();
         assert!(assemble(&f, &ObsOptions::default(), 5.0, &mut out).is_err());
         for (w, h) in [(0, 10), (10, 0), (2000, 10)] {
-            let o = ObsOptions { width: w, height: h, ..ObsOptions::default() };
+            let o = ObsOptions {
+                width: w,
+                height: h,
+                ..ObsOptions::default()
+            };
             assert!(validate_options(&o).is_err());
         }
     }

@@ -7,7 +7,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use offworld_runtime::keys::{Component, EnvId, Topic};
-use offworld_runtime::msg::{AdminRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest, Time};
+use offworld_runtime::msg::{
+    AdminRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest, Time,
+};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::query::Query;
 use offworld_runtime::zenoh::sample::SampleKind;
@@ -47,7 +49,11 @@ impl Drop for ServedEnv {
 impl Controller {
     /// A controller on `session` recording into `store`.
     pub fn new(session: Session, store: Store) -> Self {
-        Self { session, store: Arc::new(Mutex::new(store)), envs: Vec::new() }
+        Self {
+            session,
+            store: Arc::new(Mutex::new(store)),
+            envs: Vec::new(),
+        }
     }
 
     /// The shared store.
@@ -56,11 +62,27 @@ impl Controller {
     }
 
     /// Starts serving `env` with `task`. Must be called inside a tokio runtime.
-    pub async fn serve(&mut self, env: EnvId, task: Task, options: EnvOptions) -> Result<Arc<EnvServer>, ControllerError> {
+    pub async fn serve(
+        &mut self,
+        env: EnvId,
+        task: Task,
+        options: EnvOptions,
+    ) -> Result<Arc<EnvServer>, ControllerError> {
         if self.envs.iter().any(|e| e.server.env() == &env) {
-            return Err(ControllerError::Conflict(format!("{env} is already served")));
+            return Err(ControllerError::Conflict(format!(
+                "{env} is already served"
+            )));
         }
-        let server = Arc::new(EnvServer::new(&self.session, env.clone(), task, options, self.store.clone()).await?);
+        let server = Arc::new(
+            EnvServer::new(
+                &self.session,
+                env.clone(),
+                task,
+                options,
+                self.store.clone(),
+            )
+            .await?,
+        );
         let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
         let mut tasks = Vec::new();
         for topic in [
@@ -73,7 +95,11 @@ impl Controller {
             Topic::Admin,
             Topic::Leaderboard,
         ] {
-            let queryable = self.session.declare_queryable(env.key(topic)).await.map_err(zerr)?;
+            let queryable = self
+                .session
+                .declare_queryable(env.key(topic))
+                .await
+                .map_err(zerr)?;
             let server = server.clone();
             tasks.push(tokio::spawn(async move {
                 while let Ok(query) = queryable.recv_async().await {
@@ -108,7 +134,10 @@ impl Controller {
             loop {
                 interval.tick().await;
                 counter += 1;
-                let beat = Heartbeat { stamp: Time::now(), counter };
+                let beat = Heartbeat {
+                    stamp: Time::now(),
+                    counter,
+                };
                 if let Err(e) = wire::put(&session, &heartbeat_key, &beat).await {
                     tracing::warn!("heartbeat failed: {e}");
                 }
@@ -124,7 +153,11 @@ impl Controller {
             .await
             .map_err(zerr)?;
         tracing::info!(%env, task = %server.spec().task, "serving");
-        self.envs.push(ServedEnv { server: server.clone(), tasks, _token: token });
+        self.envs.push(ServedEnv {
+            server: server.clone(),
+            tasks,
+            _token: token,
+        });
         Ok(server)
     }
 
@@ -136,13 +169,44 @@ impl Controller {
 
 async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
     let sent = match topic {
-        Topic::Open => respond(query, async { server.open(wire::decode_query::<OpenRequest>(query)?).await }).await,
+        Topic::Open => {
+            respond(query, async {
+                server.open(wire::decode_query::<OpenRequest>(query)?).await
+            })
+            .await
+        }
         Topic::Spec => respond(query, async { Ok(server.spec()) }).await,
-        Topic::Reset => respond(query, async { server.reset(wire::decode_query::<ResetRequest>(query)?).await }).await,
-        Topic::Step => respond(query, async { server.step(wire::decode_query::<StepRequest>(query)?).await }).await,
-        Topic::Close => respond(query, async { server.close(wire::decode_query::<CloseRequest>(query)?).await }).await,
+        Topic::Reset => {
+            respond(query, async {
+                server
+                    .reset(wire::decode_query::<ResetRequest>(query)?)
+                    .await
+            })
+            .await
+        }
+        Topic::Step => {
+            respond(query, async {
+                server.step(wire::decode_query::<StepRequest>(query)?).await
+            })
+            .await
+        }
+        Topic::Close => {
+            respond(query, async {
+                server
+                    .close(wire::decode_query::<CloseRequest>(query)?)
+                    .await
+            })
+            .await
+        }
         Topic::Status => respond(query, async { Ok(server.status().await) }).await,
-        Topic::Admin => respond(query, async { server.admin(wire::decode_query::<AdminRequest>(query)?).await }).await,
+        Topic::Admin => {
+            respond(query, async {
+                server
+                    .admin(wire::decode_query::<AdminRequest>(query)?)
+                    .await
+            })
+            .await
+        }
         Topic::Leaderboard => respond(query, async { server.leaderboard() }).await,
         other => {
             tracing::error!(?other, "no handler");

@@ -144,14 +144,18 @@ pub fn now_ms() -> i64 {
 /// SHA-256 of a token, hex. Tokens are random 128-bit strings, so a plain
 /// hash suffices (no dictionary to attack).
 pub fn hash_token(token: &str) -> String {
-    Sha256::digest(token.as_bytes()).iter().map(|b| format!("{b:02x}")).collect()
+    Sha256::digest(token.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 impl Store {
     /// Opens (creating if needed) a database file.
     pub fn open(path: &Path) -> Result<Self, ControllerError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| ControllerError::Store(format!("{}: {e}", dir.display())))?;
+            std::fs::create_dir_all(dir)
+                .map_err(|e| ControllerError::Store(format!("{}: {e}", dir.display())))?;
         }
         Self::init(Connection::open(path).map_err(db)?)
     }
@@ -175,16 +179,25 @@ impl Store {
     pub fn add_user(&self, name: &str, operator: bool) -> Result<String, ControllerError> {
         let token: String = {
             let mut rng = rand::rng();
-            (0..32).map(|_| format!("{:x}", rng.random_range(0..16u8))).collect()
+            (0..32)
+                .map(|_| format!("{:x}", rng.random_range(0..16u8)))
+                .collect()
         };
         self.add_user_with_token(name, &token, operator)?;
         Ok(token)
     }
 
     /// Registers a user with a given token (deployment scripts, tests).
-    pub fn add_user_with_token(&self, name: &str, token: &str, operator: bool) -> Result<(), ControllerError> {
+    pub fn add_user_with_token(
+        &self,
+        name: &str,
+        token: &str,
+        operator: bool,
+    ) -> Result<(), ControllerError> {
         if token.len() < 8 {
-            return Err(ControllerError::Config("tokens must have at least 8 characters".into()));
+            return Err(ControllerError::Config(
+                "tokens must have at least 8 characters".into(),
+            ));
         }
         let role = if operator { "operator" } else { "user" };
         self.conn
@@ -202,7 +215,13 @@ impl Store {
             .query_row(
                 "SELECT id, name, role FROM users WHERE token_sha256 = ?1",
                 params![hash_token(token)],
-                |r| Ok(User { id: r.get(0)?, name: r.get(1)?, role: r.get(2)? }),
+                |r| {
+                    Ok(User {
+                        id: r.get(0)?,
+                        name: r.get(1)?,
+                        role: r.get(2)?,
+                    })
+                },
             )
             .optional()
             .map_err(db)
@@ -227,7 +246,9 @@ impl Store {
             (Some(_), false) => Err(ControllerError::Conflict(format!(
                 "experiment `{name}` exists on {env_id}; pass resume_experiment=True to continue it"
             ))),
-            (None, true) => Err(ControllerError::NotFound(format!("no experiment `{name}` on {env_id} to resume"))),
+            (None, true) => Err(ControllerError::NotFound(format!(
+                "no experiment `{name}` on {env_id} to resume"
+            ))),
             (None, false) => {
                 let now = now_ms();
                 self.conn
@@ -237,13 +258,19 @@ impl Store {
                         params![user.id, env_id, task, name, learning_type.as_str(), mode.as_str(), now],
                     )
                     .map_err(db)?;
-                self.experiment(user.id, env_id, name)?
-                    .ok_or_else(|| ControllerError::Store("experiment vanished after insert".into()))
+                self.experiment(user.id, env_id, name)?.ok_or_else(|| {
+                    ControllerError::Store("experiment vanished after insert".into())
+                })
             }
         }
     }
 
-    fn experiment(&self, user_id: i64, env_id: &str, name: &str) -> Result<Option<Experiment>, ControllerError> {
+    fn experiment(
+        &self,
+        user_id: i64,
+        env_id: &str,
+        name: &str,
+    ) -> Result<Option<Experiment>, ControllerError> {
         self.conn
             .query_row(
                 "SELECT e.id, u.name, e.env_id, e.task, e.name, e.learning_type, e.algorithm_mode, e.episodes, e.steps
@@ -305,7 +332,10 @@ impl Store {
     }
 
     /// Episodes of one experiment, in order: (index, steps, return, success, end reason).
-    pub fn episodes(&self, experiment_id: i64) -> Result<Vec<(u64, u32, f64, bool, String)>, ControllerError> {
+    pub fn episodes(
+        &self,
+        experiment_id: i64,
+    ) -> Result<Vec<(u64, u32, f64, bool, String)>, ControllerError> {
         let mut stmt = self
             .conn
             .prepare(
@@ -315,7 +345,13 @@ impl Store {
             .map_err(db)?;
         let rows = stmt
             .query_map(params![experiment_id], |r| {
-                Ok((r.get::<_, i64>(0)? as u64, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?))
+                Ok((
+                    r.get::<_, i64>(0)? as u64,
+                    r.get(1)?,
+                    r.get(2)?,
+                    r.get(3)?,
+                    r.get(4)?,
+                ))
             })
             .map_err(db)?;
         rows.collect::<Result<_, _>>().map_err(db)

@@ -97,17 +97,18 @@ impl Task {
 
     /// A task by name.
     pub fn by_name(name: &str) -> Result<Self, ControllerError> {
-        let file: TaskFile =
-            toml::from_str(TASKS).map_err(|e| ControllerError::Config(format!("tasks.toml: {e}")))?;
-        let entry = file
-            .task
-            .iter()
-            .find(|t| t.name == name)
-            .ok_or_else(|| ControllerError::Config(format!("unknown task `{name}`; known: {:?}", Self::names())))?;
+        let file: TaskFile = toml::from_str(TASKS)
+            .map_err(|e| ControllerError::Config(format!("tasks.toml: {e}")))?;
+        let entry = file.task.iter().find(|t| t.name == name).ok_or_else(|| {
+            ControllerError::Config(format!("unknown task `{name}`; known: {:?}", Self::names()))
+        })?;
         if file.discrete.names.len() != file.discrete.table.len() {
-            return Err(ControllerError::Config("discrete names and table differ in length".into()));
+            return Err(ControllerError::Config(
+                "discrete names and table differ in length".into(),
+            ));
         }
-        let world = WorldSpec::builtin(&entry.world).map_err(|e| ControllerError::Config(e.to_string()))?;
+        let world =
+            WorldSpec::builtin(&entry.world).map_err(|e| ControllerError::Config(e.to_string()))?;
         Ok(Self {
             name: entry.name.clone(),
             world,
@@ -166,16 +167,27 @@ impl Task {
                     }
                 }
                 let c = &self.continuous;
-                (f64::from(linear) * c.max_linear, f64::from(angular) * c.max_angular, c.hold_s)
+                (
+                    f64::from(linear) * c.max_linear,
+                    f64::from(angular) * c.max_angular,
+                    c.hold_s,
+                )
             }
             (ActionKind::Discrete, Action::Continuous(_)) => {
                 return Err(WireError::bad_request("this task takes a discrete action"))
             }
             (ActionKind::Continuous, Action::Discrete(_)) => {
-                return Err(WireError::bad_request("this task takes a continuous action"))
+                return Err(WireError::bad_request(
+                    "this task takes a continuous action",
+                ))
             }
         };
-        Ok(MotionCommand { seq, linear_x, angular_z, duration_s })
+        Ok(MotionCommand {
+            seq,
+            linear_x,
+            angular_z,
+            duration_s,
+        })
     }
 }
 
@@ -192,7 +204,14 @@ mod tests {
             let task = Task::by_name(&name).expect("task");
             assert_eq!(task.episode.max_steps, 100);
         }
-        assert!(Task::by_name("MonolithObstacleDiscrete").expect("t").world.boulders.len() == 14);
+        assert!(
+            Task::by_name("MonolithObstacleDiscrete")
+                .expect("t")
+                .world
+                .boulders
+                .len()
+                == 14
+        );
         assert!(Task::by_name("Mars").is_err());
     }
 
@@ -200,24 +219,47 @@ mod tests {
     fn discrete_actions_follow_the_reference_table() {
         let task = Task::by_name("MonolithDiscrete").expect("task");
         let m = |i| task.motion(&Action::Discrete(i), 1).expect("valid");
-        assert_eq!((m(0).linear_x, m(0).angular_z, m(0).duration_s), (0.07, 1.25, 1.2));
-        assert_eq!((m(1).linear_x, m(1).angular_z, m(1).duration_s), (0.07, -1.25, 1.2));
-        assert_eq!((m(2).linear_x, m(2).angular_z, m(2).duration_s), (0.10, 0.0, 0.6));
-        assert_eq!((m(3).linear_x, m(3).angular_z, m(3).duration_s), (-0.10, 0.0, 0.6));
+        assert_eq!(
+            (m(0).linear_x, m(0).angular_z, m(0).duration_s),
+            (0.07, 1.25, 1.2)
+        );
+        assert_eq!(
+            (m(1).linear_x, m(1).angular_z, m(1).duration_s),
+            (0.07, -1.25, 1.2)
+        );
+        assert_eq!(
+            (m(2).linear_x, m(2).angular_z, m(2).duration_s),
+            (0.10, 0.0, 0.6)
+        );
+        assert_eq!(
+            (m(3).linear_x, m(3).angular_z, m(3).duration_s),
+            (-0.10, 0.0, 0.6)
+        );
         for bad in [-1, 4, i64::MAX] {
-            let e = task.motion(&Action::Discrete(bad), 1).expect_err("rejected");
+            let e = task
+                .motion(&Action::Discrete(bad), 1)
+                .expect_err("rejected");
             assert_eq!(e.code, ErrorCode::BadRequest);
         }
-        let e = task.motion(&Action::Continuous(vec![0.0, 0.0]), 1).expect_err("wrong kind");
+        let e = task
+            .motion(&Action::Continuous(vec![0.0, 0.0]), 1)
+            .expect_err("wrong kind");
         assert_eq!(e.code, ErrorCode::BadRequest);
     }
 
     #[test]
     fn continuous_actions_map_to_the_physical_range_and_are_never_clipped() {
         let task = Task::by_name("MonolithContinuous").expect("task");
-        let m = task.motion(&Action::Continuous(vec![1.0, -0.5]), 3).expect("valid");
-        assert_eq!((m.seq, m.linear_x, m.angular_z, m.duration_s), (3, 0.7, -1.25, 1.0));
-        let m = task.motion(&Action::Continuous(vec![-1.0, 1.0]), 3).expect("valid");
+        let m = task
+            .motion(&Action::Continuous(vec![1.0, -0.5]), 3)
+            .expect("valid");
+        assert_eq!(
+            (m.seq, m.linear_x, m.angular_z, m.duration_s),
+            (3, 0.7, -1.25, 1.0)
+        );
+        let m = task
+            .motion(&Action::Continuous(vec![-1.0, 1.0]), 3)
+            .expect("valid");
         assert_eq!((m.linear_x, m.angular_z), (-0.7, 2.5));
         for bad in [
             vec![1.01, 0.0],
@@ -228,7 +270,9 @@ mod tests {
             vec![0.0, 0.0, 0.0],
             vec![],
         ] {
-            let e = task.motion(&Action::Continuous(bad.clone()), 1).expect_err("rejected");
+            let e = task
+                .motion(&Action::Continuous(bad.clone()), 1)
+                .expect_err("rejected");
             assert_eq!(e.code, ErrorCode::BadRequest, "{bad:?}");
         }
     }

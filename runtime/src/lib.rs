@@ -11,6 +11,7 @@
 //! - [`session`]: opening sessions from files, environment or flags.
 //! - [`WireError`]: the one typed error every reply can carry.
 
+pub mod client;
 pub mod codec;
 mod error;
 pub mod keys;

@@ -1,0 +1,82 @@
+//! An in-process deployment: sim twins and the controller on one Zenoh
+//! session, on the same code path as a distributed deployment (the twins
+//! and the controller still talk only through Zenoh keys).
+
+use std::time::Duration;
+
+use offworld_runtime::keys::EnvId;
+use offworld_runtime::zenoh::Session;
+use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
+
+use crate::env::{EnvOptions, EnvServer};
+use crate::error::ControllerError;
+use crate::server::Controller;
+use crate::store::Store;
+use crate::task::Task;
+
+/// One simulated env to start.
+#[derive(Debug, Clone)]
+pub struct SimEnv {
+    /// Its id (under `sim/`).
+    pub env: EnvId,
+    /// Task name (`MonolithDiscrete`, …).
+    pub task: String,
+    /// Rendered resolution (render at the observation size: fastest).
+    pub resolution: Option<(u32, u32)>,
+    /// Spawn sampler seed before any `reset(seed)`.
+    pub seed: u64,
+}
+
+/// A running in-process deployment; stops when dropped.
+pub struct Embedded {
+    /// The controller serving every env.
+    pub controller: Controller,
+    /// One twin per env.
+    pub twins: Vec<TwinNode>,
+}
+
+/// How long to wait for an embedded twin to appear (it is in-process).
+const ONLINE_TIMEOUT: Duration = Duration::from_secs(10);
+
+impl Embedded {
+    /// Starts a twin and a controller env per `SimEnv` on `session`.
+    pub async fn start(
+        session: &Session,
+        envs: &[SimEnv],
+        store: Store,
+    ) -> Result<Self, ControllerError> {
+        let mut controller = Controller::new(session.clone(), store);
+        let mut twins = Vec::new();
+        for sim in envs {
+            if sim.env.realm() != offworld_runtime::Realm::Sim {
+                return Err(ControllerError::Config(format!(
+                    "{} is not a sim env",
+                    sim.env
+                )));
+            }
+            let task = Task::by_name(&sim.task)?;
+            let mut config = TwinConfig::builtin(&task.world.name)
+                .map_err(|e| ControllerError::Config(e.to_string()))?;
+            config.resolution = sim.resolution;
+            let twin = SimTwin::new(config).map_err(|e| ControllerError::Config(e.to_string()))?;
+            twins.push(
+                TwinNode::spawn(session, sim.env.clone(), twin, Clock::Lockstep)
+                    .map_err(|e| ControllerError::Zenoh(e.to_string()))?,
+            );
+            let options = EnvOptions {
+                allow_anonymous: true,
+                seed: sim.seed,
+                ..EnvOptions::default()
+            };
+            let server: std::sync::Arc<EnvServer> =
+                controller.serve(sim.env.clone(), task, options).await?;
+            if !server.link().wait_online(ONLINE_TIMEOUT).await {
+                return Err(ControllerError::Zenoh(format!(
+                    "the twin of {} never came online",
+                    sim.env
+                )));
+            }
+        }
+        Ok(Self { controller, twins })
+    }
+}

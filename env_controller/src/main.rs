@@ -1,0 +1,187 @@
+//! `env_controller`: the gym server and its record-keeping CLI.
+//!
+//! ```text
+//! env_controller serve --env sim/monolith-0=MonolithDiscrete [--embedded-twins]
+//! env_controller users add alice [--operator]
+//! env_controller experiments list
+//! env_controller leaderboard --env sim/monolith-0
+//! ```
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::{Controller, EnvOptions, Store, Task};
+use offworld_runtime::{CommonArgs, EnvId, Realm};
+
+#[derive(Parser)]
+#[command(about = "The OffWorld gym server")]
+struct Args {
+    /// SQLite database of users, experiments and episodes.
+    #[arg(
+        long,
+        default_value = "offworld.db",
+        env = "OFFWORLD_DB",
+        global = true
+    )]
+    db: PathBuf,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Serve envs over Zenoh.
+    Serve {
+        /// `ENV=TASK`, repeatable, e.g. `sim/monolith-0=MonolithDiscrete`.
+        #[arg(long = "env", required = true)]
+        envs: Vec<String>,
+        /// Also run an in-process sim twin for every `sim/` env.
+        #[arg(long)]
+        embedded_twins: bool,
+        /// Lease idle timeout, s.
+        #[arg(long, default_value_t = 300)]
+        lease_idle_s: u64,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
+    /// Manage users.
+    Users {
+        #[command(subcommand)]
+        command: UsersCommand,
+    },
+    /// Manage experiments.
+    Experiments {
+        #[command(subcommand)]
+        command: ExperimentsCommand,
+    },
+    /// Print the leaderboard of an env (test-mode experiments).
+    Leaderboard {
+        /// Env id.
+        #[arg(long)]
+        env: EnvId,
+    },
+}
+
+#[derive(Subcommand)]
+enum UsersCommand {
+    /// Register a user and print their token (stored hashed; shown once).
+    Add {
+        /// User name.
+        name: String,
+        /// May put envs into maintenance.
+        #[arg(long)]
+        operator: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum ExperimentsCommand {
+    /// List experiments, newest first.
+    List,
+}
+
+fn parse_env(text: &str) -> anyhow::Result<(EnvId, Task)> {
+    let (env, task) = text
+        .split_once('=')
+        .context("--env must look like sim/monolith-0=MonolithDiscrete")?;
+    Ok((env.parse()?, Task::by_name(task)?))
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    offworld_runtime::session::init_logging();
+    let args = Args::parse();
+    match args.command {
+        Command::Serve {
+            envs,
+            embedded_twins,
+            lease_idle_s,
+            common,
+        } => {
+            let envs: Vec<(EnvId, Task)> = envs
+                .iter()
+                .map(|e| parse_env(e))
+                .collect::<Result<_, _>>()?;
+            let store = Store::open(&args.db)?;
+            let session = common.server_config().open().await?;
+            let options = |env: &EnvId| EnvOptions {
+                allow_anonymous: env.realm() == Realm::Sim,
+                lease_idle: std::time::Duration::from_secs(lease_idle_s),
+                ..EnvOptions::default()
+            };
+            // Keep whichever deployment runs alive until Ctrl-C.
+            let _running: Box<dyn std::any::Any> = if embedded_twins {
+                let sims: Vec<SimEnv> = envs
+                    .iter()
+                    .map(|(env, task)| SimEnv {
+                        env: env.clone(),
+                        task: task.name.clone(),
+                        resolution: None,
+                        seed: 0,
+                    })
+                    .collect();
+                Box::new(Embedded::start(&session, &sims, store).await?)
+            } else {
+                let mut controller = Controller::new(session.clone(), store);
+                for (env, task) in envs {
+                    let opts = options(&env);
+                    controller.serve(env, task, opts).await?;
+                }
+                Box::new(controller)
+            };
+            tracing::info!("serving; Ctrl-C to stop");
+            tokio::signal::ctrl_c().await?;
+        }
+        Command::Users {
+            command: UsersCommand::Add { name, operator },
+        } => {
+            let token = Store::open(&args.db)?.add_user(&name, operator)?;
+            println!("{token}");
+        }
+        Command::Experiments {
+            command: ExperimentsCommand::List,
+        } => {
+            let store = Store::open(&args.db)?;
+            println!(
+                "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
+                "id", "user", "env", "experiment", "type", "mode", "episodes", "steps"
+            );
+            for e in store.experiments()? {
+                println!(
+                    "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
+                    e.id,
+                    e.user,
+                    e.env_id,
+                    e.name,
+                    e.learning_type,
+                    e.algorithm_mode,
+                    e.episodes,
+                    e.steps
+                );
+            }
+        }
+        Command::Leaderboard { env } => {
+            let store = Store::open(&args.db)?;
+            println!("leaderboard of {env} (test-mode experiments)");
+            println!(
+                "{:<4} {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",
+                "rank", "experiment", "user", "type", "episodes", "success", "return"
+            );
+            for (i, e) in store.leaderboard(&env.to_string())?.iter().enumerate() {
+                println!(
+                    "{:<4} {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
+                    i + 1,
+                    e.experiment,
+                    e.user,
+                    e.learning_type,
+                    e.episodes,
+                    e.success_rate * 100.0,
+                    e.mean_return
+                );
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,469 @@
+//! The gym server over real Zenoh sessions on loopback, against the
+//! embedded sim twin: full episodes, determinism, every bad input, leases,
+//! disconnects, maintenance, persistence across restarts, the leaderboard.
+
+use std::path::Path;
+use std::time::Duration;
+
+use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::Store;
+use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
+use offworld_runtime::msg::*;
+use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
+
+struct Deployment {
+    _server: Session,
+    endpoint: String,
+    _embedded: Embedded,
+    env: EnvId,
+}
+
+async fn deploy(db: &Path, task: &str, token_users: &[(&str, &str, bool)]) -> Deployment {
+    let store = Store::open(db).expect("store");
+    for (name, token, operator) in token_users {
+        // Re-deploying on the same file keeps existing users.
+        let _ = store.add_user_with_token(name, token, *operator);
+    }
+    let port = free_loopback_port().expect("port");
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let server = SessionConfig::listening(&endpoint)
+        .open()
+        .await
+        .expect("server session");
+    let env = EnvId::sim("gym-test").expect("env");
+    let sim = SimEnv {
+        env: env.clone(),
+        task: task.into(),
+        resolution: Some((84, 84)),
+        seed: 0,
+    };
+    let embedded = Embedded::start(&server, &[sim], store)
+        .await
+        .expect("embedded");
+    Deployment {
+        _server: server,
+        endpoint,
+        _embedded: embedded,
+        env,
+    }
+}
+
+async fn client_session(d: &Deployment) -> Session {
+    let session = SessionConfig::connecting(&d.endpoint)
+        .open()
+        .await
+        .expect("client session");
+    // Bounded wait until the controller's queryables are visible.
+    for _ in 0..100 {
+        if client::spec(&session, &d.env, Duration::from_secs(2))
+            .await
+            .is_ok()
+        {
+            return session;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    panic!("controller not reachable");
+}
+
+fn open_request(token: &str, name: &str, resume: bool, mode: AlgorithmMode) -> OpenRequest {
+    OpenRequest {
+        token: token.into(),
+        client_id: String::new(),
+        experiment_name: name.into(),
+        resume_experiment: resume,
+        learning_type: LearningType::EndToEnd,
+        algorithm_mode: mode,
+        obs: ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 84,
+            width: 84,
+            depth_format: DepthFormat::Uint8,
+        },
+    }
+}
+
+async fn open(
+    session: &Session,
+    env: &EnvId,
+    token: &str,
+    name: &str,
+) -> Result<EnvClient, WireError> {
+    EnvClient::open(
+        session,
+        env,
+        open_request(token, name, false, AlgorithmMode::Train),
+        ClientTimeouts::default(),
+    )
+    .await
+}
+
+const ALICE: &str = "alice-token-0001";
+const BOB: &str = "bob-token-000002";
+const OPERATOR: &str = "operator-token-3";
+
+fn users() -> Vec<(&'static str, &'static str, bool)> {
+    vec![
+        ("alice", ALICE, false),
+        ("bob", BOB, false),
+        ("ops", OPERATOR, true),
+    ]
+}
+
+/// Resets with `seed`, takes up to six steps; returns every observation.
+async fn seeded_run(env: &mut EnvClient, seed: u64) -> Vec<Vec<u8>> {
+    let first = env.reset(Seed::Fixed(seed)).await.expect("reset");
+    assert_eq!(
+        (
+            first.observation.height,
+            first.observation.width,
+            first.observation.channels
+        ),
+        (84, 84, 1)
+    );
+    assert_eq!(first.observation.dtype, DType::U8);
+    assert!(first.observation.is_consistent());
+    assert_eq!(first.info.step, 0);
+    let mut frames = vec![first.observation.data];
+    for i in 0..6 {
+        let r = env.step(Action::Discrete(i % 4)).await.expect("step");
+        assert_eq!(r.info.step, i as u32 + 1);
+        frames.push(r.observation.data);
+        if r.terminated || r.truncated {
+            break;
+        }
+    }
+    frames
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn full_episode_and_seeded_determinism() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let spec = client::spec(&session, &d.env, Duration::from_secs(5))
+        .await
+        .expect("spec");
+    assert_eq!(spec.task, "MonolithDiscrete");
+    assert_eq!(spec.max_episode_steps, 100);
+    assert!(matches!(
+        spec.action_space,
+        ActionSpace::Discrete { n: 4, .. }
+    ));
+
+    let mut env = open(&session, &d.env, ALICE, "det").await.expect("open");
+    let a = seeded_run(&mut env, 7).await;
+    let b = seeded_run(&mut env, 7).await;
+    assert_eq!(a, b, "same seed + actions → identical observations");
+    let c = seeded_run(&mut env, 8).await;
+    assert_ne!(a[0], c[0], "another seed spawns elsewhere");
+
+    // Run one episode to its end: FORWARD until terminated or truncated.
+    let reset = env.reset(Seed::Fixed(1)).await.expect("reset");
+    let episode_id = reset.info.episode_id;
+    let mut last = None;
+    for _ in 0..100 {
+        let r = env.step(Action::Discrete(2)).await.expect("step");
+        let done = r.terminated || r.truncated;
+        last = Some(r);
+        if done {
+            break;
+        }
+    }
+    let last = last.expect("stepped");
+    assert!(
+        last.terminated || last.truncated,
+        "episode ends within 100 steps"
+    );
+    assert_eq!(last.info.episode_id, episode_id);
+    assert!(last.truncated == (last.info.step == 100) || last.terminated);
+    let after = env
+        .step(Action::Discrete(2))
+        .await
+        .expect_err("stepping a finished episode");
+    assert_eq!(after.code, ErrorCode::InvalidState);
+    let closed = env.close().await.expect("close");
+    assert!(closed.experiment.episodes >= 4, "{:?}", closed.experiment);
+    assert_eq!(env.close().await.expect("idempotent"), closed);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_inputs_get_typed_errors_and_the_server_keeps_serving() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let d = deploy(&dir.path().join("gym.db"), "MonolithContinuous", &users()).await;
+    let session = client_session(&d).await;
+    let code = |r: Result<EnvClient, WireError>| r.err().map(|e| e.code);
+
+    // Bad token.
+    assert_eq!(
+        code(open(&session, &d.env, "wrong-token-xyz", "x").await),
+        Some(ErrorCode::Unauthorized)
+    );
+    // Bad observation options.
+    let mut bad_obs = open_request(ALICE, "x", false, AlgorithmMode::Train);
+    bad_obs.obs.width = 0;
+    let r = EnvClient::open(&session, &d.env, bad_obs, ClientTimeouts::default()).await;
+    assert_eq!(code(r), Some(ErrorCode::BadRequest));
+    // Resuming an unknown experiment.
+    let r = EnvClient::open(
+        &session,
+        &d.env,
+        open_request(ALICE, "nope", true, AlgorithmMode::Train),
+        ClientTimeouts::default(),
+    )
+    .await;
+    assert_eq!(code(r), Some(ErrorCode::NotFound));
+
+    let mut env = open(&session, &d.env, ALICE, "bad-inputs")
+        .await
+        .expect("open");
+    // Step before reset.
+    let e = env
+        .step(Action::Continuous(vec![0.0, 0.0]))
+        .await
+        .expect_err("before reset");
+    assert_eq!(e.code, ErrorCode::InvalidState);
+    env.reset(Seed::Fixed(3)).await.expect("reset");
+    // Bad actions: never clipped, always refused.
+    for action in [
+        Action::Continuous(vec![1.5, 0.0]),
+        Action::Continuous(vec![f32::NAN, 0.0]),
+        Action::Continuous(vec![0.0]),
+        Action::Discrete(1),
+    ] {
+        let e = env.step(action.clone()).await.expect_err("bad action");
+        assert_eq!(e.code, ErrorCode::BadRequest, "{action:?}");
+    }
+    // A session that does not hold the lease.
+    let forged = StepRequest {
+        session_id: "forged".into(),
+        seq: 1,
+        action: Action::Continuous(vec![0.0, 0.0]),
+    };
+    let r: Result<StepReply, _> = wire::request(
+        &session,
+        &d.env.key(Topic::Step),
+        &forged,
+        Duration::from_secs(5),
+    )
+    .await;
+    assert_eq!(
+        r.map_err(|e| e.into_wire().code).err(),
+        Some(ErrorCode::Unauthorized)
+    );
+    // Garbage bytes.
+    let r: Result<StepReply, _> = wire::request_raw(
+        &session,
+        &d.env.key(Topic::Step),
+        vec![9, 9, 9, 9, 9],
+        Duration::from_secs(5),
+    )
+    .await;
+    assert_eq!(
+        r.map_err(|e| e.into_wire().code).err(),
+        Some(ErrorCode::BadRequest)
+    );
+    // An env nobody serves.
+    let ghost = EnvId::sim("ghost").expect("env");
+    assert_eq!(
+        code(open(&session, &ghost, ALICE, "x").await),
+        Some(ErrorCode::NotFound)
+    );
+    // Still serving.
+    let ok = env
+        .step(Action::Continuous(vec![0.5, -0.25]))
+        .await
+        .expect("valid step after errors");
+    assert_eq!(ok.info.step, 1);
+    env.close().await.expect("close");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leases_busy_disconnect_and_maintenance() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let alice_session = client_session(&d).await;
+    let bob_session = client_session(&d).await;
+    let mut alice = open(&alice_session, &d.env, ALICE, "lease")
+        .await
+        .expect("alice opens");
+    let status = client::status(&bob_session, &d.env, Duration::from_secs(5))
+        .await
+        .expect("status");
+    assert!(
+        matches!(status.state, EnvState::Leased { .. }),
+        "{status:?}"
+    );
+    let busy = open(&bob_session, &d.env, BOB, "lease")
+        .await
+        .err()
+        .expect("bob is refused");
+    assert_eq!(busy.code, ErrorCode::Busy);
+    assert!(busy.message.contains("until"), "{}", busy.message);
+
+    // Alice drops off mid-episode: the episode is aborted and recorded,
+    // the lease waits for her, Bob is still refused, Alice comes back.
+    alice.reset(Seed::Fixed(1)).await.expect("reset");
+    alice.step(Action::Discrete(2)).await.expect("step");
+    drop(alice);
+    alice_session.close().await.expect("close session");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let busy = open(&bob_session, &d.env, BOB, "lease")
+        .await
+        .err()
+        .expect("grace period");
+    assert_eq!(busy.code, ErrorCode::Busy);
+    let alice_again = client_session(&d).await;
+    let mut alice = EnvClient::open(
+        &alice_again,
+        &d.env,
+        open_request(ALICE, "lease", true, AlgorithmMode::Train),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("alice resumes");
+    assert_eq!(
+        alice.opened().experiment.episodes,
+        1,
+        "the aborted episode was recorded"
+    );
+    assert_eq!(alice.opened().experiment.steps, 1);
+    let r = alice.reset(Seed::Fixed(2)).await.expect("reset");
+    assert_eq!(r.info.episode_id, 1, "episode ids continue");
+    alice.close().await.expect("close");
+
+    // Maintenance: only operators; users are told why.
+    let set = AdminRequest::SetMaintenance {
+        token: BOB.into(),
+        message: "new wheels".into(),
+    };
+    let r: Result<EnvStatus, _> = wire::request(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &set,
+        Duration::from_secs(5),
+    )
+    .await;
+    assert_eq!(
+        r.map_err(|e| e.into_wire().code).err(),
+        Some(ErrorCode::Unauthorized)
+    );
+    let set = AdminRequest::SetMaintenance {
+        token: OPERATOR.into(),
+        message: "new wheels".into(),
+    };
+    let status: EnvStatus = wire::request(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &set,
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("admin");
+    assert_eq!(
+        status.state,
+        EnvState::Maintenance {
+            message: "new wheels".into()
+        }
+    );
+    let refused = open(&bob_session, &d.env, BOB, "m")
+        .await
+        .err()
+        .expect("maintenance");
+    assert_eq!(refused.code, ErrorCode::Unavailable);
+    assert!(refused.message.contains("new wheels"));
+    let clear = AdminRequest::ClearMaintenance {
+        token: OPERATOR.into(),
+    };
+    let status: EnvStatus = wire::request(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &clear,
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("admin");
+    assert_eq!(status.state, EnvState::Free);
+    open(&bob_session, &d.env, BOB, "m")
+        .await
+        .expect("bob gets the env")
+        .close()
+        .await
+        .expect("close");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn records_survive_a_restart_and_rank_on_the_leaderboard() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let db = dir.path().join("gym.db");
+    let mut first_steps = 0;
+    {
+        let d = deploy(&db, "MonolithDiscrete", &users()).await;
+        let session = client_session(&d).await;
+        let mut env = EnvClient::open(
+            &session,
+            &d.env,
+            open_request(ALICE, "eval", false, AlgorithmMode::Test),
+            ClientTimeouts::default(),
+        )
+        .await
+        .expect("open");
+        for seed in 0..2 {
+            env.reset(Seed::Fixed(seed)).await.expect("reset");
+            for _ in 0..3 {
+                env.step(Action::Discrete(2)).await.expect("step");
+                first_steps += 1;
+            }
+        }
+        env.close().await.expect("close");
+    }
+    // The controller is gone; a new one on the same file sees everything.
+    let store = Store::open(&db).expect("reopen");
+    let experiments = store.experiments().expect("list");
+    let eval = experiments
+        .iter()
+        .find(|e| e.name == "eval")
+        .expect("eval row");
+    assert_eq!((eval.episodes, eval.steps), (2, first_steps));
+    assert_eq!(eval.algorithm_mode, "test");
+    let episodes = store.episodes(eval.id).expect("episodes");
+    assert_eq!(episodes.len(), 2);
+    assert!(episodes
+        .iter()
+        .all(|e| e.4 == "reset before the episode ended" || e.4 == "closed"));
+    drop(store);
+
+    let d = deploy(&db, "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let mut env = EnvClient::open(
+        &session,
+        &d.env,
+        open_request(ALICE, "eval", true, AlgorithmMode::Test),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("resume after restart");
+    assert_eq!(env.opened().experiment.episodes, 2);
+    let r = env.reset(Seed::Fixed(9)).await.expect("reset");
+    assert_eq!(r.info.episode_id, 2);
+    // Finish one scored episode: step until the end.
+    loop {
+        let s = env.step(Action::Discrete(2)).await.expect("step");
+        if s.terminated || s.truncated {
+            break;
+        }
+    }
+    env.close().await.expect("close");
+    let board = client::leaderboard(&session, &d.env, Duration::from_secs(5))
+        .await
+        .expect("leaderboard");
+    assert_eq!(
+        board.entries.len(),
+        1,
+        "aborted episodes do not count; one scored"
+    );
+    assert_eq!(board.entries[0].experiment, "eval");
+    assert_eq!(board.entries[0].episodes, 1);
+}

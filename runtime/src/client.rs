@@ -1,0 +1,198 @@
+//! A typed gym client: open a session on an env, reset, step, close. Used
+//! by the Python package, the CLI and the tests; it knows keys and messages
+//! only, so it works against any deployment.
+
+use std::time::Duration;
+
+use rand::Rng;
+
+use crate::keys::{EnvId, Topic};
+use crate::msg::{
+    Action, CloseReply, CloseRequest, EnvSpec, EnvStatus, Leaderboard, OpenReply, OpenRequest,
+    ResetReply, ResetRequest, Seed, StepReply, StepRequest,
+};
+use crate::wire;
+use crate::WireError;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::Session;
+
+/// Deadlines of client requests.
+#[derive(Debug, Clone, Copy)]
+pub struct ClientTimeouts {
+    /// `open`, `spec`, `close`, `status`.
+    pub control: Duration,
+    /// `step` (a real action takes up to ~2 s plus the network).
+    pub step: Duration,
+    /// `reset` (a real reset drives the robot across the enclosure).
+    pub reset: Duration,
+}
+
+impl Default for ClientTimeouts {
+    fn default() -> Self {
+        Self {
+            control: Duration::from_secs(10),
+            step: Duration::from_secs(30),
+            reset: Duration::from_secs(120),
+        }
+    }
+}
+
+/// A random id usable as a key chunk.
+pub fn random_id() -> String {
+    let mut rng = rand::rng();
+    (0..16)
+        .map(|_| format!("{:x}", rng.random_range(0..16u8)))
+        .collect()
+}
+
+/// An open session on one env (holds its lease until closed).
+pub struct EnvClient {
+    session: Session,
+    env: EnvId,
+    reply: OpenReply,
+    timeouts: ClientTimeouts,
+    seq: u64,
+    closed: Option<CloseReply>,
+    _alive: LivelinessToken,
+}
+
+impl EnvClient {
+    /// Opens a session. `request.client_id` is replaced by a fresh id whose
+    /// liveliness token tells the controller this client is alive.
+    pub async fn open(
+        session: &Session,
+        env: &EnvId,
+        mut request: OpenRequest,
+        timeouts: ClientTimeouts,
+    ) -> Result<Self, WireError> {
+        request.client_id = random_id();
+        let alive_key = env
+            .client_alive_key(&request.client_id)
+            .map_err(|e| WireError::bad_request(e.to_string()))?;
+        let alive = session
+            .liveliness()
+            .declare_token(alive_key)
+            .await
+            .map_err(|e| WireError::internal(format!("zenoh: {e}")))?;
+        let reply: OpenReply =
+            wire::request(session, &env.key(Topic::Open), &request, timeouts.control)
+                .await
+                .map_err(wire::RequestError::into_wire)?;
+        Ok(Self {
+            session: session.clone(),
+            env: env.clone(),
+            reply,
+            timeouts,
+            seq: 0,
+            closed: None,
+            _alive: alive,
+        })
+    }
+
+    /// The env's spec as returned by `open`.
+    pub fn spec(&self) -> &EnvSpec {
+        &self.reply.spec
+    }
+
+    /// The `open` reply (session id, lease, experiment counters).
+    pub fn opened(&self) -> &OpenReply {
+        &self.reply
+    }
+
+    /// The env.
+    pub fn env(&self) -> &EnvId {
+        &self.env
+    }
+
+    fn ensure_open(&self) -> Result<(), WireError> {
+        if self.closed.is_some() {
+            return Err(WireError::invalid_state("the env is closed"));
+        }
+        Ok(())
+    }
+
+    /// Starts an episode.
+    pub async fn reset(&mut self, seed: Seed) -> Result<ResetReply, WireError> {
+        self.ensure_open()?;
+        let request = ResetRequest {
+            session_id: self.reply.session_id.clone(),
+            seed,
+        };
+        wire::request(
+            &self.session,
+            &self.env.key(Topic::Reset),
+            &request,
+            self.timeouts.reset,
+        )
+        .await
+        .map_err(wire::RequestError::into_wire)
+    }
+
+    /// Takes one step.
+    pub async fn step(&mut self, action: Action) -> Result<StepReply, WireError> {
+        self.ensure_open()?;
+        self.seq += 1;
+        let request = StepRequest {
+            session_id: self.reply.session_id.clone(),
+            seq: self.seq,
+            action,
+        };
+        wire::request(
+            &self.session,
+            &self.env.key(Topic::Step),
+            &request,
+            self.timeouts.step,
+        )
+        .await
+        .map_err(wire::RequestError::into_wire)
+    }
+
+    /// Releases the lease; a second call returns the first call's reply.
+    pub async fn close(&mut self) -> Result<CloseReply, WireError> {
+        if let Some(reply) = &self.closed {
+            return Ok(reply.clone());
+        }
+        let request = CloseRequest {
+            session_id: self.reply.session_id.clone(),
+        };
+        let reply: CloseReply = wire::request(
+            &self.session,
+            &self.env.key(Topic::Close),
+            &request,
+            self.timeouts.control,
+        )
+        .await
+        .map_err(wire::RequestError::into_wire)?;
+        self.closed = Some(reply.clone());
+        Ok(reply)
+    }
+}
+
+/// Queries an env's spec without opening a session.
+pub async fn spec(session: &Session, env: &EnvId, timeout: Duration) -> Result<EnvSpec, WireError> {
+    wire::request(session, &env.key(Topic::Spec), &(), timeout)
+        .await
+        .map_err(wire::RequestError::into_wire)
+}
+
+/// Queries an env's availability.
+pub async fn status(
+    session: &Session,
+    env: &EnvId,
+    timeout: Duration,
+) -> Result<EnvStatus, WireError> {
+    wire::request(session, &env.key(Topic::Status), &(), timeout)
+        .await
+        .map_err(wire::RequestError::into_wire)
+}
+
+/// Queries an env's leaderboard.
+pub async fn leaderboard(
+    session: &Session,
+    env: &EnvId,
+    timeout: Duration,
+) -> Result<Leaderboard, WireError> {
+    wire::request(session, &env.key(Topic::Leaderboard), &(), timeout)
+        .await
+        .map_err(wire::RequestError::into_wire)
+}
