@@ -77,7 +77,6 @@ struct State {
     episode: Option<Episode>,
     sampler: SpawnSampler,
     seq: u64,
-    observation: ObsArray,
     last_status: Option<EnvState>,
 }
 
@@ -124,7 +123,6 @@ impl EnvServer {
                 episode: None,
                 sampler: SpawnSampler::new(options.seed),
                 seq: 0,
-                observation: ObsArray::default(),
                 last_status: None,
             }),
         })
@@ -381,7 +379,7 @@ impl EnvServer {
             achieved,
             started_ms: now_ms(),
         });
-        let observation = self.observe(&mut state, &answer, &obs)?;
+        let observation = self.observe(&answer, &obs)?;
         self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
             .await;
         Ok(ResetReply {
@@ -393,19 +391,15 @@ impl EnvServer {
         })
     }
 
-    fn observe(
-        &self,
-        state: &mut State,
-        answer: &Answer,
-        obs: &ObsOptions,
-    ) -> Result<ObsArray, WireError> {
+    fn observe(&self, answer: &Answer, obs: &ObsOptions) -> Result<ObsArray, WireError> {
+        let mut observation = ObsArray::default();
         assemble(
             &answer.frame,
             obs,
             self.task.episode.depth_max_m,
-            &mut state.observation,
+            &mut observation,
         )?;
-        Ok(state.observation.clone())
+        Ok(observation)
     }
 
     /// `step`: act, observe, judge.
@@ -444,7 +438,7 @@ impl EnvServer {
         let outcome = judge(&self.task, pose.x, pose.y, episode.steps);
         episode.episode_return += outcome.reward;
         let (index, steps, ret) = (episode.index, episode.steps, episode.episode_return);
-        let observation = self.observe(&mut state, &answer, &obs)?;
+        let observation = self.observe(&answer, &obs)?;
         self.publish_event(
             &experiment,
             index,

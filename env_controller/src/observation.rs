@@ -3,7 +3,7 @@
 //! blended across edges), and depth as uint8 or metres.
 
 use offworld_runtime::msg::{
-    CameraFrame, Channels, DType, DepthFormat, Image, ObsArray, ObsOptions, PixelEncoding,
+    CameraFrame, Channels, DType, DepthFormat, ObsArray, ObsOptions, PixelEncoding,
 };
 use offworld_runtime::WireError;
 
@@ -19,37 +19,6 @@ pub fn validate_options(opts: &ObsOptions) -> Result<(), WireError> {
         )));
     }
     Ok(())
-}
-
-/// Reads one depth pixel in metres (NaN / 0 mm = invalid → None).
-fn depth_reader(
-    image: &Image,
-    encoding: PixelEncoding,
-) -> impl Fn(usize, usize) -> Option<f32> + '_ {
-    let step = image.step as usize;
-    move |x, y| {
-        let d = match encoding {
-            PixelEncoding::Depth32FC1 => {
-                let i = y * step + x * 4;
-                f32::from_le_bytes([
-                    image.data[i],
-                    image.data[i + 1],
-                    image.data[i + 2],
-                    image.data[i + 3],
-                ])
-            }
-            _ => {
-                let i = y * step + x * 2;
-                let mm = u16::from_le_bytes([image.data[i], image.data[i + 1]]);
-                if mm == 0 {
-                    f32::NAN
-                } else {
-                    f32::from(mm) * 1e-3
-                }
-            }
-        };
-        d.is_finite().then_some(d)
-    }
 }
 
 /// Assembles `out` from `frame` per `opts`. Invalid depth becomes 0 in
@@ -87,52 +56,113 @@ pub fn assemble(
     out.channels = channels as u32;
     out.dtype = dtype;
     out.data.clear();
-    out.data.reserve(w * h * channels * dtype.size());
-    let depth_at = depth_reader(&frame.depth, depth_enc);
-    let color_step = frame.color.step as usize;
-    let (want_rgb, want_depth) = match opts.channels {
-        Channels::DepthOnly => (false, true),
-        Channels::RgbOnly => (true, false),
-        Channels::Rgbd => (true, true),
-    };
+    out.data.resize(w * h * channels * dtype.size(), 0);
     let rgb_order: [usize; 3] = if color_enc == PixelEncoding::Bgr8 {
         [2, 1, 0]
     } else {
         [0, 1, 2]
     };
-    let scale = 255.0 / depth_max_m.max(1e-6);
-    for y in 0..h {
-        let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
-        for x in 0..w {
-            let sx = ((x * 2 + 1) * sw / (w * 2)).min(sw - 1);
-            if want_rgb {
-                let i = sy * color_step + sx * 3;
-                for c in rgb_order {
-                    let v = frame.color.data[i + c];
-                    match dtype {
-                        DType::U8 => out.data.push(v),
-                        DType::F32 => out.data.extend_from_slice(&f32::from(v).to_le_bytes()),
+    let rows = Rows {
+        frame,
+        src_x: (0..w)
+            .map(|x| ((x * 2 + 1) * sw / (w * 2)).min(sw - 1))
+            .collect(),
+        rgb_order,
+        depth_enc,
+        depth_scale: 255.0 / depth_max_m.max(1e-6),
+        depth_row: vec![0.0; w],
+    };
+    // One monomorphised loop per layout: no per-pixel branching.
+    match (opts.channels, dtype) {
+        (Channels::DepthOnly, DType::U8) => rows.fill::<false, true, false>(&mut out.data, sh, h),
+        (Channels::DepthOnly, DType::F32) => rows.fill::<false, true, true>(&mut out.data, sh, h),
+        (Channels::RgbOnly, DType::U8) => rows.fill::<true, false, false>(&mut out.data, sh, h),
+        (Channels::RgbOnly, DType::F32) => rows.fill::<true, false, true>(&mut out.data, sh, h),
+        (Channels::Rgbd, DType::U8) => rows.fill::<true, true, false>(&mut out.data, sh, h),
+        (Channels::Rgbd, DType::F32) => rows.fill::<true, true, true>(&mut out.data, sh, h),
+    }
+    Ok(())
+}
+
+/// Row-by-row resampling state.
+struct Rows<'a> {
+    frame: &'a CameraFrame,
+    src_x: Vec<usize>,
+    rgb_order: [usize; 3],
+    depth_enc: PixelEncoding,
+    depth_scale: f32,
+    depth_row: Vec<f32>,
+}
+
+impl Rows<'_> {
+    /// Depth in metres of the sampled pixels of source row `sy` (invalid → 0).
+    fn load_depth(&mut self, sy: usize) {
+        let depth = &self.frame.depth;
+        let row = &depth.data[sy * depth.step as usize..];
+        for (out, &sx) in self.depth_row.iter_mut().zip(&self.src_x) {
+            let d = match self.depth_enc {
+                PixelEncoding::Depth32FC1 => f32::from_le_bytes([
+                    row[sx * 4],
+                    row[sx * 4 + 1],
+                    row[sx * 4 + 2],
+                    row[sx * 4 + 3],
+                ]),
+                _ => match u16::from_le_bytes([row[sx * 2], row[sx * 2 + 1]]) {
+                    0 => f32::NAN,
+                    mm => f32::from(mm) * 1e-3,
+                },
+            };
+            *out = if d.is_finite() { d } else { 0.0 };
+        }
+    }
+
+    fn fill<const RGB: bool, const DEPTH: bool, const F32: bool>(
+        mut self,
+        data: &mut [u8],
+        sh: usize,
+        h: usize,
+    ) {
+        let channels = usize::from(RGB) * 3 + usize::from(DEPTH);
+        let pixel = channels * if F32 { 4 } else { 1 };
+        let w = self.src_x.len();
+        let color_step = self.frame.color.step as usize;
+        for (y, out_row) in data.chunks_exact_mut(w * pixel).enumerate() {
+            let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
+            if DEPTH {
+                self.load_depth(sy);
+            }
+            let color_row = &self.frame.color.data[sy * color_step..];
+            for (x, px) in out_row.chunks_exact_mut(pixel).enumerate() {
+                let sx = self.src_x[x];
+                let mut c = 0;
+                if RGB {
+                    for k in self.rgb_order {
+                        let v = color_row[sx * 3 + k];
+                        if F32 {
+                            px[c * 4..c * 4 + 4].copy_from_slice(&f32::from(v).to_le_bytes());
+                        } else {
+                            px[c] = v;
+                        }
+                        c += 1;
                     }
                 }
-            }
-            if want_depth {
-                let d = depth_at(sx, sy);
-                match dtype {
-                    DType::U8 => out
-                        .data
-                        .push(d.map_or(0, |d| (d * scale).clamp(0.0, 255.0) as u8)),
-                    DType::F32 => out.data.extend_from_slice(&d.unwrap_or(0.0).to_le_bytes()),
+                if DEPTH {
+                    let d = self.depth_row[x];
+                    if F32 {
+                        px[c * 4..c * 4 + 4].copy_from_slice(&d.to_le_bytes());
+                    } else {
+                        px[c] = (d * self.depth_scale).clamp(0.0, 255.0) as u8;
+                    }
                 }
             }
         }
     }
-    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use offworld_runtime::msg::Header;
+    use offworld_runtime::msg::{Header, Image};
 
     fn frame() -> CameraFrame {
         // 4×2: colour = (x, y, 7); depth = 0.5·(x + 1) m except one NaN.

@@ -1,0 +1,167 @@
+//! What the controller + Zenoh add to a step on loopback, side by side with
+//! the floor: a raw Zenoh get/reply carrying the same observation bytes.
+//!
+//! overhead = median(step round trip) − median(twin compute for the same
+//! actions, measured in-process). Run:
+//! `cargo bench -p offworld-env-controller --bench step_overhead`
+
+use std::time::{Duration, Instant};
+
+use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::episode::SpawnSampler;
+use offworld_env_controller::{Store, Task};
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::msg::*;
+use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::{EnvId, SessionConfig};
+use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig};
+
+const STEPS: usize = 300;
+const ACTIONS: [(f64, f64, f64); 4] = [
+    (0.07, 1.25, 1.2),
+    (0.07, -1.25, 1.2),
+    (0.1, 0.0, 0.6),
+    (-0.1, 0.0, 0.6),
+];
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() -> anyhow::Result<()> {
+    for (w, h) in [(320, 240), (84, 84)] {
+        run(w, h).await?;
+    }
+    Ok(())
+}
+
+async fn run(w: u32, h: u32) -> anyhow::Result<()> {
+    let obs_bytes = (w * h * 4) as usize; // RGBD uint8
+    let port = free_loopback_port()?;
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let server = SessionConfig::listening(&endpoint).open().await?;
+    let client = SessionConfig::connecting(&endpoint).open().await?;
+
+    // Floor: raw get/reply with a payload the size of the observation.
+    let raw_key = format!("bench/raw/{w}x{h}");
+    let raw_key = raw_key.as_str();
+    let queryable = server
+        .declare_queryable(raw_key)
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let payload = vec![7u8; obs_bytes];
+    let reply_key = raw_key.to_owned();
+    let server_task = tokio::spawn(async move {
+        while let Ok(q) = queryable.recv_async().await {
+            let _ = q.reply(&reply_key, payload.clone()).await;
+        }
+    });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let mut raw = Vec::new();
+    for i in 0..STEPS + 20 {
+        let start = Instant::now();
+        let replies = client
+            .get(raw_key)
+            .payload(vec![0u8; 32])
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let n = reply.result().map(|s| s.payload().len()).unwrap_or(0);
+        assert_eq!(n, obs_bytes);
+        if i >= 20 {
+            raw.push(start.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+
+    // Full steps through the controller and the twin node.
+    server_task.abort();
+    let env = EnvId::sim(&format!("bench-{w}x{h}"))?;
+    let sim = SimEnv {
+        env: env.clone(),
+        task: "MonolithDiscrete".into(),
+        resolution: Some((w, h)),
+        seed: 0,
+    };
+    let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let request = OpenRequest {
+        token: String::new(),
+        client_id: String::new(),
+        experiment_name: String::new(),
+        resume_experiment: false,
+        learning_type: LearningType::EndToEnd,
+        algorithm_mode: AlgorithmMode::Train,
+        obs: ObsOptions {
+            channels: Channels::Rgbd,
+            height: h,
+            width: w,
+            depth_format: DepthFormat::Uint8,
+        },
+    };
+    let mut gym = EnvClient::open(&client, &env, request, ClientTimeouts::default())
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    gym.reset(Seed::Fixed(0))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let mut full = Vec::new();
+    let mut resets = Vec::new();
+    for i in 0..STEPS {
+        let start = Instant::now();
+        let r = gym
+            .step(Action::Discrete((i % 4) as i64))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        full.push(start.elapsed().as_secs_f64() * 1e6);
+        assert_eq!(r.observation.data.len(), obs_bytes);
+        if r.terminated || r.truncated {
+            gym.reset(Seed::Fixed(0))
+                .await
+                .map_err(|e| anyhow::anyhow!(e))?;
+            resets.push(i + 1);
+        }
+    }
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    // Twin compute alone for the same episodes: the controller's spawn for
+    // seed 0 at the same steps, the same action stream (render cost depends
+    // on the pose, so the poses must match).
+    let task = Task::by_name("MonolithDiscrete")?;
+    let spawn = SpawnSampler::new(0).sample(&task).expect("spawn");
+    let mut config = TwinConfig::builtin("monolith")?;
+    config.resolution = Some((w, h));
+    let mut twin = SimTwin::new(config)?;
+    twin.teleport(PlanarPose {
+        x: spawn.x as f32,
+        y: spawn.y as f32,
+        yaw: spawn.yaw as f32,
+    })?;
+    let mut compute = Vec::new();
+    for i in 0..STEPS {
+        if resets.contains(&i) {
+            twin.teleport(PlanarPose {
+                x: spawn.x as f32,
+                y: spawn.y as f32,
+                yaw: spawn.yaw as f32,
+            })?;
+        }
+        let (v, a, d) = ACTIONS[i % 4];
+        let start = Instant::now();
+        twin.execute(v, a, d)?;
+        twin.render();
+        compute.push(start.elapsed().as_secs_f64() * 1e6);
+    }
+
+    let (raw_m, compute_m, full_m) = (median(raw), median(compute), median(full));
+    let overhead = full_m - compute_m;
+    println!("step overhead at {w}x{h} RGBD uint8 ({obs_bytes} B observations), loopback TCP, medians of {STEPS}:");
+    println!("  raw zenoh get/reply (floor)      : {raw_m:8.0} µs");
+    println!("  full step via controller + twin  : {full_m:8.0} µs");
+    println!("  twin compute (physics + render)  : {compute_m:8.0} µs");
+    println!("  controller + zenoh overhead      : {overhead:8.0} µs  ({:.2}× the floor, {:.0} µs above it)", overhead / raw_m, overhead - raw_m);
+    Ok(())
+}
