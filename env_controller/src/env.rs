@@ -280,8 +280,9 @@ impl EnvServer {
             }
             if live && lease.user.id == user.id && user.name == ANONYMOUS && !lease.disconnected {
                 return Err(WireError::busy(format!(
-                    "{} is in use by another anonymous session",
-                    self.env
+                    "{} is in use by another anonymous session until {}",
+                    self.env,
+                    format_unix_ms(lease.expires_unix_ms)
                 )));
             }
         }

@@ -14,6 +14,7 @@
 //! - [`server`]: many envs served over Zenoh.
 //! - [`embedded`]: twins + controller in one process.
 
+pub mod deployment;
 pub mod embedded;
 pub mod env;
 pub mod episode;

@@ -1,1 +1,229 @@
-//! placeholder
+//! PyO3 bindings of the `offworld_gym` package: type conversion and GIL
+//! handling only. Deployment selection, the gym protocol and vector
+//! stepping live in the Rust library crates.
+
+mod convert;
+mod errors;
+
+use std::sync::OnceLock;
+
+use offworld_env_controller::deployment::{self, Connection, Target};
+use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
+use offworld_runtime::msg::{ActionSpace, OpenRequest, Seed};
+use offworld_runtime::{EnvId, SessionConfig, WireError};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList, PyTuple};
+
+/// One tokio runtime for every env of the process.
+fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
+    static RUNTIME: OnceLock<std::io::Result<tokio::runtime::Runtime>> = OnceLock::new();
+    RUNTIME
+        .get_or_init(|| {
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .thread_name("offworld-gym")
+                .enable_all()
+                .build()
+        })
+        .as_ref()
+        .map_err(|e| errors::OffWorldGymError::new_err(format!("cannot start the runtime: {e}")))
+}
+
+/// Runs `work` on the runtime with the GIL released.
+fn block<T: Send>(py: Python<'_>, work: impl std::future::Future<Output = T> + Send) -> PyResult<T> {
+    let rt = runtime()?;
+    Ok(py.detach(|| rt.block_on(work)))
+}
+
+fn controller_error(e: offworld_env_controller::ControllerError) -> PyErr {
+    errors::to_py(WireError::from(e))
+}
+
+/// N envs of one task (N = 1 for a plain env), opened on a deployment.
+#[pyclass(module = "offworld_gym._native")]
+struct NativeEnvs {
+    envs: VecEnvClient,
+    space: ActionSpace,
+    // Dropped after the clients: keeps an embedded deployment alive.
+    _connection: Connection,
+}
+
+#[pymethods]
+impl NativeEnvs {
+    #[new]
+    #[pyo3(signature = (task, realm, num_envs, connect, env_ids, token, experiment_name, resume_experiment,
+                        learning_type, algorithm_mode, channels, height, width, depth_format))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        py: Python<'_>,
+        task: String,
+        realm: &str,
+        num_envs: usize,
+        connect: Option<String>,
+        env_ids: Option<Vec<String>>,
+        token: String,
+        experiment_name: String,
+        resume_experiment: bool,
+        learning_type: &str,
+        algorithm_mode: &str,
+        channels: &str,
+        height: u32,
+        width: u32,
+        depth_format: &str,
+    ) -> PyResult<Self> {
+        if num_envs == 0 {
+            return Err(PyValueError::new_err("num_envs must be at least 1"));
+        }
+        let obs = convert::obs_options(channels, height, width, depth_format)?;
+        let request = OpenRequest {
+            token,
+            client_id: String::new(),
+            experiment_name: experiment_name.clone(),
+            resume_experiment,
+            learning_type: convert::learning_type(learning_type)?,
+            algorithm_mode: convert::algorithm_mode(algorithm_mode)?,
+            obs,
+        };
+        let target = match (connect, env_ids) {
+            (None, None) if realm == "sim" => Target::Embedded { task: task.clone(), resolution: (width, height), count: num_envs },
+            (connect, env_ids) => {
+                let mut session = SessionConfig::from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
+                if let Some(endpoint) = connect {
+                    session.connect = vec![endpoint];
+                }
+                let envs: Vec<EnvId> = env_ids
+                    .ok_or_else(|| PyValueError::new_err("env_ids are required for a remote deployment"))?
+                    .iter()
+                    .map(|e| e.parse::<EnvId>().map_err(|e| PyValueError::new_err(e.to_string())))
+                    .collect::<PyResult<_>>()?;
+                Target::Remote { session, envs }
+            }
+        };
+        let opened = block(py, async move {
+            let connection = deployment::connect(target, &task).await.map_err(controller_error)?;
+            let mut clients = Vec::new();
+            for (i, env) in connection.envs.iter().enumerate() {
+                let mut request = request.clone();
+                if connection.envs.len() > 1 && !experiment_name.is_empty() {
+                    request.experiment_name = format!("{experiment_name}-{i}");
+                }
+                let client = EnvClient::open(&connection.session, env, request, ClientTimeouts::default())
+                    .await
+                    .map_err(errors::to_py)?;
+                clients.push(client);
+            }
+            Ok::<_, PyErr>((connection, clients))
+        })??;
+        let (connection, clients) = opened;
+        let space = clients
+            .first()
+            .map(|c| c.spec().action_space.clone())
+            .ok_or_else(|| PyValueError::new_err("no envs"))?;
+        Ok(Self { envs: VecEnvClient::new(clients), space, _connection: connection })
+    }
+
+    /// The env spec as a dict.
+    #[getter]
+    fn spec<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let spec = self.envs.spec().ok_or_else(|| PyValueError::new_err("no envs"))?;
+        let dict = PyDict::new(py);
+        dict.set_item("env_id", &spec.env_id)?;
+        dict.set_item("task", &spec.task)?;
+        dict.set_item("world", &spec.world)?;
+        match &spec.action_space {
+            ActionSpace::Discrete { n, names } => {
+                dict.set_item("action_kind", "discrete")?;
+                dict.set_item("action_n", n)?;
+                dict.set_item("action_names", names)?;
+            }
+            ActionSpace::Box { low, high } => {
+                dict.set_item("action_kind", "box")?;
+                dict.set_item("action_low", low)?;
+                dict.set_item("action_high", high)?;
+            }
+        }
+        dict.set_item("depth_max_m", spec.depth_max_m)?;
+        dict.set_item("max_episode_steps", spec.max_episode_steps)?;
+        let experiment = self.envs.get(0).map(|e| e.opened().experiment.name.clone());
+        dict.set_item("experiment", experiment)?;
+        Ok(dict)
+    }
+
+    /// Number of envs.
+    fn __len__(&self) -> usize {
+        self.envs.len()
+    }
+
+    /// Resets every env; `seeds[i]` None continues env i's stream.
+    /// Returns (observations, infos).
+    fn reset<'py>(&mut self, py: Python<'py>, seeds: Vec<Option<u64>>) -> PyResult<Bound<'py, PyTuple>> {
+        let seeds: Vec<Seed> = seeds.into_iter().map(|s| s.map_or(Seed::Continue, Seed::Fixed)).collect();
+        let envs = &mut self.envs;
+        let replies = block(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
+        let observations = PyList::empty(py);
+        let infos = PyList::empty(py);
+        for r in replies {
+            infos.append(convert::info(py, &r.info)?)?;
+            observations.append(convert::observation(py, r.observation)?)?;
+        }
+        PyTuple::new(py, [observations.into_any(), infos.into_any()])
+    }
+
+    /// Steps env 0 alone (no autoreset): (obs, reward, terminated, truncated, info).
+    fn step_single<'py>(&mut self, py: Python<'py>, action: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyTuple>> {
+        let action = convert::action(&self.space, action)?;
+        let env = self.envs.get_mut(0).ok_or_else(|| PyValueError::new_err("no envs"))?;
+        let r = block(py, env.step(action))?.map_err(errors::to_py)?;
+        let info = convert::info(py, &r.info)?;
+        PyTuple::new(
+            py,
+            [
+                convert::observation(py, r.observation)?,
+                r.reward.into_pyobject(py)?.into_any(),
+                pyo3::types::PyBool::new(py, r.terminated).to_owned().into_any(),
+                pyo3::types::PyBool::new(py, r.truncated).to_owned().into_any(),
+                info.into_any(),
+            ],
+        )
+    }
+
+    /// Steps every env concurrently with gymnasium's next-step autoreset.
+    /// Returns a list of (obs, reward, terminated, truncated, info, autoreset).
+    fn step_all<'py>(&mut self, py: Python<'py>, actions: Vec<Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyList>> {
+        let actions = actions.iter().map(|a| convert::action(&self.space, a)).collect::<PyResult<Vec<_>>>()?;
+        let envs = &mut self.envs;
+        let steps = block(py, envs.step(actions))?.map_err(errors::to_py)?;
+        let out = PyList::empty(py);
+        for s in steps {
+            let info = convert::info(py, &s.reply.info)?;
+            out.append(PyTuple::new(
+                py,
+                [
+                    convert::observation(py, s.reply.observation)?,
+                    s.reply.reward.into_pyobject(py)?.into_any(),
+                    pyo3::types::PyBool::new(py, s.reply.terminated).to_owned().into_any(),
+                    pyo3::types::PyBool::new(py, s.reply.truncated).to_owned().into_any(),
+                    info.into_any(),
+                    pyo3::types::PyBool::new(py, s.autoreset).to_owned().into_any(),
+                ],
+            )?)?;
+        }
+        Ok(out)
+    }
+
+    /// Releases every lease (idempotent).
+    fn close(&mut self, py: Python<'_>) -> PyResult<()> {
+        let envs = &mut self.envs;
+        block(py, envs.close())?.map_err(errors::to_py)
+    }
+}
+
+/// The native half of `offworld_gym`.
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<NativeEnvs>()?;
+    errors::register(m)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -196,3 +196,97 @@ pub async fn leaderboard(
         .await
         .map_err(wire::RequestError::into_wire)
 }
+
+/// One sub-env's result in a vector step.
+#[derive(Debug, Clone)]
+pub struct VecStep {
+    /// The step's reply (for an autoreset: the reset observation, reward 0,
+    /// flags false).
+    pub reply: StepReply,
+    /// This entry is the reset that followed the previous step's episode end.
+    pub autoreset: bool,
+}
+
+/// N envs stepped together: every call fans out to all envs at once and
+/// waits for all (one round of concurrent requests, not N sequential ones).
+/// Gymnasium 1.x "next-step" autoreset: the step after an episode ended
+/// resets that env (its action is ignored).
+pub struct VecEnvClient {
+    envs: Vec<EnvClient>,
+    needs_reset: Vec<bool>,
+}
+
+impl VecEnvClient {
+    /// Wraps opened envs.
+    pub fn new(envs: Vec<EnvClient>) -> Self {
+        let n = envs.len();
+        Self { envs, needs_reset: vec![false; n] }
+    }
+
+    /// One env.
+    pub fn get(&self, index: usize) -> Option<&EnvClient> {
+        self.envs.get(index)
+    }
+
+    /// One env, for single-env stepping without autoreset.
+    pub fn get_mut(&mut self, index: usize) -> Option<&mut EnvClient> {
+        self.envs.get_mut(index)
+    }
+
+    /// Number of envs.
+    pub fn len(&self) -> usize {
+        self.envs.len()
+    }
+
+    /// Whether there are no envs.
+    pub fn is_empty(&self) -> bool {
+        self.envs.is_empty()
+    }
+
+    /// The first env's spec (all envs share the task).
+    pub fn spec(&self) -> Option<&EnvSpec> {
+        self.envs.first().map(EnvClient::spec)
+    }
+
+    /// Resets every env (seed `i` for env `i`).
+    pub async fn reset(&mut self, seeds: &[Seed]) -> Result<Vec<ResetReply>, WireError> {
+        if seeds.len() != self.envs.len() {
+            return Err(WireError::bad_request(format!("{} seeds for {} envs", seeds.len(), self.envs.len())));
+        }
+        let replies = futures::future::join_all(self.envs.iter_mut().zip(seeds).map(|(env, seed)| env.reset(*seed))).await;
+        self.needs_reset.fill(false);
+        replies.into_iter().collect()
+    }
+
+    /// Steps every env with its action.
+    pub async fn step(&mut self, actions: Vec<Action>) -> Result<Vec<VecStep>, WireError> {
+        if actions.len() != self.envs.len() {
+            return Err(WireError::bad_request(format!("{} actions for {} envs", actions.len(), self.envs.len())));
+        }
+        let work = self.envs.iter_mut().zip(actions).zip(self.needs_reset.iter().copied()).map(
+            |((env, action), reset)| async move {
+                if reset {
+                    let r = env.reset(Seed::Continue).await?;
+                    Ok(VecStep {
+                        reply: StepReply { seq: 0, observation: r.observation, info: r.info, ..StepReply::default() },
+                        autoreset: true,
+                    })
+                } else {
+                    Ok(VecStep { reply: env.step(action).await?, autoreset: false })
+                }
+            },
+        );
+        let results: Vec<Result<VecStep, WireError>> = futures::future::join_all(work).await;
+        let steps: Vec<VecStep> = results.into_iter().collect::<Result<_, _>>()?;
+        for (flag, s) in self.needs_reset.iter_mut().zip(&steps) {
+            *flag = s.reply.terminated || s.reply.truncated;
+        }
+        Ok(steps)
+    }
+
+    /// Closes every env (idempotent).
+    pub async fn close(&mut self) -> Result<(), WireError> {
+        let results = futures::future::join_all(self.envs.iter_mut().map(EnvClient::close)).await;
+        results.into_iter().map(|r| r.map(|_| ())).collect()
+    }
+}

@@ -1,0 +1,95 @@
+//! Where a client's envs live: an embedded in-process sim deployment (the
+//! default: no router, no robot) or a remote deployment reached through
+//! Zenoh. Shared by the Python package and any other front end.
+
+use offworld_runtime::keys::EnvId;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{client, SessionConfig};
+
+use crate::embedded::{Embedded, SimEnv};
+use crate::error::ControllerError;
+use crate::store::Store;
+
+/// What to connect to.
+#[derive(Debug, Clone)]
+pub enum Target {
+    /// Start `count` sim twins and a controller inside this process.
+    Embedded {
+        /// Task name.
+        task: String,
+        /// Observation (and render) resolution (width, height).
+        resolution: (u32, u32),
+        /// Number of envs.
+        count: usize,
+    },
+    /// Use envs served elsewhere.
+    Remote {
+        /// How to reach the deployment.
+        session: SessionConfig,
+        /// Which envs.
+        envs: Vec<EnvId>,
+    },
+}
+
+/// An open connection; keeps an embedded deployment alive.
+pub struct Connection {
+    /// The Zenoh session to talk through.
+    pub session: Session,
+    /// The envs to open.
+    pub envs: Vec<EnvId>,
+    _embedded: Option<Embedded>,
+}
+
+/// How long a remote env may take to answer its first `spec` query.
+const DISCOVERY: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Connects to `target`. Remote envs must answer `spec` for the expected
+/// task, so a wrong namespace fails here with a clear message.
+pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, ControllerError> {
+    match target {
+        Target::Embedded { task, resolution, count } => {
+            let session = SessionConfig::isolated()
+                .open()
+                .await
+                .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+            let prefix = offworld_runtime::client::random_id();
+            let envs: Vec<EnvId> = (0..count.max(1))
+                .map(|i| EnvId::sim(&format!("embedded-{}-{i}", &prefix[..8])))
+                .collect::<Result<_, _>>()
+                .map_err(|e| ControllerError::Config(e.to_string()))?;
+            let sims: Vec<SimEnv> = envs
+                .iter()
+                .enumerate()
+                .map(|(i, env)| SimEnv { env: env.clone(), task: task.clone(), resolution: Some(resolution), seed: i as u64 })
+                .collect();
+            let embedded = Embedded::start(&session, &sims, Store::in_memory()?).await?;
+            Ok(Connection { session, envs, _embedded: Some(embedded) })
+        }
+        Target::Remote { session, envs } => {
+            let session = session.open().await.map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+            for env in &envs {
+                let spec = wait_for_spec(&session, env).await?;
+                if spec.task != expected_task {
+                    return Err(ControllerError::Config(format!(
+                        "{env} serves task {}, not {expected_task}",
+                        spec.task
+                    )));
+                }
+            }
+            Ok(Connection { session, envs, _embedded: None })
+        }
+    }
+}
+
+async fn wait_for_spec(session: &Session, env: &EnvId) -> Result<offworld_runtime::msg::EnvSpec, ControllerError> {
+    let deadline = tokio::time::Instant::now() + DISCOVERY;
+    loop {
+        match client::spec(session, env, std::time::Duration::from_secs(2)).await {
+            Ok(spec) => return Ok(spec),
+            Err(e) if tokio::time::Instant::now() >= deadline => {
+                return Err(ControllerError::NotFound(format!("no deployment serves {env}: {}", e.message)))
+            }
+            Err(_) => tokio::time::sleep(std::time::Duration::from_millis(100)).await,
+        }
+    }
+}

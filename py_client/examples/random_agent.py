@@ -1,0 +1,47 @@
+"""A random agent on the embedded sim (no router, no robot needed).
+
+    python py_client/examples/random_agent.py --episodes 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import gymnasium
+
+import offworld_gym  # noqa: F401  (registers the ids)
+from offworld_gym.envs.common.channels import Channels
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--env", default="OffWorldMonolithDiscreteSim-v0")
+    parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    started = time.perf_counter()
+    env = gymnasium.make(args.env, channel_type=Channels.DEPTH_ONLY)
+    obs, info = env.reset(seed=args.seed)
+    print(f"{args.env}: first observation {obs.shape} {obs.dtype} after {1000 * (time.perf_counter() - started):.0f} ms")
+    env.action_space.seed(args.seed)
+    steps = 0
+    loop_start = time.perf_counter()
+    for episode in range(args.episodes):
+        episode_return, done = 0.0, False
+        while not done:
+            obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+            episode_return += reward
+            steps += 1
+            done = terminated or truncated
+        outcome = "reached the monolith" if terminated and reward > 0 else ("left the arena" if terminated else "time limit")
+        print(f"episode {episode}: return {episode_return:.0f} in {info['step']} steps ({outcome})")
+        obs, info = env.reset()
+    elapsed = time.perf_counter() - loop_start
+    print(f"{steps} steps in {elapsed:.2f} s ({steps / elapsed:.0f} steps/s)")
+    env.close()
+
+
+if __name__ == "__main__":
+    main()

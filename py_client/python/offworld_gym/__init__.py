@@ -1,0 +1,33 @@
+"""OffWorld Gym on Zenoh: real-world RL on physical robots and their twins.
+
+``import offworld_gym`` registers the gymnasium ids::
+
+    import gymnasium
+    import offworld_gym
+    from offworld_gym.envs.common.channels import Channels
+
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", channel_type=Channels.DEPTH_ONLY)
+
+``…Sim-v0`` ids start an embedded sim deployment inside this process unless
+``connect=`` (or ``OFFWORLD_GYM_CONNECT``) names a remote one; ``…Real-v0``
+ids need a deployment and an access token (``OFFWORLD_GYM_ACCESS_TOKEN``).
+"""
+
+from offworld_gym import errors
+from offworld_gym._native import __version__
+from offworld_gym._registration import ENV_IDS, LEGACY_IDS, register_envs
+from offworld_gym.envs.common.channels import Channels
+from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
+
+register_envs()
+
+__all__ = [
+    "ENV_IDS",
+    "LEGACY_IDS",
+    "AlgorithmMode",
+    "Channels",
+    "LearningType",
+    "__version__",
+    "errors",
+    "register_envs",
+]

@@ -1,0 +1,131 @@
+"""Resolves constructor keywords into the native layer's arguments."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import gymnasium
+import numpy as np
+
+from offworld_gym.envs.common.channels import Channels
+from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
+from offworld_gym.errors import ConfigurationError
+
+#: Environment variables users of the original service know.
+TOKEN_ENV = "OFFWORLD_GYM_ACCESS_TOKEN"
+CONNECT_ENV = "OFFWORLD_GYM_CONNECT"
+ENV_ID_ENV = "OFFWORLD_GYM_ENV"
+
+
+@dataclass
+class Resolved:
+    """Everything the native constructor needs, plus what Python keeps."""
+
+    native_kwargs: dict[str, Any]
+    channels: Channels
+    render_extra_rgb: bool
+    height: int
+    width: int
+    float_obs: bool
+
+
+def resolve(
+    task: str,
+    realm: str,
+    num_envs: int,
+    *,
+    channel_type: Channels | int = Channels.DEPTH_ONLY,
+    resolution: Sequence[int] = (240, 320),
+    depth_format: str = "uint8",
+    experiment_name: str = "",
+    resume_experiment: bool = False,
+    learning_type: LearningType | str = LearningType.END_TO_END,
+    algorithm_mode: AlgorithmMode | str = AlgorithmMode.TRAIN,
+    connect: str | None = None,
+    env_id: str | Sequence[str] | None = None,
+    token: str | None = None,
+    render_mode: str | None = None,
+) -> Resolved:
+    """Checks and resolves keyword arguments (environment variables fill gaps)."""
+    channels = Channels(channel_type)
+    if len(resolution) != 2:
+        raise ConfigurationError(f"resolution must be (height, width), got {resolution!r}")
+    height, width = (int(v) for v in resolution)
+    if depth_format not in ("uint8", "meters"):
+        raise ConfigurationError(f'depth_format must be "uint8" or "meters", got {depth_format!r}')
+    if render_mode not in (None, "rgb_array"):
+        raise ConfigurationError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+    connect = connect or os.environ.get(CONNECT_ENV)
+    token = token if token is not None else os.environ.get(TOKEN_ENV, "")
+    remote = connect is not None or "OFFWORLD_ZENOH_CONFIG" in os.environ or "OFFWORLD_ZENOH_CONNECT" in os.environ
+    if realm == "real":
+        if not remote:
+            raise ConfigurationError(
+                "real envs need a deployment: pass connect='tcp/host:7447' or set OFFWORLD_GYM_CONNECT"
+            )
+        if not token:
+            raise ConfigurationError(f"real envs need an access token: pass token=… or set {TOKEN_ENV}")
+    env_ids = None
+    if remote:
+        world = "monolith_obstacle" if task.startswith("MonolithObstacle") else "monolith"
+        chosen = env_id or os.environ.get(ENV_ID_ENV) or f"{realm}/{world}-0"
+        env_ids = [chosen] if isinstance(chosen, str) else list(chosen)
+        if len(env_ids) == 1 and num_envs > 1:
+            base = env_ids[0]
+            env_ids = [f"{base}-{i}" for i in range(num_envs)]
+        if len(env_ids) != num_envs:
+            raise ConfigurationError(f"{num_envs} envs need {num_envs} env ids, got {env_ids}")
+    # Rendering needs colour: fetch RGBD and keep the requested channels.
+    render_extra_rgb = render_mode == "rgb_array" and channels == Channels.DEPTH_ONLY
+    wire_channels = Channels.RGBD if render_extra_rgb else channels
+    return Resolved(
+        native_kwargs=dict(
+            task=task,
+            realm=realm,
+            num_envs=num_envs,
+            connect=connect,
+            env_ids=env_ids,
+            token=token,
+            experiment_name=experiment_name,
+            resume_experiment=bool(resume_experiment),
+            learning_type=LearningType(learning_type).value,
+            algorithm_mode=AlgorithmMode(algorithm_mode).value,
+            channels=wire_channels.wire_name,
+            height=height,
+            width=width,
+            depth_format=depth_format,
+        ),
+        channels=channels,
+        render_extra_rgb=render_extra_rgb,
+        height=height,
+        width=width,
+        float_obs=depth_format == "meters",
+    )
+
+
+def observation_space(r: Resolved) -> gymnasium.spaces.Box:
+    """Box (height, width, channels): uint8 0–255, or float32 (RGB 0–255, depth in m)."""
+    shape = (r.height, r.width, r.channels.count)
+    if r.float_obs:
+        return gymnasium.spaces.Box(low=0.0, high=255.0, shape=shape, dtype=np.float32)
+    return gymnasium.spaces.Box(low=0, high=255, shape=shape, dtype=np.uint8)
+
+
+def action_space(spec: dict[str, Any]) -> gymnasium.spaces.Space:
+    """Discrete(n) or Box([-1, 1]^2, float32) from the server's spec."""
+    if spec["action_kind"] == "discrete":
+        return gymnasium.spaces.Discrete(int(spec["action_n"]))
+    low = np.asarray(spec["action_low"], dtype=np.float32)
+    high = np.asarray(spec["action_high"], dtype=np.float32)
+    return gymnasium.spaces.Box(low=low, high=high, dtype=np.float32)
+
+
+def split(r: Resolved, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(observation as requested, RGB image for rendering or None)."""
+    if r.render_extra_rgb:
+        return obs[..., 3:], obs[..., :3]
+    if r.channels in (Channels.RGB_ONLY, Channels.RGBD):
+        return obs, obs[..., :3]
+    return obs, None

@@ -1,0 +1,1 @@
+"""Names shared by every OffWorld environment."""

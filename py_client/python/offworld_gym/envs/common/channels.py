@@ -1,0 +1,21 @@
+"""Camera channels of an observation (the original's ``Channels``)."""
+
+from enum import IntEnum
+
+
+class Channels(IntEnum):
+    """Which camera channels an observation carries."""
+
+    DEPTH_ONLY = 1
+    RGB_ONLY = 2
+    RGBD = 3
+
+    @property
+    def count(self) -> int:
+        """Channels per pixel."""
+        return {Channels.DEPTH_ONLY: 1, Channels.RGB_ONLY: 3, Channels.RGBD: 4}[self]
+
+    @property
+    def wire_name(self) -> str:
+        """The name the native layer uses."""
+        return {Channels.DEPTH_ONLY: "depth", Channels.RGB_ONLY: "rgb", Channels.RGBD: "rgbd"}[self]

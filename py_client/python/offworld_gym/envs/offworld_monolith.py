@@ -1,0 +1,105 @@
+"""The Monolith task as a gymnasium environment (all eight ids)."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import gymnasium
+import numpy as np
+
+from offworld_gym import _config
+from offworld_gym._native import NativeEnvs
+from offworld_gym.envs.common.channels import Channels
+from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
+
+
+class OffWorldMonolithEnv(gymnasium.Env):
+    """A ROSbot must reach the monolith from camera input only.
+
+    Observations are ``(height, width, channels)`` arrays; rewards +1 on
+    reaching the monolith, else 0; episodes end on success, on leaving the
+    boundary (terminated) or after 100 steps (truncated).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+
+    def __init__(
+        self,
+        task: str,
+        realm: str,
+        channel_type: Channels | int = Channels.DEPTH_ONLY,
+        resolution: Sequence[int] = (240, 320),
+        depth_format: str = "uint8",
+        experiment_name: str = "",
+        resume_experiment: bool = False,
+        learning_type: LearningType | str = LearningType.END_TO_END,
+        algorithm_mode: AlgorithmMode | str = AlgorithmMode.TRAIN,
+        random_init: bool = True,
+        connect: str | None = None,
+        env_id: str | None = None,
+        token: str | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        self._resolved = _config.resolve(
+            task,
+            realm,
+            1,
+            channel_type=channel_type,
+            resolution=resolution,
+            depth_format=depth_format,
+            experiment_name=experiment_name,
+            resume_experiment=resume_experiment,
+            learning_type=learning_type,
+            algorithm_mode=algorithm_mode,
+            connect=connect,
+            env_id=env_id,
+            token=token,
+            render_mode=render_mode,
+        )
+        self._native = NativeEnvs(**self._resolved.native_kwargs)
+        self._random_init = random_init
+        self._last_rgb: np.ndarray | None = None
+        #: Episode index within the experiment (kept out of ``info`` so that
+        #: equal seeds give equal infos, as gymnasium's checker requires).
+        self.episode_id: int | None = None
+        self._closed = False
+        self.render_mode = render_mode
+        self.observation_space = _config.observation_space(self._resolved)
+        self.action_space = _config.action_space(self._native.spec)
+
+    @property
+    def experiment_name(self) -> str:
+        """The experiment this env records into."""
+        return str(self._native.spec["experiment"])
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Starts an episode; ``seed`` makes a sim episode reproducible."""
+        super().reset(seed=seed)
+        if seed is None and not self._random_init:
+            seed = 0  # the original's random_init=False: always the same start
+        observations, infos = self._native.reset([seed])
+        obs, self._last_rgb = _config.split(self._resolved, observations[0])
+        info = infos[0]
+        self.episode_id = info.pop("episode_id")
+        return obs, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Executes one action on the robot (or its twin)."""
+        obs, reward, terminated, truncated, info = self._native.step_single(action)
+        obs, self._last_rgb = _config.split(self._resolved, obs)
+        self.episode_id = info.pop("episode_id")
+        return obs, float(reward), bool(terminated), bool(truncated), info
+
+    def render(self) -> np.ndarray | None:
+        """The last RGB image (``render_mode="rgb_array"``)."""
+        if self.render_mode != "rgb_array":
+            return None
+        return self._last_rgb
+
+    def close(self) -> None:
+        """Releases the lease; safe to call twice."""
+        if not self._closed:
+            self._closed = True
+            self._native.close()

@@ -1,0 +1,89 @@
+"""Native vector env: N twins stepped concurrently, one fan-out per step."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import gymnasium
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from offworld_gym import _config
+from offworld_gym._native import NativeEnvs
+from offworld_gym.envs.common.channels import Channels
+
+
+class OffWorldMonolithVectorEnv(VectorEnv):
+    """``gymnasium.make_vec(id, num_envs=N)``: next-step autoreset, like gymnasium 1.x."""
+
+    metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(
+        self,
+        num_envs: int,
+        task: str,
+        realm: str,
+        channel_type: Channels | int = Channels.DEPTH_ONLY,
+        resolution: Sequence[int] = (240, 320),
+        depth_format: str = "uint8",
+        experiment_name: str = "",
+        env_id: str | Sequence[str] | None = None,
+        render_mode: str | None = None,
+        max_episode_steps: int | None = None,
+        **kwargs: Any,
+    ) -> None:
+        self._resolved = _config.resolve(
+            task,
+            realm,
+            num_envs,
+            channel_type=channel_type,
+            resolution=resolution,
+            depth_format=depth_format,
+            experiment_name=experiment_name,
+            env_id=env_id,
+            render_mode=render_mode,
+            **{k: v for k, v in kwargs.items() if k != "random_init"},
+        )
+        self._native = NativeEnvs(**self._resolved.native_kwargs)
+        self._closed = False
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.single_observation_space = _config.observation_space(self._resolved)
+        self.single_action_space = _config.action_space(self._native.spec)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+
+    def _infos(self, infos: list[dict[str, Any]]) -> dict[str, Any]:
+        #: Episode index per env (kept out of ``info``, as in the single env).
+        self.episode_ids = np.array([i["episode_id"] for i in infos], dtype=np.int64)
+        return {"step": np.array([i["step"] for i in infos], dtype=np.int64), "_step": np.ones(self.num_envs, dtype=bool)}
+
+    def reset(
+        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Resets every env; an int seed gives env i the seed ``seed + i``."""
+        if seed is None:
+            seeds: list[int | None] = [None] * self.num_envs
+        elif isinstance(seed, int):
+            seeds = [seed + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+        observations, infos = self._native.reset(seeds)
+        obs = np.stack([_config.split(self._resolved, o)[0] for o in observations])
+        return obs, self._infos(infos)
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Steps all envs at once; an env whose episode ended last step is reset instead."""
+        results = self._native.step_all([actions[i] for i in range(self.num_envs)])
+        obs = np.stack([_config.split(self._resolved, r[0])[0] for r in results])
+        rewards = np.array([r[1] for r in results], dtype=np.float64)
+        terminated = np.array([r[2] for r in results], dtype=bool)
+        truncated = np.array([r[3] for r in results], dtype=bool)
+        return obs, rewards, terminated, truncated, self._infos([r[4] for r in results])
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Releases every lease."""
+        if not self._closed:
+            self._closed = True
+            self._native.close()

@@ -1,0 +1,70 @@
+"""Fixtures: a standalone deployment (the env_controller binary with
+embedded twins) on a free loopback port, for tests that need a second
+process or a remote connection."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _binary(name: str) -> Path:
+    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
+    path = target / "release" / name
+    if not path.exists():
+        pytest.fail(f"{path} is missing: build it with `cargo build --release` (bash .ci/test does)")
+    return path
+
+
+@pytest.fixture()
+def deployment(tmp_path: Path):
+    """Yields (endpoint, env_id) of a sim deployment in another process."""
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    env_id = "sim/contended-0"
+    proc = subprocess.Popen(
+        [
+            str(_binary("env_controller")),
+            "--db",
+            str(tmp_path / "gym.db"),
+            "serve",
+            "--env",
+            f"{env_id}=MonolithDiscrete",
+            "--embedded-twins",
+            "--listen",
+            endpoint,
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    # Bounded wait for the port to accept connections.
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"env_controller exited: {proc.stderr.read().decode() if proc.stderr else ''}")
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        time.sleep(0.1)
+    else:
+        proc.kill()
+        raise RuntimeError("env_controller did not start listening")
+    try:
+        yield endpoint, env_id
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()

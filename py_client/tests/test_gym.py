@@ -1,0 +1,193 @@
+"""offworld_gym against real Zenoh sessions: the embedded sim by default, a
+separate deployment process where a test needs one."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import offworld_gym
+from offworld_gym import errors
+from offworld_gym.envs.common.channels import Channels
+from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
+
+SIM_IDS = [i for i, (_, realm) in offworld_gym.ENV_IDS.items() if realm == "sim"]
+REAL_IDS = [i for i, (_, realm) in offworld_gym.ENV_IDS.items() if realm == "real"]
+LEGACY_SIM_IDS = [i for i, (_, realm) in offworld_gym.LEGACY_IDS.items() if realm == "sim"]
+
+
+def test_all_ids_are_registered():
+    assert len(offworld_gym.ENV_IDS) == 8
+    for env_id in [*offworld_gym.ENV_IDS, *offworld_gym.LEGACY_IDS]:
+        assert env_id in gymnasium.registry, env_id
+
+
+def test_the_papers_listing_runs_as_written(monkeypatch):
+    for var in ("OFFWORLD_GYM_CONNECT", "OFFWORLD_GYM_ACCESS_TOKEN", "OFFWORLD_ZENOH_CONFIG", "OFFWORLD_ZENOH_CONNECT"):
+        monkeypatch.delenv(var, raising=False)
+    # Real without a deployment: a clear error naming what is missing.
+    with pytest.raises(errors.ConfigurationError, match="connect"):
+        gymnasium.make(
+            "OffWorldMonolithDiscreteReal-v0",
+            experiment_name="Demo",
+            resume_experiment=False,
+            channel_type=Channels.DEPTH_ONLY,
+        )
+    with pytest.raises(errors.ConfigurationError, match="token"):
+        gymnasium.make("OffWorldMonolithDiscreteReal-v0", connect="tcp/127.0.0.1:9", experiment_name="Demo")
+    # The same listing on the sim id trains at once.
+    env = gymnasium.make(
+        "OffWorldMonolithDiscreteSim-v0",
+        experiment_name="Demo",
+        resume_experiment=False,
+        channel_type=Channels.DEPTH_ONLY,
+        learning_type=LearningType.END_TO_END,
+        algorithm_mode=AlgorithmMode.TRAIN,
+    )
+    obs, info = env.reset()
+    assert obs.shape == (240, 320, 1) and obs.dtype == np.uint8
+    assert info == {"step": 0} and env.unwrapped.episode_id == 0
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert isinstance(reward, float) and isinstance(terminated, bool) and isinstance(truncated, bool)
+    assert info["step"] == 1
+    assert "x" not in info and "pose" not in info, "no localisation leaks to the agent"
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", SIM_IDS + LEGACY_SIM_IDS)
+def test_every_sim_id_passes_gymnasium_check_env(env_id):
+    env = gymnasium.make(env_id, resolution=(84, 84), render_mode="rgb_array")
+    check_env(env.unwrapped, skip_render_check=False)
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", REAL_IDS)
+def test_real_ids_without_deployment_fail_clearly(env_id, monkeypatch):
+    monkeypatch.delenv("OFFWORLD_GYM_CONNECT", raising=False)
+    with pytest.raises(errors.ConfigurationError):
+        gymnasium.make(env_id)
+
+
+def test_stable_baselines3_check_env_when_installed():
+    sb3 = pytest.importorskip("stable_baselines3.common.env_checker")
+    for env_id in SIM_IDS:
+        env = gymnasium.make(env_id, resolution=(84, 84))
+        sb3.check_env(env.unwrapped)
+        env.close()
+
+
+def test_seeded_resets_are_deterministic():
+    def run(env, seed):
+        obs, _ = env.reset(seed=seed)
+        frames = [obs]
+        for a in [2, 0, 2, 1, 3]:
+            obs, *_ = env.step(a)
+            frames.append(obs)
+        return frames
+
+    env = gymnasium.make("OffWorldMonolithObstacleDiscreteSim-v0", resolution=(84, 84), channel_type=Channels.RGBD)
+    a, b = run(env, 11), run(env, 11)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not np.array_equal(run(env, 12)[0], a[0])
+    env.close()
+
+
+def test_observation_options():
+    env = gymnasium.make(
+        "OffWorldMonolithContinuousSim-v0", resolution=(60, 80), channel_type=Channels.RGBD, depth_format="meters"
+    )
+    obs, _ = env.reset(seed=1)
+    assert obs.shape == (60, 80, 4) and obs.dtype == np.float32
+    assert env.observation_space.contains(obs)
+    depth = obs[..., 3]
+    assert 0.0 < np.median(depth[depth > 0]) < 10.0, "metric depth"
+    assert env.action_space == gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    env.close()
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=(84, 84), channel_type=Channels.RGB_ONLY)
+    obs, _ = env.reset(seed=1)
+    assert obs.shape == (84, 84, 3) and obs.dtype == np.uint8
+    env.close()
+
+
+def test_bad_actions_raise_typed_errors():
+    env = gymnasium.make("OffWorldMonolithContinuousSim-v0", resolution=(32, 32))
+    with pytest.raises(errors.InvalidState):
+        # Below gymnasium's order-enforcing wrapper: the server refuses too.
+        env.unwrapped.step(np.zeros(2, dtype=np.float32))
+    env.reset(seed=0)
+    for bad in ([1.5, 0.0], [np.nan, 0.0], [0.0], [0.0, 0.0, 0.0]):
+        with pytest.raises(errors.BadRequest) as info:
+            env.step(np.array(bad, dtype=np.float32))
+        assert info.value.code == 400
+    with pytest.raises(ValueError):
+        env.step("left")
+    obs, *_ = env.step(np.array([0.5, -0.5], dtype=np.float32))
+    assert obs.shape == (32, 32, 1), "still serving after bad actions"
+    env.close()
+    env.close()
+    discrete = gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=(32, 32))
+    discrete.reset(seed=0)
+    with pytest.raises(errors.BadRequest):
+        discrete.step(4)
+    discrete.step(np.int64(2))
+    discrete.close()
+
+
+def test_render_returns_rgb():
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=(48, 64), render_mode="rgb_array")
+    obs, _ = env.reset(seed=2)
+    assert obs.shape == (48, 64, 1)
+    frame = env.render()
+    assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8 and frame.max() > 0
+    env.close()
+
+
+def test_vector_env_shapes_and_autoreset():
+    envs = gymnasium.make_vec("OffWorldMonolithDiscreteSim-v0", num_envs=2, resolution=(32, 32))
+    assert type(envs).__name__ == "OffWorldMonolithVectorEnv", "the native vector entry point is used"
+    obs, info = envs.reset(seed=5)
+    assert obs.shape == (2, 32, 32, 1)
+    assert list(info["step"]) == [0, 0]
+    done_seen = False
+    for _ in range(100):
+        obs, rewards, terminated, truncated, info = envs.step(np.array([2, 2]))
+        assert obs.shape == (2, 32, 32, 1) and rewards.shape == (2,)
+        if (terminated | truncated).any():
+            done_seen = True
+            ended = terminated | truncated
+            obs, rewards, terminated, truncated, info = envs.step(np.array([2, 2]))
+            # Next-step autoreset: the finished env restarts at step 0, reward 0.
+            assert (info["step"][ended] == 0).all()
+            assert (rewards[ended] == 0).all()
+            break
+    assert done_seen, "FORWARD for 100 steps ends an episode"
+    envs.close()
+
+
+def test_second_process_gets_busy(deployment):
+    endpoint, env_id = deployment
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=endpoint, env_id=env_id, resolution=(32, 32))
+    env.reset(seed=0)
+    contender = textwrap.dedent(
+        f"""
+        import gymnasium, offworld_gym
+        from offworld_gym import errors
+        try:
+            gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect="{endpoint}", env_id="{env_id}", token="")
+        except errors.Busy as e:
+            print("BUSY", e.code, e)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", contender], capture_output=True, text=True, timeout=60)
+    assert "BUSY 409" in out.stdout, out.stdout + out.stderr
+    assert "until" in out.stdout
+    env.close()
+    # Released: the other process may now take it.
+    again = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=endpoint, env_id=env_id, resolution=(32, 32))
+    again.close()
