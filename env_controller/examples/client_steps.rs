@@ -11,13 +11,24 @@ use offworld_runtime::msg::*;
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
-    let args: Vec<u32> = std::env::args().skip(1).filter_map(|a| a.parse().ok()).collect();
+    let args: Vec<u32> = std::env::args()
+        .skip(1)
+        .filter_map(|a| a.parse().ok())
+        .collect();
     let (w, h, n) = match args[..] {
         [w, h, n] => (w, h, n as usize),
         _ => (84, 84, 1000),
     };
     let task = "MonolithDiscrete";
-    let connection = deployment::connect(Target::Embedded { task: task.into(), resolution: (w, h), count: 1 }, task).await?;
+    let connection = deployment::connect(
+        Target::Embedded {
+            task: task.into(),
+            resolution: (w, h),
+            count: 1,
+        },
+        task,
+    )
+    .await?;
     let request = OpenRequest {
         token: String::new(),
         client_id: String::new(),
@@ -25,17 +36,34 @@ async fn main() -> anyhow::Result<()> {
         resume_experiment: false,
         learning_type: LearningType::EndToEnd,
         algorithm_mode: AlgorithmMode::Train,
-        obs: ObsOptions { channels: Channels::DepthOnly, height: h, width: w, depth_format: DepthFormat::Uint8 },
+        obs: ObsOptions {
+            channels: Channels::DepthOnly,
+            height: h,
+            width: w,
+            depth_format: DepthFormat::Uint8,
+        },
     };
-    let mut env = EnvClient::open(&connection.session, &connection.envs[0], request, ClientTimeouts::default())
+    let mut env = EnvClient::open(
+        &connection.session,
+        &connection.envs[0],
+        request,
+        ClientTimeouts::default(),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!(e))?;
+    env.reset(Seed::Fixed(0))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
-    env.reset(Seed::Fixed(0)).await.map_err(|e| anyhow::anyhow!(e))?;
     let start = Instant::now();
     for i in 0..n {
-        let r = env.step(Action::Discrete((i % 4) as i64)).await.map_err(|e| anyhow::anyhow!(e))?;
+        let r = env
+            .step(Action::Discrete((i % 4) as i64))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
         if r.terminated || r.truncated {
-            env.reset(Seed::Continue).await.map_err(|e| anyhow::anyhow!(e))?;
+            env.reset(Seed::Continue)
+                .await
+                .map_err(|e| anyhow::anyhow!(e))?;
         }
     }
     let rate = n as f64 / start.elapsed().as_secs_f64();

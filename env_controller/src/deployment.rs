@@ -47,7 +47,11 @@ const DISCOVERY: std::time::Duration = std::time::Duration::from_secs(10);
 /// task, so a wrong namespace fails here with a clear message.
 pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, ControllerError> {
     match target {
-        Target::Embedded { task, resolution, count } => {
+        Target::Embedded {
+            task,
+            resolution,
+            count,
+        } => {
             let session = SessionConfig::isolated()
                 .open()
                 .await
@@ -60,13 +64,25 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
             let sims: Vec<SimEnv> = envs
                 .iter()
                 .enumerate()
-                .map(|(i, env)| SimEnv { env: env.clone(), task: task.clone(), resolution: Some(resolution), seed: i as u64 })
+                .map(|(i, env)| SimEnv {
+                    env: env.clone(),
+                    task: task.clone(),
+                    resolution: Some(resolution),
+                    seed: i as u64,
+                })
                 .collect();
             let embedded = Embedded::start(&session, &sims, Store::in_memory()?).await?;
-            Ok(Connection { session, envs, _embedded: Some(embedded) })
+            Ok(Connection {
+                session,
+                envs,
+                _embedded: Some(embedded),
+            })
         }
         Target::Remote { session, envs } => {
-            let session = session.open().await.map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+            let session = session
+                .open()
+                .await
+                .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
             for env in &envs {
                 let spec = wait_for_spec(&session, env).await?;
                 if spec.task != expected_task {
@@ -76,18 +92,28 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                     )));
                 }
             }
-            Ok(Connection { session, envs, _embedded: None })
+            Ok(Connection {
+                session,
+                envs,
+                _embedded: None,
+            })
         }
     }
 }
 
-async fn wait_for_spec(session: &Session, env: &EnvId) -> Result<offworld_runtime::msg::EnvSpec, ControllerError> {
+async fn wait_for_spec(
+    session: &Session,
+    env: &EnvId,
+) -> Result<offworld_runtime::msg::EnvSpec, ControllerError> {
     let deadline = tokio::time::Instant::now() + DISCOVERY;
     loop {
         match client::spec(session, env, std::time::Duration::from_secs(2)).await {
             Ok(spec) => return Ok(spec),
             Err(e) if tokio::time::Instant::now() >= deadline => {
-                return Err(ControllerError::NotFound(format!("no deployment serves {env}: {}", e.message)))
+                return Err(ControllerError::NotFound(format!(
+                    "no deployment serves {env}: {}",
+                    e.message
+                )))
             }
             Err(_) => tokio::time::sleep(std::time::Duration::from_millis(100)).await,
         }

@@ -13,6 +13,31 @@ use offworld_runtime::session::free_loopback_port;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
 
+/// A scratch directory removed on drop (no tempfile crate: its dev-only
+/// features would split the dependency tree between tests and the wheel).
+struct ScratchDir(std::path::PathBuf);
+
+impl ScratchDir {
+    fn new() -> Self {
+        let dir = std::env::temp_dir().join(format!(
+            "offworld-gym-test-{}",
+            offworld_runtime::client::random_id()
+        ));
+        std::fs::create_dir_all(&dir).expect("scratch dir");
+        Self(dir)
+    }
+
+    fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for ScratchDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 struct Deployment {
     _server: Session,
     endpoint: String,
@@ -140,7 +165,7 @@ async fn seeded_run(env: &mut EnvClient, seed: u64) -> Vec<Vec<u8>> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn full_episode_and_seeded_determinism() {
-    let dir = tempfile::tempdir().expect("tmp");
+    let dir = ScratchDir::new();
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;
     let spec = client::spec(&session, &d.env, Duration::from_secs(5))
@@ -191,7 +216,7 @@ async fn full_episode_and_seeded_determinism() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_inputs_get_typed_errors_and_the_server_keeps_serving() {
-    let dir = tempfile::tempdir().expect("tmp");
+    let dir = ScratchDir::new();
     let d = deploy(&dir.path().join("gym.db"), "MonolithContinuous", &users()).await;
     let session = client_session(&d).await;
     let code = |r: Result<EnvClient, WireError>| r.err().map(|e| e.code);
@@ -282,7 +307,7 @@ async fn bad_inputs_get_typed_errors_and_the_server_keeps_serving() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn leases_busy_disconnect_and_maintenance() {
-    let dir = tempfile::tempdir().expect("tmp");
+    let dir = ScratchDir::new();
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let alice_session = client_session(&d).await;
     let bob_session = client_session(&d).await;
@@ -396,7 +421,7 @@ async fn leases_busy_disconnect_and_maintenance() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn records_survive_a_restart_and_rank_on_the_leaderboard() {
-    let dir = tempfile::tempdir().expect("tmp");
+    let dir = ScratchDir::new();
     let db = dir.path().join("gym.db");
     let mut first_steps = 0;
     {

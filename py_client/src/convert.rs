@@ -3,7 +3,8 @@
 
 use numpy::{PyArray1, PyArrayMethods};
 use offworld_runtime::msg::{
-    Action, ActionSpace, AlgorithmMode, Channels, DType, DepthFormat, LearningType, ObsArray, ObsOptions, StepInfo,
+    Action, ActionSpace, AlgorithmMode, Channels, DType, DepthFormat, LearningType, ObsArray,
+    ObsOptions, StepInfo,
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -11,7 +12,11 @@ use pyo3::types::PyDict;
 
 /// An observation as a numpy array of shape (height, width, channels).
 pub fn observation<'py>(py: Python<'py>, obs: ObsArray) -> PyResult<Bound<'py, PyAny>> {
-    let shape = [obs.height as usize, obs.width as usize, obs.channels as usize];
+    let shape = [
+        obs.height as usize,
+        obs.width as usize,
+        obs.channels as usize,
+    ];
     match obs.dtype {
         DType::U8 => Ok(PyArray1::from_vec(py, obs.data).reshape(shape)?.into_any()),
         DType::F32 => {
@@ -41,21 +46,36 @@ pub fn action(space: &ActionSpace, value: &Bound<'_, PyAny>) -> PyResult<Action>
             let index = value
                 .call_method0("__index__")
                 .and_then(|i| i.extract::<i64>())
-                .map_err(|_| PyValueError::new_err(format!("a discrete action must be an int, got {value}")))?;
+                .map_err(|_| {
+                    PyValueError::new_err(format!("a discrete action must be an int, got {value}"))
+                })?;
             Ok(Action::Discrete(index))
         }
         ActionSpace::Box { .. } => {
-            let list = if value.hasattr("tolist")? { value.call_method0("tolist")? } else { value.clone() };
-            let values: Vec<f64> = list
-                .extract()
-                .map_err(|_| PyValueError::new_err(format!("a continuous action must be a sequence of floats, got {value}")))?;
-            Ok(Action::Continuous(values.into_iter().map(|v| v as f32).collect()))
+            let list = if value.hasattr("tolist")? {
+                value.call_method0("tolist")?
+            } else {
+                value.clone()
+            };
+            let values: Vec<f64> = list.extract().map_err(|_| {
+                PyValueError::new_err(format!(
+                    "a continuous action must be a sequence of floats, got {value}"
+                ))
+            })?;
+            Ok(Action::Continuous(
+                values.into_iter().map(|v| v as f32).collect(),
+            ))
         }
     }
 }
 
 /// Observation options from the Python keyword arguments.
-pub fn obs_options(channels: &str, height: u32, width: u32, depth_format: &str) -> PyResult<ObsOptions> {
+pub fn obs_options(
+    channels: &str,
+    height: u32,
+    width: u32,
+    depth_format: &str,
+) -> PyResult<ObsOptions> {
     let channels = match channels {
         "depth" => Channels::DepthOnly,
         "rgb" => Channels::RgbOnly,
@@ -65,9 +85,18 @@ pub fn obs_options(channels: &str, height: u32, width: u32, depth_format: &str) 
     let depth_format = match depth_format {
         "uint8" => DepthFormat::Uint8,
         "meters" => DepthFormat::Meters,
-        other => return Err(PyValueError::new_err(format!("depth_format must be \"uint8\" or \"meters\", got {other:?}"))),
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "depth_format must be \"uint8\" or \"meters\", got {other:?}"
+            )))
+        }
     };
-    Ok(ObsOptions { channels, height, width, depth_format })
+    Ok(ObsOptions {
+        channels,
+        height,
+        width,
+        depth_format,
+    })
 }
 
 /// `learning_type` from its string.
@@ -76,7 +105,9 @@ pub fn learning_type(value: &str) -> PyResult<LearningType> {
         "end2end" => Ok(LearningType::EndToEnd),
         "sim2real" => Ok(LearningType::SimToReal),
         "humandemos" => Ok(LearningType::HumanDemos),
-        other => Err(PyValueError::new_err(format!("learning_type must be end2end, sim2real or humandemos, got {other:?}"))),
+        other => Err(PyValueError::new_err(format!(
+            "learning_type must be end2end, sim2real or humandemos, got {other:?}"
+        ))),
     }
 }
 
@@ -85,6 +116,8 @@ pub fn algorithm_mode(value: &str) -> PyResult<AlgorithmMode> {
     match value {
         "train" => Ok(AlgorithmMode::Train),
         "test" => Ok(AlgorithmMode::Test),
-        other => Err(PyValueError::new_err(format!("algorithm_mode must be train or test, got {other:?}"))),
+        other => Err(PyValueError::new_err(format!(
+            "algorithm_mode must be train or test, got {other:?}"
+        ))),
     }
 }

@@ -5,19 +5,65 @@
 use offworld_runtime::{ErrorCode, WireError};
 use pyo3::create_exception;
 use pyo3::exceptions::{
-    PyConnectionError, PyLookupError, PyPermissionError, PyRuntimeError, PyTimeoutError, PyValueError,
+    PyConnectionError, PyLookupError, PyPermissionError, PyRuntimeError, PyTimeoutError,
+    PyValueError,
 };
 use pyo3::prelude::*;
 
-create_exception!(offworld_gym.errors, OffWorldGymError, PyRuntimeError, "Base of every offworld_gym error.");
-create_exception!(offworld_gym.errors, BadRequest, PyValueError, "The request or action is invalid (code 400).");
-create_exception!(offworld_gym.errors, Unauthorized, PyPermissionError, "Missing or wrong token, lease or booking (401).");
-create_exception!(offworld_gym.errors, NotFound, PyLookupError, "No such env, session or experiment (404).");
-create_exception!(offworld_gym.errors, Busy, OffWorldGymError, "The env is leased by someone else (409).");
-create_exception!(offworld_gym.errors, InvalidState, OffWorldGymError, "Not now: step before reset, after the end (412).");
-create_exception!(offworld_gym.errors, Unavailable, PyConnectionError, "Maintenance, offline, or tracking lost (503).");
-create_exception!(offworld_gym.errors, Timeout, PyTimeoutError, "A component did not answer in time (504).");
-create_exception!(offworld_gym.errors, Internal, OffWorldGymError, "A server-side failure (500).");
+create_exception!(
+    offworld_gym.errors,
+    OffWorldGymError,
+    PyRuntimeError,
+    "Base of every offworld_gym error."
+);
+create_exception!(
+    offworld_gym.errors,
+    BadRequest,
+    PyValueError,
+    "The request or action is invalid (code 400)."
+);
+create_exception!(
+    offworld_gym.errors,
+    Unauthorized,
+    PyPermissionError,
+    "Missing or wrong token, lease or booking (401)."
+);
+create_exception!(
+    offworld_gym.errors,
+    NotFound,
+    PyLookupError,
+    "No such env, session or experiment (404)."
+);
+create_exception!(
+    offworld_gym.errors,
+    Busy,
+    OffWorldGymError,
+    "The env is leased by someone else (409)."
+);
+create_exception!(
+    offworld_gym.errors,
+    InvalidState,
+    OffWorldGymError,
+    "Not now: step before reset, after the end (412)."
+);
+create_exception!(
+    offworld_gym.errors,
+    Unavailable,
+    PyConnectionError,
+    "Maintenance, offline, or tracking lost (503)."
+);
+create_exception!(
+    offworld_gym.errors,
+    Timeout,
+    PyTimeoutError,
+    "A component did not answer in time (504)."
+);
+create_exception!(
+    offworld_gym.errors,
+    Internal,
+    OffWorldGymError,
+    "A server-side failure (500)."
+);
 
 /// A wire error as the matching Python exception; `.code` is set too.
 pub fn to_py(e: WireError) -> PyErr {

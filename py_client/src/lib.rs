@@ -31,7 +31,10 @@ fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
 }
 
 /// Runs `work` on the runtime with the GIL released.
-fn block<T: Send>(py: Python<'_>, work: impl std::future::Future<Output = T> + Send) -> PyResult<T> {
+fn block<T: Send>(
+    py: Python<'_>,
+    work: impl std::future::Future<Output = T> + Send,
+) -> PyResult<T> {
     let rt = runtime()?;
     Ok(py.detach(|| rt.block_on(work)))
 }
@@ -86,31 +89,44 @@ impl NativeEnvs {
             obs,
         };
         let target = match (connect, env_ids) {
-            (None, None) if realm == "sim" => Target::Embedded { task: task.clone(), resolution: (width, height), count: num_envs },
+            (None, None) if realm == "sim" => Target::Embedded {
+                task: task.clone(),
+                resolution: (width, height),
+                count: num_envs,
+            },
             (connect, env_ids) => {
-                let mut session = SessionConfig::from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
+                let mut session =
+                    SessionConfig::from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
                 if let Some(endpoint) = connect {
                     session.connect = vec![endpoint];
                 }
                 let envs: Vec<EnvId> = env_ids
-                    .ok_or_else(|| PyValueError::new_err("env_ids are required for a remote deployment"))?
+                    .ok_or_else(|| {
+                        PyValueError::new_err("env_ids are required for a remote deployment")
+                    })?
                     .iter()
-                    .map(|e| e.parse::<EnvId>().map_err(|e| PyValueError::new_err(e.to_string())))
+                    .map(|e| {
+                        e.parse::<EnvId>()
+                            .map_err(|e| PyValueError::new_err(e.to_string()))
+                    })
                     .collect::<PyResult<_>>()?;
                 Target::Remote { session, envs }
             }
         };
         let opened = block(py, async move {
-            let connection = deployment::connect(target, &task).await.map_err(controller_error)?;
+            let connection = deployment::connect(target, &task)
+                .await
+                .map_err(controller_error)?;
             let mut clients = Vec::new();
             for (i, env) in connection.envs.iter().enumerate() {
                 let mut request = request.clone();
                 if connection.envs.len() > 1 && !experiment_name.is_empty() {
                     request.experiment_name = format!("{experiment_name}-{i}");
                 }
-                let client = EnvClient::open(&connection.session, env, request, ClientTimeouts::default())
-                    .await
-                    .map_err(errors::to_py)?;
+                let client =
+                    EnvClient::open(&connection.session, env, request, ClientTimeouts::default())
+                        .await
+                        .map_err(errors::to_py)?;
                 clients.push(client);
             }
             Ok::<_, PyErr>((connection, clients))
@@ -120,13 +136,20 @@ impl NativeEnvs {
             .first()
             .map(|c| c.spec().action_space.clone())
             .ok_or_else(|| PyValueError::new_err("no envs"))?;
-        Ok(Self { envs: VecEnvClient::new(clients), space, _connection: connection })
+        Ok(Self {
+            envs: VecEnvClient::new(clients),
+            space,
+            _connection: connection,
+        })
     }
 
     /// The env spec as a dict.
     #[getter]
     fn spec<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let spec = self.envs.spec().ok_or_else(|| PyValueError::new_err("no envs"))?;
+        let spec = self
+            .envs
+            .spec()
+            .ok_or_else(|| PyValueError::new_err("no envs"))?;
         let dict = PyDict::new(py);
         dict.set_item("env_id", &spec.env_id)?;
         dict.set_item("task", &spec.task)?;
@@ -157,8 +180,15 @@ impl NativeEnvs {
 
     /// Resets every env; `seeds[i]` None continues env i's stream.
     /// Returns (observations, infos).
-    fn reset<'py>(&mut self, py: Python<'py>, seeds: Vec<Option<u64>>) -> PyResult<Bound<'py, PyTuple>> {
-        let seeds: Vec<Seed> = seeds.into_iter().map(|s| s.map_or(Seed::Continue, Seed::Fixed)).collect();
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seeds: Vec<Option<u64>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let seeds: Vec<Seed> = seeds
+            .into_iter()
+            .map(|s| s.map_or(Seed::Continue, Seed::Fixed))
+            .collect();
         let envs = &mut self.envs;
         let replies = block(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
         let observations = PyList::empty(py);
@@ -171,9 +201,16 @@ impl NativeEnvs {
     }
 
     /// Steps env 0 alone (no autoreset): (obs, reward, terminated, truncated, info).
-    fn step_single<'py>(&mut self, py: Python<'py>, action: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyTuple>> {
+    fn step_single<'py>(
+        &mut self,
+        py: Python<'py>,
+        action: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
         let action = convert::action(&self.space, action)?;
-        let env = self.envs.get_mut(0).ok_or_else(|| PyValueError::new_err("no envs"))?;
+        let env = self
+            .envs
+            .get_mut(0)
+            .ok_or_else(|| PyValueError::new_err("no envs"))?;
         let r = block(py, env.step(action))?.map_err(errors::to_py)?;
         let info = convert::info(py, &r.info)?;
         PyTuple::new(
@@ -181,8 +218,12 @@ impl NativeEnvs {
             [
                 convert::observation(py, r.observation)?,
                 r.reward.into_pyobject(py)?.into_any(),
-                pyo3::types::PyBool::new(py, r.terminated).to_owned().into_any(),
-                pyo3::types::PyBool::new(py, r.truncated).to_owned().into_any(),
+                pyo3::types::PyBool::new(py, r.terminated)
+                    .to_owned()
+                    .into_any(),
+                pyo3::types::PyBool::new(py, r.truncated)
+                    .to_owned()
+                    .into_any(),
                 info.into_any(),
             ],
         )
@@ -190,8 +231,15 @@ impl NativeEnvs {
 
     /// Steps every env concurrently with gymnasium's next-step autoreset.
     /// Returns a list of (obs, reward, terminated, truncated, info, autoreset).
-    fn step_all<'py>(&mut self, py: Python<'py>, actions: Vec<Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyList>> {
-        let actions = actions.iter().map(|a| convert::action(&self.space, a)).collect::<PyResult<Vec<_>>>()?;
+    fn step_all<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: Vec<Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyList>> {
+        let actions = actions
+            .iter()
+            .map(|a| convert::action(&self.space, a))
+            .collect::<PyResult<Vec<_>>>()?;
         let envs = &mut self.envs;
         let steps = block(py, envs.step(actions))?.map_err(errors::to_py)?;
         let out = PyList::empty(py);
@@ -202,10 +250,16 @@ impl NativeEnvs {
                 [
                     convert::observation(py, s.reply.observation)?,
                     s.reply.reward.into_pyobject(py)?.into_any(),
-                    pyo3::types::PyBool::new(py, s.reply.terminated).to_owned().into_any(),
-                    pyo3::types::PyBool::new(py, s.reply.truncated).to_owned().into_any(),
+                    pyo3::types::PyBool::new(py, s.reply.terminated)
+                        .to_owned()
+                        .into_any(),
+                    pyo3::types::PyBool::new(py, s.reply.truncated)
+                        .to_owned()
+                        .into_any(),
                     info.into_any(),
-                    pyo3::types::PyBool::new(py, s.autoreset).to_owned().into_any(),
+                    pyo3::types::PyBool::new(py, s.autoreset)
+                        .to_owned()
+                        .into_any(),
                 ],
             )?)?;
         }

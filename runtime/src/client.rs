@@ -220,7 +220,10 @@ impl VecEnvClient {
     /// Wraps opened envs.
     pub fn new(envs: Vec<EnvClient>) -> Self {
         let n = envs.len();
-        Self { envs, needs_reset: vec![false; n] }
+        Self {
+            envs,
+            needs_reset: vec![false; n],
+        }
     }
 
     /// One env.
@@ -251,9 +254,19 @@ impl VecEnvClient {
     /// Resets every env (seed `i` for env `i`).
     pub async fn reset(&mut self, seeds: &[Seed]) -> Result<Vec<ResetReply>, WireError> {
         if seeds.len() != self.envs.len() {
-            return Err(WireError::bad_request(format!("{} seeds for {} envs", seeds.len(), self.envs.len())));
+            return Err(WireError::bad_request(format!(
+                "{} seeds for {} envs",
+                seeds.len(),
+                self.envs.len()
+            )));
         }
-        let replies = futures::future::join_all(self.envs.iter_mut().zip(seeds).map(|(env, seed)| env.reset(*seed))).await;
+        let replies = futures::future::join_all(
+            self.envs
+                .iter_mut()
+                .zip(seeds)
+                .map(|(env, seed)| env.reset(*seed)),
+        )
+        .await;
         self.needs_reset.fill(false);
         replies.into_iter().collect()
     }
@@ -261,21 +274,36 @@ impl VecEnvClient {
     /// Steps every env with its action.
     pub async fn step(&mut self, actions: Vec<Action>) -> Result<Vec<VecStep>, WireError> {
         if actions.len() != self.envs.len() {
-            return Err(WireError::bad_request(format!("{} actions for {} envs", actions.len(), self.envs.len())));
+            return Err(WireError::bad_request(format!(
+                "{} actions for {} envs",
+                actions.len(),
+                self.envs.len()
+            )));
         }
-        let work = self.envs.iter_mut().zip(actions).zip(self.needs_reset.iter().copied()).map(
-            |((env, action), reset)| async move {
+        let work = self
+            .envs
+            .iter_mut()
+            .zip(actions)
+            .zip(self.needs_reset.iter().copied())
+            .map(|((env, action), reset)| async move {
                 if reset {
                     let r = env.reset(Seed::Continue).await?;
                     Ok(VecStep {
-                        reply: StepReply { seq: 0, observation: r.observation, info: r.info, ..StepReply::default() },
+                        reply: StepReply {
+                            seq: 0,
+                            observation: r.observation,
+                            info: r.info,
+                            ..StepReply::default()
+                        },
                         autoreset: true,
                     })
                 } else {
-                    Ok(VecStep { reply: env.step(action).await?, autoreset: false })
+                    Ok(VecStep {
+                        reply: env.step(action).await?,
+                        autoreset: false,
+                    })
                 }
-            },
-        );
+            });
         let results: Vec<Result<VecStep, WireError>> = futures::future::join_all(work).await;
         let steps: Vec<VecStep> = results.into_iter().collect::<Result<_, _>>()?;
         for (flag, s) in self.needs_reset.iter_mut().zip(&steps) {
