@@ -89,20 +89,12 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let request = OpenRequest {
-        token: String::new(),
-        client_id: String::new(),
-        experiment_name: String::new(),
-        resume_experiment: false,
-        learning_type: LearningType::EndToEnd,
-        algorithm_mode: AlgorithmMode::Train,
-        obs: ObsOptions {
-            channels: Channels::Rgbd,
-            height: h,
-            width: w,
-            depth_format: DepthFormat::Uint8,
-        },
-    };
+    let request = OpenRequest::anonymous(ObsOptions {
+        channels: Channels::Rgbd,
+        height: h,
+        width: w,
+        depth_format: DepthFormat::Uint8,
+    });
     let mut gym = EnvClient::open(&client, &env, request, ClientTimeouts::default())
         .await
         .map_err(|e| anyhow::anyhow!(e))?;

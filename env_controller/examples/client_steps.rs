@@ -29,20 +29,12 @@ async fn main() -> anyhow::Result<()> {
         task,
     )
     .await?;
-    let request = OpenRequest {
-        token: String::new(),
-        client_id: String::new(),
-        experiment_name: String::new(),
-        resume_experiment: false,
-        learning_type: LearningType::EndToEnd,
-        algorithm_mode: AlgorithmMode::Train,
-        obs: ObsOptions {
-            channels: Channels::DepthOnly,
-            height: h,
-            width: w,
-            depth_format: DepthFormat::Uint8,
-        },
-    };
+    let request = OpenRequest::anonymous(ObsOptions {
+        channels: Channels::DepthOnly,
+        height: h,
+        width: w,
+        depth_format: DepthFormat::Uint8,
+    });
     let mut env = EnvClient::open(
         &connection.session,
         &connection.envs[0],

@@ -141,7 +141,7 @@ impl Controller {
                 if let Err(e) = wire::put(&session, &heartbeat_key, &beat).await {
                     tracing::warn!("heartbeat failed: {e}");
                 }
-                if counter % 10 == 0 {
+                if counter.is_multiple_of(10) {
                     beat_server.refresh_status().await;
                 }
             }

@@ -53,6 +53,21 @@ pub struct Experiment {
     pub steps: u64,
 }
 
+/// One recorded episode, as listed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeSummary {
+    /// Episode index within the experiment.
+    pub index: u64,
+    /// Steps taken.
+    pub steps: u32,
+    /// Sum of rewards.
+    pub episode_return: f64,
+    /// Reached the monolith.
+    pub success: bool,
+    /// Why it ended.
+    pub end_reason: String,
+}
+
 /// A finished (or aborted) episode.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EpisodeRecord {
@@ -331,11 +346,8 @@ impl Store {
         rows.collect::<Result<_, _>>().map_err(db)
     }
 
-    /// Episodes of one experiment, in order: (index, steps, return, success, end reason).
-    pub fn episodes(
-        &self,
-        experiment_id: i64,
-    ) -> Result<Vec<(u64, u32, f64, bool, String)>, ControllerError> {
+    /// Episodes of one experiment, in order.
+    pub fn episodes(&self, experiment_id: i64) -> Result<Vec<EpisodeSummary>, ControllerError> {
         let mut stmt = self
             .conn
             .prepare(
@@ -345,13 +357,13 @@ impl Store {
             .map_err(db)?;
         let rows = stmt
             .query_map(params![experiment_id], |r| {
-                Ok((
-                    r.get::<_, i64>(0)? as u64,
-                    r.get(1)?,
-                    r.get(2)?,
-                    r.get(3)?,
-                    r.get(4)?,
-                ))
+                Ok(EpisodeSummary {
+                    index: r.get::<_, i64>(0)? as u64,
+                    steps: r.get(1)?,
+                    episode_return: r.get(2)?,
+                    success: r.get(3)?,
+                    end_reason: r.get(4)?,
+                })
             })
             .map_err(db)?;
         rows.collect::<Result<_, _>>().map_err(db)

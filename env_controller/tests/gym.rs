@@ -457,7 +457,7 @@ async fn records_survive_a_restart_and_rank_on_the_leaderboard() {
     assert_eq!(episodes.len(), 2);
     assert!(episodes
         .iter()
-        .all(|e| e.4 == "reset before the episode ended" || e.4 == "closed"));
+        .all(|e| e.end_reason == "reset before the episode ended" || e.end_reason == "closed"));
     drop(store);
 
     let d = deploy(&db, "MonolithDiscrete", &users()).await;

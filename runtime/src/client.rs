@@ -315,6 +315,6 @@ impl VecEnvClient {
     /// Closes every env (idempotent).
     pub async fn close(&mut self) -> Result<(), WireError> {
         let results = futures::future::join_all(self.envs.iter_mut().map(EnvClient::close)).await;
-        results.into_iter().map(|r| r.map(|_| ())).collect()
+        results.into_iter().try_for_each(|r| r.map(|_| ()))
     }
 }

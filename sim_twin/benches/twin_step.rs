@@ -39,7 +39,7 @@ fn rate(runs: usize, n: usize, mut f: impl FnMut(usize)) -> f64 {
 /// A reproducible pseudo-random action stream that keeps the robot inside.
 fn env_step(t: &mut SimTwin, i: usize) {
     // Re-spawn every 100 steps like an episode reset.
-    if i % 100 == 0 {
+    if i.is_multiple_of(100) {
         let k = (i / 100) as f32;
         t.teleport(PlanarPose {
             x: -1.0 + (k * 0.37) % 2.0,

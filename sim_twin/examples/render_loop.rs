@@ -16,7 +16,7 @@ fn main() -> anyhow::Result<()> {
     let mut twin = SimTwin::new(config)?;
     let mut checksum = 0.0f64;
     for i in 0..n {
-        if i % 50 == 0 {
+        if i.is_multiple_of(50) {
             twin.execute(0.07, 1.25, 1.2)?;
         }
         checksum += f64::from(twin.render().depth[(w * h / 2) as usize]);

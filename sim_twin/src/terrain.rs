@@ -294,7 +294,7 @@ mod tests {
     fn relief_has_the_reference_statistics() {
         let t = terrain();
         let lo = t.heights().iter().copied().fold(f32::INFINITY, f32::min);
-        assert!(lo >= 0.0 && lo < 0.005, "min {lo}");
+        assert!((0.0..0.005).contains(&lo), "min {lo}");
         assert!((t.max_height - 0.16).abs() < 1e-4, "max {}", t.max_height);
         assert!(
             (t.mean_height() - 0.085).abs() < 0.002,

@@ -93,6 +93,14 @@ impl Client {
 }
 
 async fn setup(world: &str, res: (u32, u32)) -> (TwinNode, Client, Session) {
+    setup_with_clock(world, res, Clock::Lockstep).await
+}
+
+async fn setup_with_clock(
+    world: &str,
+    res: (u32, u32),
+    clock: Clock,
+) -> (TwinNode, Client, Session) {
     let port = free_loopback_port().expect("port");
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let server = SessionConfig::listening(&endpoint)
@@ -115,7 +123,7 @@ async fn setup(world: &str, res: (u32, u32)) -> (TwinNode, Client, Session) {
         &server,
         env.clone(),
         SimTwin::new(config).expect("twin"),
-        Clock::Lockstep,
+        clock,
     )
     .expect("node");
     (node, Client::new(client, env).await, server)
@@ -274,4 +282,29 @@ async fn estop_refuses_motion_and_liveliness_is_declared() {
         planar(&pose).0 - planar(&before).0 > 0.3,
         "robot moves after release"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn real_time_clock_streams_tracker_poses_and_answers_commands() {
+    let (_node, client, _server) = setup_with_clock("monolith", (32, 24), Clock::RealTime).await;
+    // Like a tracker, the real-time twin streams untagged poses unasked.
+    let mut untagged = 0;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while untagged < 5 {
+        let sample = tokio::time::timeout_at(deadline, client.pose.recv_async())
+            .await
+            .expect("poses keep coming")
+            .expect("subscriber open");
+        if wire::decode_attachment::<SeqTag>(&sample).is_none() {
+            untagged += 1;
+        }
+    }
+    let (_, before, _) = client.connect().await;
+    client.command(30, 0.10, 0.0, 0.6).await;
+    let (frame, pose, _) = client.answer(30).await.expect("answered after the motion");
+    assert_eq!(frame.seq, 30);
+    let moved = ((pose.pose.position.x - before.pose.position.x).powi(2)
+        + (pose.pose.position.y - before.pose.position.y).powi(2))
+    .sqrt();
+    assert!((moved - 0.06).abs() < 0.01, "moved {moved}");
 }

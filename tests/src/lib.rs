@@ -1,1 +1,41 @@
-//! placeholder
+//! Cross-component tests: the shipped binaries run as separate processes
+//! and meet over TCP on loopback (see `tests/processes.rs`), plus the
+//! independent Python peers under `tests/python/` that other suites drive.
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+
+/// The directory holding the workspace's release binaries (next to the
+/// running test executable's `deps/`).
+pub fn binary_dir() -> PathBuf {
+    let exe = std::env::current_exe().unwrap_or_default();
+    exe.parent()
+        .and_then(|deps| deps.parent())
+        .map(PathBuf::from)
+        .unwrap_or_default()
+}
+
+/// A child process killed when dropped.
+pub struct Process(pub Child);
+
+impl Process {
+    /// Starts a workspace binary with arguments.
+    pub fn spawn(binary: &str, args: &[&str]) -> std::io::Result<Self> {
+        let path = binary_dir().join(binary);
+        Command::new(&path)
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .map(Self)
+            .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))
+    }
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}

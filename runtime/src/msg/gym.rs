@@ -167,6 +167,22 @@ pub struct OpenRequest {
     pub obs: ObsOptions,
 }
 
+impl OpenRequest {
+    /// An anonymous training session with `obs` observations (sim envs that
+    /// allow anonymous access); set the other fields as needed.
+    pub fn anonymous(obs: ObsOptions) -> Self {
+        Self {
+            token: String::new(),
+            client_id: String::new(),
+            experiment_name: String::new(),
+            resume_experiment: false,
+            learning_type: LearningType::EndToEnd,
+            algorithm_mode: AlgorithmMode::Train,
+            obs,
+        }
+    }
+}
+
 /// Counters of an experiment.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ExperimentInfo {

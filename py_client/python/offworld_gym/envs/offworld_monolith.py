@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any
 
 import gymnasium
 import numpy as np
 
 from offworld_gym import _config
 from offworld_gym._native import NativeEnvs
-from offworld_gym.envs.common.channels import Channels
-from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
 
 
 class OffWorldMonolithEnv(gymnasium.Env):
@@ -27,35 +25,15 @@ class OffWorldMonolithEnv(gymnasium.Env):
         self,
         task: str,
         realm: str,
-        channel_type: Channels | int = Channels.DEPTH_ONLY,
-        resolution: Sequence[int] = (240, 320),
-        depth_format: str = "uint8",
-        experiment_name: str = "",
-        resume_experiment: bool = False,
-        learning_type: LearningType | str = LearningType.END_TO_END,
-        algorithm_mode: AlgorithmMode | str = AlgorithmMode.TRAIN,
         random_init: bool = True,
-        connect: str | None = None,
-        env_id: str | None = None,
-        token: str | None = None,
         render_mode: str | None = None,
+        **options: Any,
     ) -> None:
-        self._resolved = _config.resolve(
-            task,
-            realm,
-            1,
-            channel_type=channel_type,
-            resolution=resolution,
-            depth_format=depth_format,
-            experiment_name=experiment_name,
-            resume_experiment=resume_experiment,
-            learning_type=learning_type,
-            algorithm_mode=algorithm_mode,
-            connect=connect,
-            env_id=env_id,
-            token=token,
-            render_mode=render_mode,
-        )
+        """``options``: ``channel_type``, ``resolution``, ``depth_format``,
+        ``experiment_name``, ``resume_experiment``, ``learning_type``,
+        ``algorithm_mode``, ``connect``, ``env_id``, ``token`` (see
+        :func:`offworld_gym._config.resolve`)."""
+        self._resolved = _config.resolve(task, realm, 1, render_mode=render_mode, **options)
         self._native = NativeEnvs(**self._resolved.native_kwargs)
         self._random_init = random_init
         self._last_rgb: np.ndarray | None = None

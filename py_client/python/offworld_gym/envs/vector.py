@@ -11,7 +11,6 @@ from gymnasium.vector.utils import batch_space
 
 from offworld_gym import _config
 from offworld_gym._native import NativeEnvs
-from offworld_gym.envs.common.channels import Channels
 
 
 class OffWorldMonolithVectorEnv(VectorEnv):
@@ -24,27 +23,14 @@ class OffWorldMonolithVectorEnv(VectorEnv):
         num_envs: int,
         task: str,
         realm: str,
-        channel_type: Channels | int = Channels.DEPTH_ONLY,
-        resolution: Sequence[int] = (240, 320),
-        depth_format: str = "uint8",
-        experiment_name: str = "",
-        env_id: str | Sequence[str] | None = None,
         render_mode: str | None = None,
         max_episode_steps: int | None = None,
-        **kwargs: Any,
+        random_init: bool = True,
+        **options: Any,
     ) -> None:
-        self._resolved = _config.resolve(
-            task,
-            realm,
-            num_envs,
-            channel_type=channel_type,
-            resolution=resolution,
-            depth_format=depth_format,
-            experiment_name=experiment_name,
-            env_id=env_id,
-            render_mode=render_mode,
-            **{k: v for k, v in kwargs.items() if k != "random_init"},
-        )
+        """``options`` as for :class:`OffWorldMonolithEnv`; with one ``env_id``
+        and N envs, remote envs are ``<env_id>-0 … <env_id>-(N-1)``."""
+        self._resolved = _config.resolve(task, realm, num_envs, render_mode=render_mode, **options)
         self._native = NativeEnvs(**self._resolved.native_kwargs)
         self._closed = False
         self.num_envs = num_envs
