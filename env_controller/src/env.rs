@@ -207,9 +207,12 @@ impl EnvServer {
     }
 
     /// Publishes the status if it changed (liveliness of the robot side).
+    /// Never waits for a request in progress (a real step takes seconds and
+    /// the caller also drives the robot's heartbeat): skipped when busy.
     pub async fn refresh_status(&self) {
-        let mut state = self.state.lock().await;
-        self.publish_status(&mut state).await;
+        if let Ok(mut state) = self.state.try_lock() {
+            self.publish_status(&mut state).await;
+        }
     }
 
     fn authenticate(&self, token: &str) -> Result<User, WireError> {
