@@ -12,8 +12,8 @@ use offworld_env_controller::episode::SpawnSampler;
 use offworld_env_controller::{Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
-use offworld_runtime::session::free_loopback_port;
-use offworld_runtime::{EnvId, SessionConfig};
+use offworld_runtime::session::loopback_pair;
+use offworld_runtime::EnvId;
 use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig};
 
 const STEPS: usize = 300;
@@ -39,10 +39,7 @@ async fn main() -> anyhow::Result<()> {
 
 async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     let obs_bytes = (w * h * 4) as usize; // RGBD uint8
-    let port = free_loopback_port()?;
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let server = SessionConfig::listening(&endpoint).open().await?;
-    let client = SessionConfig::connecting(&endpoint).open().await?;
+    let (server, client) = loopback_pair().await?;
 
     // Floor: raw get/reply with a payload the size of the observation.
     let raw_key = format!("bench/raw/{w}x{h}");

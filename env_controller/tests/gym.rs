@@ -9,7 +9,7 @@ use offworld_env_controller::embedded::{Embedded, SimEnv};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
-use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
 
@@ -51,8 +51,7 @@ async fn deploy(db: &Path, task: &str, token_users: &[(&str, &str, bool)]) -> De
         // Re-deploying on the same file keeps existing users.
         let _ = store.add_user_with_token(name, token, *operator);
     }
-    let port = free_loopback_port().expect("port");
-    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let endpoint = loopback_endpoint().expect("port");
     let server = SessionConfig::listening(&endpoint)
         .open()
         .await

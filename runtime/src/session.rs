@@ -230,11 +230,21 @@ pub fn init_logging() {
     let _ = tracing_subscriber::fmt().with_env_filter(filter).try_init();
 }
 
-/// A free TCP port on loopback, for tests and examples that need to listen.
-pub fn free_loopback_port() -> std::io::Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+/// A TCP endpoint on a free loopback port, for tests and benches that need
+/// to listen.
+pub fn loopback_endpoint() -> std::io::Result<String> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
-        .port())
+        .port();
+    Ok(format!("tcp/127.0.0.1:{port}"))
+}
+
+/// Two sessions joined over TCP on loopback: (listener, connector).
+pub async fn loopback_pair() -> Result<(zenoh::Session, zenoh::Session), ContractError> {
+    let endpoint = loopback_endpoint().map_err(|e| ContractError::Config(e.to_string()))?;
+    let listener = SessionConfig::listening(&endpoint).open().await?;
+    let connector = SessionConfig::connecting(&endpoint).open().await?;
+    Ok((listener, connector))
 }
 
 #[cfg(test)]

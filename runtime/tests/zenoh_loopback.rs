@@ -7,10 +7,10 @@ use std::fmt::Debug;
 use std::time::Duration;
 
 use offworld_runtime::msg::*;
-use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
 use offworld_runtime::zenoh::Session;
-use offworld_runtime::{codec, EnvId, ErrorCode, SessionConfig, Topic, WireError};
+use offworld_runtime::{codec, EnvId, ErrorCode, Topic, WireError};
 use serde::{de::DeserializeOwned, Serialize};
 
 /// Bounded retries while declarations propagate between the two peers.
@@ -18,17 +18,7 @@ const ATTEMPTS: usize = 100;
 const RETRY: Duration = Duration::from_millis(50);
 
 async fn pair() -> (Session, Session) {
-    let port = free_loopback_port().expect("port");
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let a = SessionConfig::listening(&endpoint)
-        .open()
-        .await
-        .expect("listener");
-    let b = SessionConfig::connecting(&endpoint)
-        .open()
-        .await
-        .expect("connector");
-    (a, b)
+    loopback_pair().await.expect("loopback sessions")
 }
 
 async fn pub_sub<T: Serialize + DeserializeOwned + PartialEq + Debug>(

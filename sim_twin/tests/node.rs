@@ -5,13 +5,13 @@ use std::time::Duration;
 
 use offworld_runtime::codec;
 use offworld_runtime::msg::*;
-use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
 use offworld_runtime::zenoh::handlers::FifoChannelHandler;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
-use offworld_runtime::{Component, EnvId, ErrorCode, SessionConfig, Topic};
+use offworld_runtime::{Component, EnvId, ErrorCode, Topic};
 use offworld_sim_twin::{Clock, PlanarPose, SimTwin, TwinConfig, TwinNode};
 
 struct Client {
@@ -101,16 +101,7 @@ async fn setup_with_clock(
     res: (u32, u32),
     clock: Clock,
 ) -> (TwinNode, Client, Session) {
-    let port = free_loopback_port().expect("port");
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let server = SessionConfig::listening(&endpoint)
-        .open()
-        .await
-        .expect("server");
-    let client = SessionConfig::connecting(&endpoint)
-        .open()
-        .await
-        .expect("client");
+    let (server, client) = loopback_pair().await.expect("loopback sessions");
     let env = EnvId::sim("node-test").expect("env");
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
-use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
 use offworld_tests::Process;
 
@@ -14,8 +14,7 @@ async fn controller_and_twin_processes_serve_a_full_episode() {
     let scratch = std::env::temp_dir().join(format!("offworld-processes-{}", client::random_id()));
     std::fs::create_dir_all(&scratch).expect("scratch");
     let db = scratch.join("gym.db");
-    let port = free_loopback_port().expect("port");
-    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let endpoint = loopback_endpoint().expect("port");
     let env = EnvId::sim("proc-0").expect("env");
     let env_arg = format!("{env}=MonolithObstacleContinuous");
     let _controller = Process::spawn(
