@@ -74,10 +74,7 @@ impl EnvClient {
             .declare_token(alive_key)
             .await
             .map_err(|e| WireError::internal(format!("zenoh: {e}")))?;
-        let reply: OpenReply =
-            wire::request(session, &env.key(Topic::Open), &request, timeouts.control)
-                .await
-                .map_err(wire::RequestError::into_wire)?;
+        let reply: OpenReply = ask(session, env, Topic::Open, &request, timeouts.control).await?;
         Ok(Self {
             session: session.clone(),
             env: env.clone(),
@@ -118,14 +115,14 @@ impl EnvClient {
             session_id: self.reply.session_id.clone(),
             seed,
         };
-        wire::request(
+        ask(
             &self.session,
-            &self.env.key(Topic::Reset),
+            &self.env,
+            Topic::Reset,
             &request,
             self.timeouts.reset,
         )
         .await
-        .map_err(wire::RequestError::into_wire)
     }
 
     /// Takes one step.
@@ -137,14 +134,14 @@ impl EnvClient {
             seq: self.seq,
             action,
         };
-        wire::request(
+        ask(
             &self.session,
-            &self.env.key(Topic::Step),
+            &self.env,
+            Topic::Step,
             &request,
             self.timeouts.step,
         )
         .await
-        .map_err(wire::RequestError::into_wire)
     }
 
     /// Releases the lease; a second call returns the first call's reply.
@@ -155,24 +152,35 @@ impl EnvClient {
         let request = CloseRequest {
             session_id: self.reply.session_id.clone(),
         };
-        let reply: CloseReply = wire::request(
+        let reply: CloseReply = ask(
             &self.session,
-            &self.env.key(Topic::Close),
+            &self.env,
+            Topic::Close,
             &request,
             self.timeouts.control,
         )
-        .await
-        .map_err(wire::RequestError::into_wire)?;
+        .await?;
         self.closed = Some(reply.clone());
         Ok(reply)
     }
 }
 
-/// Queries an env's spec without opening a session.
-pub async fn spec(session: &Session, env: &EnvId, timeout: Duration) -> Result<EnvSpec, WireError> {
-    wire::request(session, &env.key(Topic::Spec), &(), timeout)
+/// One request to an env's queryable, every failure as a typed error.
+async fn ask<Req: serde::Serialize, Rep: serde::de::DeserializeOwned>(
+    session: &Session,
+    env: &EnvId,
+    topic: Topic,
+    request: &Req,
+    timeout: Duration,
+) -> Result<Rep, WireError> {
+    wire::request(session, &env.key(topic), request, timeout)
         .await
         .map_err(wire::RequestError::into_wire)
+}
+
+/// Queries an env's spec without opening a session.
+pub async fn spec(session: &Session, env: &EnvId, timeout: Duration) -> Result<EnvSpec, WireError> {
+    ask(session, env, Topic::Spec, &(), timeout).await
 }
 
 /// Queries an env's availability.
@@ -181,9 +189,7 @@ pub async fn status(
     env: &EnvId,
     timeout: Duration,
 ) -> Result<EnvStatus, WireError> {
-    wire::request(session, &env.key(Topic::Status), &(), timeout)
-        .await
-        .map_err(wire::RequestError::into_wire)
+    ask(session, env, Topic::Status, &(), timeout).await
 }
 
 /// Queries an env's leaderboard.
@@ -192,9 +198,7 @@ pub async fn leaderboard(
     env: &EnvId,
     timeout: Duration,
 ) -> Result<Leaderboard, WireError> {
-    wire::request(session, &env.key(Topic::Leaderboard), &(), timeout)
-        .await
-        .map_err(wire::RequestError::into_wire)
+    ask(session, env, Topic::Leaderboard, &(), timeout).await
 }
 
 /// One sub-env's result in a vector step.
