@@ -9,6 +9,8 @@
 //!   untrusted bytes never panics.
 //! - [`wire`]: typed put / request / reply over a Zenoh session.
 //! - [`session`]: opening sessions from files, environment or flags.
+//! - [`world`]: enclosure definitions (`runtime/worlds/*.toml`) every
+//!   component reads: geometry, task, robot, camera.
 //! - [`WireError`]: the one typed error every reply can carry.
 
 pub mod client;
@@ -18,11 +20,13 @@ pub mod keys;
 pub mod msg;
 pub mod session;
 pub mod wire;
+pub mod world;
 
 pub use error::{ContractError, DecodeError, EncodeError, ErrorCode, WireError};
 pub use keys::{Component, EnvId, Realm, Topic};
 pub use session::{CommonArgs, SessionConfig};
 pub use wire::RequestError;
+pub use world::{WorldError, WorldSpec};
 
 /// Re-exported so dependents use the same Zenoh as the contract.
 pub use zenoh;

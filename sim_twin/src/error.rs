@@ -1,16 +1,13 @@
 //! Errors of the sim twin.
 
-use offworld_runtime::WireError;
+use offworld_runtime::{WireError, WorldError};
 
 /// What can go wrong in the twin.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
-    /// No built-in world of that name.
-    #[error("unknown world `{0}` (built-in: monolith, monolith_obstacle)")]
-    UnknownWorld(String),
-    /// A world file is unreadable or invalid.
-    #[error("invalid world: {0}")]
-    World(String),
+    /// A world file is unknown, unreadable or invalid.
+    #[error(transparent)]
+    World(#[from] WorldError),
     /// A command or request with impossible values.
     #[error("bad command: {0}")]
     BadCommand(String),

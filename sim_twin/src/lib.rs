@@ -4,7 +4,7 @@
 //! commands on the same keys and answers with the same frames and poses, so
 //! nothing upstream can tell it from the real enclosure except by namespace.
 //!
-//! - [`world`]: enclosure definitions loaded from `worlds/*.toml`.
+//! - [`world`]: enclosure definitions (re-exported from the contract).
 //! - [`terrain`], [`scene`]: the seeded lunar floor and the static boxes.
 //! - [`physics`]: the ROSbot in rapier3d.
 //! - [`camera`]: intrinsics and the ray-cast RGBD renderers.
@@ -20,10 +20,11 @@ pub mod scene;
 pub mod terrain;
 pub mod tracker;
 pub mod twin;
-pub mod world;
 
 pub use error::SimError;
 pub use node::{Clock, TwinNode};
+/// World definitions live in the contract (shared with the controller and agents).
+pub use offworld_runtime::world;
+pub use offworld_runtime::WorldSpec;
 pub use physics::PlanarPose;
 pub use twin::{Randomization, SimTwin, TwinConfig};
-pub use world::WorldSpec;

@@ -1,12 +1,22 @@
 //! World definitions: the enclosure, task geometry, terrain, robot, camera
-//! and light, read from TOML data files (`sim_twin/worlds/*.toml`). No
-//! geometry lives in code.
+//! and light, read from TOML data files (`runtime/worlds/*.toml`). No
+//! geometry lives in code. Shared by the sim twin (physics, rendering), the
+//! controller (task), the robot agent (map for reset navigation) and monitors.
 
 use std::path::Path;
 
 use serde::Deserialize;
 
-use crate::error::SimError;
+/// A world file that cannot be used.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WorldError {
+    /// No built-in world of that name.
+    #[error("unknown world `{0}` (built-in: monolith, monolith_obstacle)")]
+    Unknown(String),
+    /// A world file is unreadable or invalid.
+    #[error("invalid world: {0}")]
+    Invalid(String),
+}
 
 /// The built-in worlds, shipped as data files in the crate.
 const BUILTIN: [(&str, &str); 2] = [
@@ -182,30 +192,31 @@ impl WorldSpec {
     }
 
     /// A built-in world by name.
-    pub fn builtin(name: &str) -> Result<Self, SimError> {
+    pub fn builtin(name: &str) -> Result<Self, WorldError> {
         let (_, text) = BUILTIN
             .iter()
             .find(|(n, _)| *n == name)
-            .ok_or_else(|| SimError::UnknownWorld(name.to_owned()))?;
+            .ok_or_else(|| WorldError::Unknown(name.to_owned()))?;
         Self::from_toml(text)
     }
 
     /// Loads a world file.
-    pub fn load(path: &Path) -> Result<Self, SimError> {
+    pub fn load(path: &Path) -> Result<Self, WorldError> {
         let text = std::fs::read_to_string(path)
-            .map_err(|e| SimError::World(format!("{}: {e}", path.display())))?;
+            .map_err(|e| WorldError::Invalid(format!("{}: {e}", path.display())))?;
         Self::from_toml(&text)
     }
 
     /// Parses and validates world TOML.
-    pub fn from_toml(text: &str) -> Result<Self, SimError> {
-        let spec: WorldSpec = toml::from_str(text).map_err(|e| SimError::World(e.to_string()))?;
+    pub fn from_toml(text: &str) -> Result<Self, WorldError> {
+        let spec: WorldSpec =
+            toml::from_str(text).map_err(|e| WorldError::Invalid(e.to_string()))?;
         spec.validate()?;
         Ok(spec)
     }
 
-    fn validate(&self) -> Result<(), SimError> {
-        let bad = |what: &str| Err(SimError::World(format!("{}: {what}", self.name)));
+    fn validate(&self) -> Result<(), WorldError> {
+        let bad = |what: &str| Err(WorldError::Invalid(format!("{}: {what}", self.name)));
         let e = &self.enclosure;
         if !(e.x_min < e.x_max && e.y_min < e.y_max) {
             return bad("enclosure min must be below max");
@@ -271,21 +282,21 @@ mod tests {
     fn bad_world_files_are_typed_errors() {
         assert!(matches!(
             WorldSpec::builtin("mars"),
-            Err(SimError::UnknownWorld(_))
+            Err(WorldError::Unknown(_))
         ));
         assert!(matches!(
             WorldSpec::from_toml("name = 1"),
-            Err(SimError::World(_))
+            Err(WorldError::Invalid(_))
         ));
         let text = include_str!("../worlds/monolith.toml").replace("cells_x = 64", "cells_x = 1");
         assert!(matches!(
             WorldSpec::from_toml(&text),
-            Err(SimError::World(_))
+            Err(WorldError::Invalid(_))
         ));
         let text = include_str!("../worlds/monolith.toml").replace("[light]", "[light]\nbogus = 1");
         assert!(matches!(
             WorldSpec::from_toml(&text),
-            Err(SimError::World(_))
+            Err(WorldError::Invalid(_))
         ));
     }
 }
