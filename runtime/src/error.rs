@@ -160,6 +160,9 @@ pub enum ContractError {
     /// An env id or key chunk is not valid.
     #[error("invalid env id: {0}")]
     InvalidEnvId(String),
+    /// A ROS 2 topic name or namespace is not valid.
+    #[error("invalid ROS name {0}")]
+    InvalidRosName(String),
     /// A Zenoh configuration could not be built.
     #[error("invalid zenoh configuration: {0}")]
     Config(String),

@@ -5,6 +5,8 @@
 //!   nothing else formats keys.
 //! - [`msg`]: message types — ROS 2 layouts where a ROS type exists, our own
 //!   request/reply types otherwise.
+//! - [`ros2`]: key expressions of a ROS 2 robot's topics (rmw_zenoh or
+//!   zenoh-bridge-ros2dds) and rmw_zenoh's attachment.
 //! - [`codec`]: little-endian CDR with the encapsulation header; decoding
 //!   untrusted bytes never panics.
 //! - [`wire`]: typed put / request / reply over a Zenoh session.
@@ -18,6 +20,7 @@ pub mod codec;
 mod error;
 pub mod keys;
 pub mod msg;
+pub mod ros2;
 pub mod session;
 pub mod wire;
 pub mod world;

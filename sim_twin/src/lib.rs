@@ -10,17 +10,23 @@
 //! - [`camera`]: intrinsics and the ray-cast RGBD renderers.
 //! - [`tracker`]: the simulated Vive tracker.
 //! - [`twin`]: all of it as one deterministic simulator.
-//! - [`node`]: the twin served over Zenoh.
+//! - [`ros_out`]: twin state as the ROS messages a real robot publishes.
+//! - [`node`]: the twin served over Zenoh (lockstep or real time).
+//! - [`enclosure`]: the twin behaving like the hardware (ROS 2 topics and a
+//!   raw tracker stream) for the real stack to run against.
 
 pub mod camera;
+pub mod enclosure;
 mod error;
 pub mod node;
 pub mod physics;
+pub mod ros_out;
 pub mod scene;
 pub mod terrain;
 pub mod tracker;
 pub mod twin;
 
+pub use enclosure::{EmulatedEnclosure, EnclosureConfig};
 pub use error::SimError;
 pub use node::{Clock, TwinNode};
 /// World definitions live in the contract (shared with the controller and agents).

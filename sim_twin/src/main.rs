@@ -2,15 +2,21 @@
 //!
 //! `sim_twin --env sim/monolith-0 --world monolith_obstacle --clock lockstep`
 //! connects to tcp/127.0.0.1:7447 unless endpoints are given.
+//!
+//! `sim_twin --emulate-hardware --tracker-listen 127.0.0.1:7600` instead
+//! behaves like the physical enclosure: the robot's ROS 2 topics and a raw
+//! tracker stream, for robot_agent + tracker_agent to drive.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
+use offworld_runtime::ros2::{KeyStyle, RosGraph};
 use offworld_runtime::{CommonArgs, EnvId};
 use offworld_sim_twin::tracker::TrackerConfig;
 use offworld_sim_twin::{
-    Clock, PlanarPose, Randomization, SimTwin, TwinConfig, TwinNode, WorldSpec,
+    Clock, EmulatedEnclosure, EnclosureConfig, PlanarPose, Randomization, SimTwin, TwinConfig,
+    TwinNode, WorldSpec,
 };
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -57,6 +63,19 @@ struct Args {
     /// Seed of noise and randomisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Behave like the hardware (ROS 2 topics + tracker line stream) instead
+    /// of serving `--env`.
+    #[arg(long)]
+    emulate_hardware: bool,
+    /// Emulated robot's ROS 2 domain id (rmw_zenoh keys).
+    #[arg(long, default_value_t = 0)]
+    ros_domain: u32,
+    /// Emulated robot's ROS 2 namespace.
+    #[arg(long, default_value = "")]
+    ros_namespace: String,
+    /// Where the emulated tracker streams its line protocol (TCP server).
+    #[arg(long, default_value = "127.0.0.1:7600")]
+    tracker_listen: std::net::SocketAddr,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -73,7 +92,7 @@ async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
     anyhow::ensure!(
-        args.env.realm() == offworld_runtime::Realm::Sim,
+        args.emulate_hardware || args.env.realm() == offworld_runtime::Realm::Sim,
         "a sim twin serves only `sim/…` envs, not {}",
         args.env
     );
@@ -104,6 +123,25 @@ async fn main() -> anyhow::Result<()> {
             yaw: 0.0,
         },
     };
+    if args.emulate_hardware {
+        let twin = SimTwin::new(TwinConfig {
+            resolution: None,
+            ..config
+        })?;
+        let mut enclosure = EnclosureConfig::rosbot(args.tracker_listen)?;
+        enclosure.ros = RosGraph::new(
+            KeyStyle::RmwZenoh {
+                domain_id: args.ros_domain,
+            },
+            &args.ros_namespace,
+        )?;
+        let session = args.common.client_config().open().await?;
+        let emulator = EmulatedEnclosure::spawn(&session, twin, enclosure)?;
+        tracing::info!(tracker = %emulator.tracker_addr(), "emulating the enclosure hardware; Ctrl-C to stop");
+        tokio::signal::ctrl_c().await?;
+        drop(emulator);
+        return Ok(());
+    }
     let clock = match args.clock {
         ClockArg::Lockstep => Clock::Lockstep,
         ClockArg::Realtime => Clock::RealTime,

@@ -21,9 +21,7 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrame, EStop, GotoReply, GotoRequest, Header, Image, MotionCommand, Odometry,
-    PixelEncoding, Point, Pose, Pose2D, PoseStamped, PoseWithCovariance, Quaternion, SeqTag, Time,
-    Twist, TwistWithCovariance,
+    CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, PixelEncoding, Pose2D, SeqTag, Time,
 };
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::bytes::Encoding;
@@ -36,6 +34,7 @@ use offworld_runtime::WireError;
 
 use crate::error::SimError;
 use crate::physics::{BodyPose, PlanarPose, DT};
+use crate::ros_out;
 use crate::twin::SimTwin;
 
 /// How simulated time relates to wall time.
@@ -397,7 +396,7 @@ impl Worker {
     fn answer(&mut self, seq: u64) {
         let stamp = Time::now();
         let tag = SeqTag { seq };
-        let odom = self.odometry(stamp);
+        let odom = ros_out::odometry(&self.twin, stamp);
         self.put(&self.keys.odom.clone(), &odom, Some(tag));
         let reading = self.twin.tracker_reading();
         self.publish_pose(&reading, Some(tag));
@@ -417,20 +416,7 @@ impl Worker {
     }
 
     fn publish_pose(&mut self, reading: &BodyPose, tag: Option<SeqTag>) {
-        let [x, y, z] = reading.position.map(f64::from);
-        let [qx, qy, qz, qw] = reading.orientation.map(f64::from);
-        let msg = PoseStamped {
-            header: Header::new(Time::now(), "world"),
-            pose: Pose {
-                position: Point { x, y, z },
-                orientation: Quaternion {
-                    x: qx,
-                    y: qy,
-                    z: qz,
-                    w: qw,
-                },
-            },
-        };
+        let msg = ros_out::world_pose(reading, Time::now());
         self.put(&self.keys.pose.clone(), &msg, tag);
     }
 
@@ -457,79 +443,16 @@ impl Worker {
         }
     }
 
-    fn odometry(&self, stamp: Time) -> Odometry {
-        let o = self.twin.physics().odometry();
-        let servo = self.twin.physics().servo();
-        let q = Quaternion::from_yaw(f64::from(o.yaw));
-        Odometry {
-            header: Header::new(stamp, "odom"),
-            child_frame_id: "base_link".into(),
-            pose: PoseWithCovariance {
-                pose: Pose {
-                    position: Point {
-                        x: f64::from(o.x),
-                        y: f64::from(o.y),
-                        z: 0.0,
-                    },
-                    orientation: q,
-                },
-                covariance: [0.0; 36],
-            },
-            twist: TwistWithCovariance {
-                twist: Twist::planar(f64::from(servo.linear), f64::from(servo.angular)),
-                covariance: [0.0; 36],
-            },
-        }
-    }
-
     /// Renders into the reused frame message (no allocation after the first).
     fn fill_frame(&mut self, seq: u64, stamp: Time) {
         let frame = self.twin.render();
-        let (w, h) = (frame.width, frame.height);
-        let msg = &mut self.frame_msg;
-        msg.seq = seq;
-        fill_image(
-            &mut msg.color,
+        self.frame_msg.seq = seq;
+        ros_out::fill_color(&mut self.frame_msg.color, frame, stamp);
+        ros_out::fill_depth(
+            &mut self.frame_msg.depth,
+            frame,
             stamp,
-            "camera_color_optical_frame",
-            w,
-            h,
-            PixelEncoding::Rgb8,
-        );
-        msg.color.data.clear();
-        msg.color.data.extend_from_slice(&frame.rgb);
-        fill_image(
-            &mut msg.depth,
-            stamp,
-            "camera_depth_optical_frame",
-            w,
-            h,
             PixelEncoding::Depth32FC1,
         );
-        msg.depth.data.clear();
-        msg.depth
-            .data
-            .extend(frame.depth.iter().flat_map(|d| d.to_le_bytes()));
     }
-}
-
-fn fill_image(
-    image: &mut Image,
-    stamp: Time,
-    frame_id: &str,
-    w: u32,
-    h: u32,
-    encoding: PixelEncoding,
-) {
-    image.header.stamp = stamp;
-    if image.header.frame_id != frame_id {
-        image.header.frame_id = frame_id.to_owned();
-    }
-    image.width = w;
-    image.height = h;
-    if image.encoding != encoding.as_str() {
-        image.encoding = encoding.as_str().to_owned();
-    }
-    image.is_bigendian = 0;
-    image.step = w * encoding.bytes_per_pixel();
 }

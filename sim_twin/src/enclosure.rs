@@ -1,0 +1,378 @@
+//! The emulated enclosure: the twin behaving like the hardware instead of
+//! like the twin, so the real stack (robot_agent + tracker_agent +
+//! env_controller under a `real/…` namespace) runs against it unchanged.
+//!
+//! In real time it:
+//! - takes `geometry_msgs/Twist` on the robot's velocity topic and holds the
+//!   last velocity until told otherwise (a base without its own timeout: the
+//!   worst case the robot agent's watchdog must cover);
+//! - publishes colour (`rgb8`), depth (`16UC1` mm, like an Astra driver) and
+//!   `nav_msgs/Odometry` on the robot's ROS 2 topics, with rmw_zenoh keys
+//!   and attachments;
+//! - streams raw tracker poses in the tracker's own frame over the tracker
+//!   line protocol (a TCP server), through a calibration the controller
+//!   never sees.
+//!
+//! It declares nothing under `offworld/…`: only the agents speak there.
+
+use std::io::Write;
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Quaternion as NaQuaternion, Translation3, UnitQuaternion};
+use offworld_runtime::codec;
+use offworld_runtime::msg::{Image, PixelEncoding, Time, Twist};
+use offworld_runtime::ros2::{RmwPublisherId, RobotTopics, RosGraph, RosType};
+use offworld_runtime::zenoh::bytes::Encoding;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::{Session, Wait};
+
+use crate::error::SimError;
+use crate::physics::DT;
+use crate::ros_out;
+use crate::twin::SimTwin;
+
+/// How the emulated hardware presents itself.
+#[derive(Debug, Clone)]
+pub struct EnclosureConfig {
+    /// The robot's ROS 2 graph (key style, namespace).
+    pub ros: RosGraph,
+    /// The robot's topic names.
+    pub topics: RobotTopics,
+    /// Camera frame rate, Hz.
+    pub camera_hz: f64,
+    /// Wheel odometry rate, Hz.
+    pub odom_hz: f64,
+    /// Tracker rate, Hz.
+    pub tracker_hz: f64,
+    /// Where the tracker line server listens (port 0 = any free port).
+    pub tracker_listen: SocketAddr,
+    /// Device id at the start of every tracker line.
+    pub tracker_device: String,
+    /// Maps tracking-frame coordinates into the world: the lighthouse
+    /// calibration the tracker agent must know and the controller never does.
+    pub world_from_tracking: Isometry3<f64>,
+    /// Depth encoding published (`16UC1` like an Astra, or `32FC1`).
+    pub depth_encoding: PixelEncoding,
+}
+
+impl EnclosureConfig {
+    /// A ROSbot on rmw_zenoh (domain 0, root namespace), 30 Hz camera and
+    /// odometry, 60 Hz tracker on `listen`, with the default lighthouse
+    /// placement [`default_world_from_tracking`].
+    pub fn rosbot(listen: SocketAddr) -> Result<Self, SimError> {
+        Ok(Self {
+            ros: RosGraph::new(Default::default(), "")
+                .map_err(|e| SimError::BadCommand(e.to_string()))?,
+            topics: RobotTopics::default(),
+            camera_hz: 30.0,
+            odom_hz: 30.0,
+            tracker_hz: 60.0,
+            tracker_listen: listen,
+            tracker_device: "LHR-EMULATED".into(),
+            world_from_tracking: default_world_from_tracking(),
+            depth_encoding: PixelEncoding::Depth16UC1,
+        })
+    }
+}
+
+/// A lighthouse frame the way SteamVR leaves it: origin 2.3 m up in a
+/// corner, y up, turned about the vertical — nothing like the world frame.
+pub fn default_world_from_tracking() -> Isometry3<f64> {
+    let y_up_to_z_up = UnitQuaternion::from_euler_angles(std::f64::consts::FRAC_PI_2, 0.0, 0.0);
+    let turned = UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7);
+    Isometry3::from_parts(Translation3::new(1.35, -0.92, 2.31), turned * y_up_to_z_up)
+}
+
+enum Event {
+    Twist(Twist),
+    Shutdown,
+}
+
+/// A running emulated enclosure; stops when dropped.
+pub struct EmulatedEnclosure {
+    events: SyncSender<Event>,
+    thread: Option<JoinHandle<()>>,
+    tracker_addr: SocketAddr,
+    stop_accepting: Arc<AtomicBool>,
+    acceptor: Option<JoinHandle<()>>,
+    _cmd_vel: Subscriber<()>,
+}
+
+impl EmulatedEnclosure {
+    /// Starts emulating `twin` as hardware on `session`.
+    pub fn spawn(
+        session: &Session,
+        twin: SimTwin,
+        config: EnclosureConfig,
+    ) -> Result<Self, SimError> {
+        let key = |topic: &str, ty: RosType, publish: bool| {
+            let k = if publish {
+                config.ros.publication_key(topic, ty)
+            } else {
+                config.ros.subscription_key(topic, ty)
+            };
+            k.map_err(|e| SimError::BadCommand(e.to_string()))
+        };
+        let keys = RosKeys {
+            color: key(&config.topics.color, RosType::Image, true)?,
+            depth: key(&config.topics.depth, RosType::Image, true)?,
+            odom: key(&config.topics.odom, RosType::Odometry, true)?,
+        };
+        let (tx, rx) = sync_channel::<Event>(64);
+        let twist_tx = tx.clone();
+        let cmd_vel = session
+            .declare_subscriber(key(&config.topics.cmd_vel, RosType::Twist, false)?)
+            .callback(move |sample: Sample| {
+                match codec::decode_payload::<Twist>(sample.payload()) {
+                    Ok(twist) if twist.linear.x.is_finite() && twist.angular.z.is_finite() => {
+                        // Newest wins: when the queue is full, drop.
+                        let _ = twist_tx.try_send(Event::Twist(twist));
+                    }
+                    Ok(_) => tracing::warn!("emulated base: ignored a non-finite twist"),
+                    Err(e) => tracing::warn!("emulated base: rejected a malformed twist: {e}"),
+                }
+            })
+            .wait()
+            .map_err(|e| SimError::Zenoh(e.to_string()))?;
+
+        let listener =
+            TcpListener::bind(config.tracker_listen).map_err(|e| SimError::Io(e.to_string()))?;
+        let tracker_addr = listener
+            .local_addr()
+            .map_err(|e| SimError::Io(e.to_string()))?;
+        listener
+            .set_nonblocking(true)
+            .map_err(|e| SimError::Io(e.to_string()))?;
+        let clients = Arc::new(Mutex::new(Vec::<TcpStream>::new()));
+        let stop_accepting = Arc::new(AtomicBool::new(false));
+        let acceptor = {
+            let clients = clients.clone();
+            let stop = stop_accepting.clone();
+            std::thread::Builder::new()
+                .name("enclosure/tracker-accept".into())
+                .spawn(move || accept_loop(listener, clients, stop))
+                .map_err(|e| SimError::Io(e.to_string()))?
+        };
+        let hardware = Hardware {
+            session: session.clone(),
+            twin,
+            keys,
+            config,
+            clients,
+            color: Image::default(),
+            depth: Image::default(),
+            color_id: RmwPublisherId::random(),
+            depth_id: RmwPublisherId::random(),
+            odom_id: RmwPublisherId::random(),
+            buffer: Vec::new(),
+        };
+        let thread = std::thread::Builder::new()
+            .name("enclosure/hardware".into())
+            .spawn(move || hardware.run(rx))
+            .map_err(|e| SimError::Io(e.to_string()))?;
+        tracing::info!(%tracker_addr, "emulated enclosure running");
+        Ok(Self {
+            events: tx,
+            thread: Some(thread),
+            tracker_addr,
+            stop_accepting,
+            acceptor: Some(acceptor),
+            _cmd_vel: cmd_vel,
+        })
+    }
+
+    /// Where the tracker line server listens.
+    pub fn tracker_addr(&self) -> SocketAddr {
+        self.tracker_addr
+    }
+}
+
+impl Drop for EmulatedEnclosure {
+    fn drop(&mut self) {
+        let _ = self.events.send(Event::Shutdown);
+        self.stop_accepting.store(true, Ordering::SeqCst);
+        for handle in [self.thread.take(), self.acceptor.take()]
+            .into_iter()
+            .flatten()
+        {
+            let _ = handle.join();
+        }
+    }
+}
+
+fn accept_loop(listener: TcpListener, clients: Arc<Mutex<Vec<TcpStream>>>, stop: Arc<AtomicBool>) {
+    while !stop.load(Ordering::SeqCst) {
+        match listener.accept() {
+            Ok((stream, peer)) => {
+                tracing::info!(%peer, "tracker client connected");
+                // A stalled reader must not stall the emulator.
+                let _ = stream.set_write_timeout(Some(Duration::from_millis(50)));
+                let _ = stream.set_nodelay(true);
+                if let Ok(mut list) = clients.lock() {
+                    list.push(stream);
+                }
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            Err(e) => {
+                tracing::warn!("tracker accept failed: {e}");
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+    }
+}
+
+struct RosKeys {
+    color: String,
+    depth: String,
+    odom: String,
+}
+
+/// The emulation thread's state.
+struct Hardware {
+    session: Session,
+    twin: SimTwin,
+    keys: RosKeys,
+    config: EnclosureConfig,
+    clients: Arc<Mutex<Vec<TcpStream>>>,
+    color: Image,
+    depth: Image,
+    color_id: RmwPublisherId,
+    depth_id: RmwPublisherId,
+    odom_id: RmwPublisherId,
+    buffer: Vec<u8>,
+}
+
+/// A periodic deadline that never bursts to catch up.
+struct Every {
+    period: f64,
+    next: f64,
+}
+
+impl Every {
+    fn new(hz: f64) -> Self {
+        Self {
+            period: 1.0 / hz.clamp(0.1, 1000.0),
+            next: 0.0,
+        }
+    }
+
+    fn due(&mut self, now: f64) -> bool {
+        if now < self.next {
+            return false;
+        }
+        self.next = (self.next + self.period).max(now);
+        true
+    }
+}
+
+impl Hardware {
+    fn run(mut self, events: Receiver<Event>) {
+        let start = Instant::now();
+        let sim_start = self.twin.physics().time();
+        let mut camera = Every::new(self.config.camera_hz);
+        let mut odom = Every::new(self.config.odom_hz);
+        let mut tracker = Every::new(self.config.tracker_hz);
+        loop {
+            let now = start.elapsed().as_secs_f64();
+            let next_step = self.twin.physics().time() - sim_start + f64::from(DT);
+            let wake = next_step.min(camera.next).min(odom.next).min(tracker.next);
+            match events.recv_timeout(Duration::from_secs_f64((wake - now).max(0.0))) {
+                Ok(Event::Twist(t)) => self
+                    .twin
+                    .physics_mut()
+                    .set_targets(t.linear.x as f32, t.angular.z as f32),
+                Ok(Event::Shutdown) | Err(RecvTimeoutError::Disconnected) => return,
+                Err(RecvTimeoutError::Timeout) => {}
+            }
+            let now = start.elapsed().as_secs_f64();
+            while self.twin.physics().time() - sim_start + f64::from(DT) <= now {
+                self.twin.physics_mut().substep();
+            }
+            if camera.due(now) {
+                self.publish_camera();
+            }
+            if odom.due(now) {
+                let msg = ros_out::odometry(&self.twin, Time::now());
+                let key = self.keys.odom.clone();
+                self.publish(&key, &msg, Publisher::Odom);
+            }
+            if tracker.due(now) {
+                self.stream_tracker(now);
+            }
+        }
+    }
+
+    fn publish_camera(&mut self) {
+        let stamp = Time::now();
+        let frame = self.twin.render();
+        ros_out::fill_color(&mut self.color, frame, stamp);
+        ros_out::fill_depth(&mut self.depth, frame, stamp, self.config.depth_encoding);
+        let color = std::mem::take(&mut self.color);
+        let depth = std::mem::take(&mut self.depth);
+        let (color_key, depth_key) = (self.keys.color.clone(), self.keys.depth.clone());
+        self.publish(&color_key, &color, Publisher::Color);
+        self.publish(&depth_key, &depth, Publisher::Depth);
+        self.color = color;
+        self.depth = depth;
+    }
+
+    fn publish<T: serde::Serialize>(&mut self, key: &str, msg: &T, publisher: Publisher) {
+        if let Err(e) = codec::encode_into(msg, &mut self.buffer) {
+            tracing::error!("cannot encode for {key}: {e}");
+            return;
+        }
+        let id = match publisher {
+            Publisher::Color => &self.color_id,
+            Publisher::Depth => &self.depth_id,
+            Publisher::Odom => &self.odom_id,
+        };
+        let put = self
+            .session
+            .put(key, self.buffer.clone())
+            .encoding(Encoding::APPLICATION_CDR)
+            .attachment(id.next_attachment().to_bytes().to_vec())
+            .wait();
+        if let Err(e) = put {
+            tracing::warn!("put on {key} failed: {e}");
+        }
+    }
+
+    /// One raw tracker line: the device's pose in the tracking frame.
+    fn stream_tracker(&mut self, now: f64) {
+        let reading = self.twin.tracker_reading();
+        let [x, y, z] = reading.position.map(f64::from);
+        let [qx, qy, qz, qw] = reading.orientation.map(f64::from);
+        let world_from_base = Isometry3::from_parts(
+            Translation3::new(x, y, z),
+            UnitQuaternion::from_quaternion(NaQuaternion::new(qw, qx, qy, qz)),
+        );
+        let [mx, my, mz] = self.twin.scene().world.robot.tracker_offset.map(f64::from);
+        let base_from_device = Isometry3::translation(mx, my, mz);
+        let device = self.config.world_from_tracking.inverse() * world_from_base * base_from_device;
+        let p = device.translation.vector;
+        let q = device.rotation.coords; // (x, y, z, w)
+        let line = format!(
+            "{} {now:.6} {:.6} {:.6} {:.6} {:.7} {:.7} {:.7} {:.7}\n",
+            self.config.tracker_device, p.x, p.y, p.z, q.x, q.y, q.z, q.w
+        );
+        let Ok(mut clients) = self.clients.lock() else {
+            return;
+        };
+        clients.retain_mut(|c| c.write_all(line.as_bytes()).is_ok());
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Publisher {
+    Color,
+    Depth,
+    Odom,
+}
