@@ -1,9 +1,34 @@
-//! robot_agent — runs on the robot's computer: executes motion commands on
-//! the robot's ROS 2 stack over Zenoh (rmw_zenoh keys, CDR), publishes the
-//! camera frames and odometry that answer them, and stops the motors when
-//! commands and controller heartbeats stop coming.
+//! robot_agent — runs on the robot's computer.
 //!
-//! Not built yet: this crate reserves its place in the workspace. The
-//! contract it will speak (`cmd`, `obs`, `odom`, `goto`, `heartbeat`,
-//! `estop`, `alive/robot_agent`) is defined in `offworld-runtime`, and the
-//! sim twin already speaks the same keys.
+//! - Executes the controller's motion commands (`cmd`) on the robot's ROS 2
+//!   stack over Zenoh ([`ros2::Ros2Robot`]: `geometry_msgs/Twist` out,
+//!   `sensor_msgs/Image` colour + depth and `nav_msgs/Odometry` in, rmw_zenoh
+//!   or zenoh-bridge-ros2dds keys), holds the velocity for the command's
+//!   duration, stops, lets the robot settle, then publishes the first colour
+//!   and depth frames captured after the motion ended on `obs`, tagged with
+//!   the command's sequence number (odometry on `odom`).
+//! - Safety ([`watchdog`], [`limiter`]): zero velocity and motion refused
+//!   while no command or controller heartbeat arrived within the window
+//!   (default 200 ms) or the controller's liveliness token is gone; `estop`
+//!   (per env and site-wide) acts immediately; speeds and accelerations are
+//!   clamped with a warning.
+//! - Reset navigation ([`nav`]): `goto` drives to a pose on the tracker's
+//!   localization with an A* plan over the known map and a path follower,
+//!   with a timeout and typed failures.
+//!
+//! The hardware sits behind [`hardware::RobotHardware`]; [`agent::spawn`]
+//! runs the node.
+
+pub mod agent;
+pub mod config;
+mod error;
+pub mod hardware;
+pub mod limiter;
+pub mod nav;
+pub mod ros2;
+pub mod watchdog;
+
+pub use agent::{spawn, AgentHandle};
+pub use config::{AgentConfig, Limits};
+pub use error::AgentError;
+pub use ros2::Ros2Robot;

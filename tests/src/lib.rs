@@ -1,6 +1,9 @@
 //! Cross-component tests: the shipped binaries run as separate processes
-//! and meet over TCP on loopback (see `tests/processes.rs`), plus the
+//! and meet over TCP on loopback (see `tests/processes.rs`), the emulated
+//! enclosure deployment ([`emulated`], `tests/real_side.rs`), plus the
 //! independent Python peers under `tests/python/` that other suites drive.
+
+pub mod emulated;
 
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
@@ -21,10 +24,15 @@ pub struct Process(pub Child);
 impl Process {
     /// Starts a workspace binary with arguments.
     pub fn spawn(binary: &str, args: &[&str]) -> std::io::Result<Self> {
+        Self::spawn_logged(binary, args, "warn")
+    }
+
+    /// Starts a workspace binary with arguments and a `RUST_LOG` filter.
+    pub fn spawn_logged(binary: &str, args: &[&str], log: &str) -> std::io::Result<Self> {
         let path = binary_dir().join(binary);
         Command::new(&path)
             .args(args)
-            .env("RUST_LOG", "warn")
+            .env("RUST_LOG", log)
             .stdout(Stdio::null())
             .stderr(Stdio::inherit())
             .spawn()

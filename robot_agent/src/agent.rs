@@ -1,0 +1,723 @@
+//! The agent node: motion commands from the controller become velocity on
+//! the robot; camera frames captured after each motion answer it; reset
+//! requests drive the robot to a pose; the watchdog and the e-stop can stop
+//! everything at any time.
+//!
+//! One task owns all state. Zenoh callbacks only enqueue [`Event`]s; a
+//! control tick (`control_hz`) does the rest, so safety decisions never wait
+//! on a network reply.
+
+use std::time::{Duration, Instant};
+
+use offworld_runtime::codec;
+use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
+use offworld_runtime::msg::{
+    CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, Time,
+    TrackingStatus,
+};
+use offworld_runtime::wire;
+use offworld_runtime::zenoh::liveliness::LivelinessToken;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::query::{Query, Queryable};
+use offworld_runtime::zenoh::sample::{Sample, SampleKind};
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::WireError;
+use tokio::sync::{mpsc, oneshot, watch};
+use tokio::task::JoinHandle;
+
+use crate::config::AgentConfig;
+use crate::error::AgentError;
+use crate::hardware::{RobotHardware, Sensors};
+use crate::limiter::{Velocity, VelocityLimiter};
+use crate::nav::{NavCommand, Navigator, OccupancyGrid};
+use crate::watchdog::{Transition, Watchdog};
+
+/// The controller's stop command carries this sequence number.
+const STOP_SEQ: u64 = u64::MAX;
+/// Longest motion accepted, s.
+const MAX_MOTION_S: f64 = 10.0;
+/// Longest reset drive accepted, s.
+const MAX_GOTO_S: f64 = 300.0;
+/// Zero velocity keeps being sent this long after a stop.
+const ZERO_TAIL: Duration = Duration::from_millis(500);
+/// Event queue bound.
+const QUEUE: usize = 256;
+
+/// Everything that reaches the agent from the network.
+enum Event {
+    Command(MotionCommand),
+    Heartbeat,
+    EStop(EStop),
+    ControllerPresent(bool),
+    Tracking(bool),
+    Goto(Query),
+}
+
+/// A running agent; stops the robot and ends when dropped or shut down.
+pub struct AgentHandle {
+    shutdown: Option<oneshot::Sender<()>>,
+    task: Option<JoinHandle<()>>,
+}
+
+impl AgentHandle {
+    /// Stops the robot and waits for the agent to end.
+    pub async fn shutdown(mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        if let Some(task) = self.task.take() {
+            let _ = task.await;
+        }
+    }
+}
+
+impl Drop for AgentHandle {
+    fn drop(&mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+    }
+}
+
+/// Serves `env` with `robot` on `session` until the handle is dropped.
+pub async fn spawn<H: RobotHardware>(
+    session: &Session,
+    env: EnvId,
+    config: AgentConfig,
+    robot: H,
+) -> Result<AgentHandle, AgentError> {
+    config.validate()?;
+    let grid = OccupancyGrid::from_world(&config.world_spec()?, &config.nav)
+        .map_err(|e| AgentError::Config(format!("navigation map: {e}")))?;
+    let (tx, events) = mpsc::channel::<Event>(QUEUE);
+    let (pose_tx, poses) = watch::channel(None);
+    let declarations = Declarations::declare(session, &env, tx, pose_tx).await?;
+    let agent = Agent {
+        session: session.clone(),
+        keys: Keys {
+            obs: env.key(Topic::Obs),
+            odom: env.key(Topic::Odom),
+        },
+        env,
+        watchdog: Watchdog::new(config.watchdog()),
+        limiter: VelocityLimiter::new(config.limits),
+        sensors: robot.sensors(),
+        robot,
+        grid,
+        poses,
+        config,
+        estop: None,
+        tracking: true,
+        activity: Activity::Idle,
+        last_motion: None,
+        _declarations: declarations,
+    };
+    let (shutdown, stop) = oneshot::channel();
+    let task = tokio::spawn(agent.run(events, stop));
+    Ok(AgentHandle {
+        shutdown: Some(shutdown),
+        task: Some(task),
+    })
+}
+
+/// Zenoh declarations kept alive with the agent.
+struct Declarations {
+    _subscribers: Vec<Subscriber<()>>,
+    _goto: Queryable<()>,
+    _token: LivelinessToken,
+}
+
+impl Declarations {
+    async fn declare(
+        session: &Session,
+        env: &EnvId,
+        tx: mpsc::Sender<Event>,
+        pose_tx: watch::Sender<Option<(Pose2D, Instant)>>,
+    ) -> Result<Self, AgentError> {
+        let enqueue = |tx: &mpsc::Sender<Event>, event: Event| {
+            if tx.try_send(event).is_err() {
+                tracing::warn!("robot agent queue full: dropped a message");
+            }
+        };
+        let mut subscribers = Vec::new();
+        let t = tx.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(env.key(Topic::Cmd))
+                .callback(move |s: Sample| {
+                    match codec::decode_payload::<MotionCommand>(s.payload()) {
+                        Ok(cmd) => enqueue(&t, Event::Command(cmd)),
+                        Err(e) => tracing::warn!("rejected a malformed command: {e}"),
+                    }
+                })
+                .await?,
+        );
+        let t = tx.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(env.key(Topic::Heartbeat))
+                .callback(move |_: Sample| enqueue(&t, Event::Heartbeat))
+                .await?,
+        );
+        for key in [env.key(Topic::EStop), global_estop_key()] {
+            let t = tx.clone();
+            subscribers.push(
+                session
+                    .declare_subscriber(key)
+                    .callback(move |s: Sample| {
+                        let stop = codec::decode_payload::<EStop>(s.payload()).unwrap_or_else(
+                            // A garbled e-stop engages: safety first.
+                            |e| EStop {
+                                engaged: true,
+                                reason: format!("malformed e-stop ({e})"),
+                            },
+                        );
+                        // Never dropped: an e-stop must get through.
+                        let t = t.clone();
+                        tokio::spawn(async move {
+                            let _ = t.send(Event::EStop(stop)).await;
+                        });
+                    })
+                    .await?,
+            );
+        }
+        let t = tx.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(env.key(Topic::Tracking))
+                .callback(move |s: Sample| {
+                    match codec::decode_payload::<TrackingStatus>(s.payload()) {
+                        Ok(status) => enqueue(&t, Event::Tracking(status.tracking)),
+                        Err(e) => tracing::warn!("rejected a malformed tracking status: {e}"),
+                    }
+                })
+                .await?,
+        );
+        subscribers.push(
+            session
+                .declare_subscriber(env.key(Topic::Pose))
+                .callback(move |s: Sample| {
+                    match codec::decode_payload::<PoseStamped>(s.payload()) {
+                        Ok(p) => {
+                            let pose = Pose2D {
+                                x: p.pose.position.x,
+                                y: p.pose.position.y,
+                                yaw: p.pose.orientation.yaw(),
+                            };
+                            if pose.x.is_finite() && pose.y.is_finite() && pose.yaw.is_finite() {
+                                pose_tx.send_replace(Some((pose, Instant::now())));
+                            }
+                        }
+                        Err(e) => tracing::warn!("rejected a malformed pose: {e}"),
+                    }
+                })
+                .await?,
+        );
+        let t = tx.clone();
+        subscribers.push(
+            session
+                .liveliness()
+                .declare_subscriber(env.alive_key(Component::Controller))
+                .history(true)
+                .callback(move |s: Sample| {
+                    let present = s.kind() == SampleKind::Put;
+                    let t = t.clone();
+                    tokio::spawn(async move {
+                        let _ = t.send(Event::ControllerPresent(present)).await;
+                    });
+                })
+                .await?,
+        );
+        let t = tx;
+        let goto = session
+            .declare_queryable(env.key(Topic::Goto))
+            .callback(move |q: Query| {
+                if let Err(mpsc::error::TrySendError::Full(Event::Goto(q))) =
+                    t.try_send(Event::Goto(q))
+                {
+                    tokio::spawn(async move {
+                        let busy = WireError::busy("robot agent overloaded");
+                        let _ = wire::reply::<GotoReply>(&q, Err(busy)).await;
+                    });
+                }
+            })
+            .await?;
+        let token = session
+            .liveliness()
+            .declare_token(env.alive_key(Component::RobotAgent))
+            .await?;
+        Ok(Self {
+            _subscribers: subscribers,
+            _goto: goto,
+            _token: token,
+        })
+    }
+}
+
+struct Keys {
+    obs: String,
+    odom: String,
+}
+
+/// What the robot is doing.
+enum Activity {
+    Idle,
+    /// Holding a commanded velocity until `until`.
+    Driving {
+        seq: u64,
+        target: Velocity,
+        until: Instant,
+    },
+    /// Motion over: waiting for the wheels to stop and the body to settle.
+    Settling {
+        seq: u64,
+        still_since: Option<Instant>,
+    },
+    /// Waiting for colour and depth captured after `after`.
+    Capturing {
+        seq: u64,
+        after: Time,
+        deadline: Instant,
+    },
+    /// Driving to a reset pose.
+    Navigating(Box<Navigation>),
+}
+
+struct Navigation {
+    query: Query,
+    request: GotoRequest,
+    navigator: Navigator,
+    started: Instant,
+    deadline: Instant,
+    arrived_still_since: Option<Instant>,
+}
+
+struct Agent<H: RobotHardware> {
+    session: Session,
+    env: EnvId,
+    keys: Keys,
+    config: AgentConfig,
+    robot: H,
+    sensors: watch::Receiver<Sensors>,
+    grid: OccupancyGrid,
+    poses: watch::Receiver<Option<(Pose2D, Instant)>>,
+    watchdog: Watchdog,
+    limiter: VelocityLimiter,
+    estop: Option<String>,
+    tracking: bool,
+    activity: Activity,
+    /// When a non-zero velocity was last sent.
+    last_motion: Option<Instant>,
+    _declarations: Declarations,
+}
+
+impl<H: RobotHardware> Agent<H> {
+    async fn run(mut self, mut events: mpsc::Receiver<Event>, mut stop: oneshot::Receiver<()>) {
+        tracing::info!(env = %self.env, graph = %self.config.graph().map(|g| g.to_string()).unwrap_or_default(), "robot agent serving");
+        let period = Duration::from_secs_f64(1.0 / self.config.control_hz);
+        let mut tick = tokio::time::interval(period);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        loop {
+            tokio::select! {
+                _ = &mut stop => break,
+                event = events.recv() => match event {
+                    Some(event) => self.handle(event).await,
+                    None => break,
+                },
+                _ = tick.tick() => self.tick(period.as_secs_f64()).await,
+            }
+        }
+        self.halt("agent shutting down").await;
+        tracing::info!(env = %self.env, "robot agent stopped");
+    }
+
+    async fn handle(&mut self, event: Event) {
+        let now = Instant::now();
+        match event {
+            Event::Heartbeat => self.watchdog.sign_of_life(now),
+            Event::ControllerPresent(present) => {
+                self.watchdog.controller_present(present);
+                // Check at once: a vanished controller stops the robot now.
+                self.check_watchdog(now).await;
+            }
+            Event::Tracking(tracking) => self.tracking = tracking,
+            Event::EStop(stop) => {
+                if stop.engaged {
+                    tracing::warn!(env = %self.env, reason = %stop.reason, "E-STOP engaged");
+                    self.estop = Some(stop.reason.clone());
+                    self.halt(&format!("e-stop: {}", stop.reason)).await;
+                } else {
+                    tracing::warn!(env = %self.env, reason = %stop.reason, "e-stop released");
+                    self.estop = None;
+                }
+            }
+            Event::Command(cmd) => {
+                self.watchdog.sign_of_life(now);
+                self.check_watchdog(now).await;
+                self.command(cmd, now).await;
+            }
+            Event::Goto(query) => self.goto(query, now).await,
+        }
+    }
+
+    /// Why motion is refused right now, if it is.
+    fn refusal(&self, now: Instant) -> Option<String> {
+        if let Some(reason) = &self.estop {
+            return Some(format!("e-stop engaged: {reason}"));
+        }
+        if !self.watchdog.armed() {
+            return Some(format!(
+                "watchdog: {}",
+                self.watchdog
+                    .fault(now)
+                    .unwrap_or_else(|| "not armed".into())
+            ));
+        }
+        None
+    }
+
+    async fn command(&mut self, cmd: MotionCommand, now: Instant) {
+        if cmd.seq == STOP_SEQ {
+            tracing::info!(env = %self.env, "stop requested by the controller");
+            self.abandon("stopped by the controller").await;
+            self.activity = Activity::Idle;
+            self.limiter.halt();
+            self.send(Velocity::ZERO).await;
+            return;
+        }
+        if !(cmd.duration_s.is_finite() && (0.0..=MAX_MOTION_S).contains(&cmd.duration_s)) {
+            tracing::warn!(
+                seq = cmd.seq,
+                "rejected a command: duration {} s",
+                cmd.duration_s
+            );
+            return;
+        }
+        let (target, clamped) = self.limiter.clamp(Velocity {
+            linear: cmd.linear_x,
+            angular: cmd.angular_z,
+        });
+        if clamped {
+            tracing::warn!(
+                seq = cmd.seq,
+                asked_linear = cmd.linear_x,
+                asked_angular = cmd.angular_z,
+                linear = target.linear,
+                angular = target.angular,
+                "command beyond the robot's limits: clamped"
+            );
+        }
+        self.abandon("preempted by a motion command").await;
+        if let Some(reason) = self.refusal(now) {
+            tracing::warn!(
+                seq = cmd.seq,
+                "motion refused ({reason}); answering without moving"
+            );
+            self.activity = Activity::Settling {
+                seq: cmd.seq,
+                still_since: None,
+            };
+            return;
+        }
+        self.activity = if cmd.duration_s > 0.0 && !target.is_zero() {
+            Activity::Driving {
+                seq: cmd.seq,
+                target,
+                until: now + Duration::from_secs_f64(cmd.duration_s),
+            }
+        } else {
+            Activity::Settling {
+                seq: cmd.seq,
+                still_since: None,
+            }
+        };
+    }
+
+    /// Ends a navigation in progress with an error reply (motion commands,
+    /// stops and safety trips supersede it).
+    async fn abandon(&mut self, reason: &str) {
+        if let Activity::Navigating(nav) = std::mem::replace(&mut self.activity, Activity::Idle) {
+            let err = WireError::invalid_state(format!("reset navigation aborted: {reason}"));
+            reply_goto(&nav.query, Err(err)).await;
+        }
+    }
+
+    async fn goto(&mut self, query: Query, now: Instant) {
+        let request = match wire::decode_query::<GotoRequest>(&query) {
+            Ok(r) => r,
+            Err(e) => return reply_goto(&query, Err(e)).await,
+        };
+        if let Some(reason) = &self.estop {
+            let err = WireError::invalid_state(format!("e-stop engaged: {reason}"));
+            return reply_goto(&query, Err(err)).await;
+        }
+        if let Some(reason) = self.refusal(now) {
+            return reply_goto(&query, Err(WireError::unavailable(reason))).await;
+        }
+        let Some(pose) = self.fresh_pose(now) else {
+            let err = WireError::unavailable("no fresh tracker pose: cannot navigate");
+            return reply_goto(&query, Err(err)).await;
+        };
+        if !(request.timeout_s.is_finite() && request.timeout_s > 0.0) {
+            let err = WireError::bad_request(format!("timeout {} s", request.timeout_s));
+            return reply_goto(&query, Err(err)).await;
+        }
+        let navigator = match Navigator::new(&self.grid, pose, request.target) {
+            Ok(navigator) => navigator,
+            Err(e) => {
+                let err = WireError::bad_request(format!("cannot plan a reset drive: {e}"));
+                return reply_goto(&query, Err(err)).await;
+            }
+        };
+        self.abandon("superseded by a new reset").await;
+        tracing::info!(
+            seq = request.seq,
+            from = ?pose,
+            to = ?request.target,
+            estimate_s = navigator.estimated_time(&self.config.nav),
+            "reset navigation"
+        );
+        let timeout = Duration::from_secs_f64(request.timeout_s.min(MAX_GOTO_S));
+        self.activity = Activity::Navigating(Box::new(Navigation {
+            navigator,
+            query,
+            request,
+            started: now,
+            deadline: now + timeout,
+            arrived_still_since: None,
+        }));
+    }
+
+    fn fresh_pose(&self, now: Instant) -> Option<Pose2D> {
+        let stale = Duration::from_millis(self.config.pose_stale_ms);
+        match *self.poses.borrow() {
+            Some((pose, at)) if self.tracking && now.saturating_duration_since(at) <= stale => {
+                Some(pose)
+            }
+            _ => None,
+        }
+    }
+
+    async fn check_watchdog(&mut self, now: Instant) {
+        match self.watchdog.check(now) {
+            Some(Transition::Tripped(reason)) => {
+                tracing::error!(env = %self.env, %reason, "WATCHDOG: stopping the robot");
+                self.halt(&format!("watchdog: {reason}")).await;
+            }
+            Some(Transition::Rearmed) => tracing::info!(env = %self.env, "watchdog armed"),
+            None => {}
+        }
+    }
+
+    /// Safety stop: zero velocity now, cut the motion short (its answer is
+    /// still sent after the robot settles), abort navigation.
+    async fn halt(&mut self, reason: &str) {
+        self.limiter.halt();
+        self.send(Velocity::ZERO).await;
+        match std::mem::replace(&mut self.activity, Activity::Idle) {
+            Activity::Driving { seq, .. } => {
+                self.activity = Activity::Settling {
+                    seq,
+                    still_since: None,
+                }
+            }
+            Activity::Navigating(nav) => {
+                let err = WireError::unavailable(format!("reset navigation stopped: {reason}"));
+                reply_goto(&nav.query, Err(err)).await;
+            }
+            other => self.activity = other,
+        }
+    }
+
+    async fn tick(&mut self, dt: f64) {
+        let now = Instant::now();
+        self.check_watchdog(now).await;
+        let settle = Duration::from_millis(self.config.settle_ms);
+        let still = self.limiter.current().is_zero();
+        let mut target = Velocity::ZERO;
+        let activity = std::mem::replace(&mut self.activity, Activity::Idle);
+        self.activity = match activity {
+            Activity::Idle => Activity::Idle,
+            Activity::Driving {
+                seq,
+                target: t,
+                until,
+            } => {
+                if now >= until {
+                    Activity::Settling {
+                        seq,
+                        still_since: None,
+                    }
+                } else {
+                    target = t;
+                    Activity::Driving {
+                        seq,
+                        target: t,
+                        until,
+                    }
+                }
+            }
+            Activity::Settling { seq, still_since } => {
+                let since = if still {
+                    still_since.or(Some(now))
+                } else {
+                    None
+                };
+                match since {
+                    Some(t) if now.saturating_duration_since(t) >= settle => Activity::Capturing {
+                        seq,
+                        after: Time::now(),
+                        deadline: now + Duration::from_millis(self.config.frame_timeout_ms),
+                    },
+                    _ => Activity::Settling {
+                        seq,
+                        still_since: since,
+                    },
+                }
+            }
+            Activity::Capturing {
+                seq,
+                after,
+                deadline,
+            } => {
+                if self.answer(seq, after).await {
+                    Activity::Idle
+                } else if now >= deadline {
+                    tracing::error!(
+                        seq,
+                        "no camera frames within {} ms after the motion: not answered",
+                        self.config.frame_timeout_ms
+                    );
+                    Activity::Idle
+                } else {
+                    Activity::Capturing {
+                        seq,
+                        after,
+                        deadline,
+                    }
+                }
+            }
+            Activity::Navigating(nav) => self.navigate(nav, now, still, &mut target).await,
+        };
+        if self.refusal(now).is_some() {
+            target = Velocity::ZERO;
+            self.limiter.halt();
+        }
+        let velocity = self.limiter.ramp(target, dt);
+        let recently_moved = self
+            .last_motion
+            .is_some_and(|t| now.saturating_duration_since(t) < ZERO_TAIL);
+        if !velocity.is_zero() || recently_moved || !matches!(self.activity, Activity::Idle) {
+            self.send(velocity).await;
+        }
+    }
+
+    async fn navigate(
+        &mut self,
+        mut nav: Box<Navigation>,
+        now: Instant,
+        still: bool,
+        target: &mut Velocity,
+    ) -> Activity {
+        if now >= nav.deadline {
+            let err = WireError::timeout(format!(
+                "the robot did not reach ({:.2}, {:.2}) within {:.0} s",
+                nav.request.target.x,
+                nav.request.target.y,
+                nav.request.timeout_s.min(MAX_GOTO_S)
+            ));
+            reply_goto(&nav.query, Err(err)).await;
+            return Activity::Idle;
+        }
+        let Some(pose) = self.fresh_pose(now) else {
+            let err = WireError::unavailable("tracking lost during reset navigation");
+            reply_goto(&nav.query, Err(err)).await;
+            return Activity::Idle;
+        };
+        let command = match nav.navigator.step(&self.grid, pose) {
+            Ok(command) => command,
+            Err(e) => {
+                let err = WireError::invalid_state(format!("reset navigation failed: {e}"));
+                reply_goto(&nav.query, Err(err)).await;
+                return Activity::Idle;
+            }
+        };
+        match command {
+            NavCommand::Drive { linear, angular } => {
+                *target = Velocity { linear, angular };
+                nav.arrived_still_since = None;
+            }
+            NavCommand::Arrived => {
+                let since = if still {
+                    nav.arrived_still_since.or(Some(now))
+                } else {
+                    None
+                };
+                nav.arrived_still_since = since;
+                let settle = Duration::from_millis(self.config.settle_ms);
+                if since.is_some_and(|t| now.saturating_duration_since(t) >= settle) {
+                    let reply = GotoReply {
+                        seq: nav.request.seq,
+                        achieved: pose,
+                        elapsed_s: now.saturating_duration_since(nav.started).as_secs_f64(),
+                    };
+                    tracing::info!(
+                        seq = reply.seq,
+                        elapsed_s = reply.elapsed_s,
+                        "reset navigation arrived"
+                    );
+                    reply_goto(&nav.query, Ok(&reply)).await;
+                    return Activity::Idle;
+                }
+            }
+        }
+        Activity::Navigating(nav)
+    }
+
+    /// Publishes the frames (and odometry) answering `seq` once colour and
+    /// depth captured after `after` are both there.
+    async fn answer(&mut self, seq: u64, after: Time) -> bool {
+        let (frame, odom) = {
+            let sensors = self.sensors.borrow();
+            let fresh = |stamp: &Time| stamp.as_secs_f64() >= after.as_secs_f64();
+            match (&sensors.color, &sensors.depth) {
+                (Some(c), Some(d)) if fresh(&c.msg.header.stamp) && fresh(&d.msg.header.stamp) => (
+                    CameraFrame {
+                        seq,
+                        color: (*c.msg).clone(),
+                        depth: (*d.msg).clone(),
+                    },
+                    sensors.odom.as_ref().map(|o| o.msg.clone()),
+                ),
+                _ => return false,
+            }
+        };
+        if let Some(odom) = odom {
+            let tag = SeqTag { seq };
+            if let Err(e) =
+                wire::put_with_attachment(&self.session, &self.keys.odom, &*odom, &tag).await
+            {
+                tracing::warn!("odom put failed: {e}");
+            }
+        }
+        if let Err(e) = wire::put(&self.session, &self.keys.obs, &frame).await {
+            tracing::warn!("obs put failed: {e}");
+        }
+        true
+    }
+
+    async fn send(&mut self, velocity: Velocity) {
+        if !velocity.is_zero() {
+            self.last_motion = Some(Instant::now());
+        }
+        if let Err(e) = self.robot.drive(velocity).await {
+            tracing::error!("cannot command the base: {e}");
+        }
+    }
+}
+
+async fn reply_goto(query: &Query, result: Result<&GotoReply, WireError>) {
+    if let Err(e) = wire::reply(query, result).await {
+        tracing::warn!("goto reply failed: {e}");
+    }
+}

@@ -1,0 +1,144 @@
+//! The agent's configuration: which robot graph to drive, its limits and
+//! the safety timings. Loaded from TOML; every field has a default that
+//! fits a ROSbot 2 on rmw_zenoh.
+
+use std::path::Path;
+use std::time::Duration;
+
+use offworld_runtime::ros2::{KeyStyle, RobotTopics, RosGraph};
+use offworld_runtime::WorldSpec;
+use serde::{Deserialize, Serialize};
+
+use crate::error::AgentError;
+use crate::nav::NavConfig;
+
+/// Velocity and acceleration limits enforced on every command.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    /// |linear x| ≤ this, m/s.
+    pub max_linear: f64,
+    /// |angular z| ≤ this, rad/s.
+    pub max_angular: f64,
+    /// Linear acceleration, m/s².
+    pub max_linear_accel: f64,
+    /// Angular acceleration, rad/s².
+    pub max_angular_accel: f64,
+}
+
+impl Default for Limits {
+    /// The ROSbot's range (the continuous action space's physical range).
+    fn default() -> Self {
+        Self {
+            max_linear: 0.7,
+            max_angular: 2.5,
+            max_linear_accel: 1.5,
+            max_angular_accel: 12.0,
+        }
+    }
+}
+
+/// Everything the agent needs besides a Zenoh session and an env id.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AgentConfig {
+    /// How the robot's ROS 2 topics appear in Zenoh.
+    pub key_style: KeyStyle,
+    /// The robot's ROS 2 namespace (`""` = root).
+    pub ros_namespace: String,
+    /// The robot's topic names.
+    pub topics: RobotTopics,
+    /// Limits clamped (with a warning) on every command.
+    pub limits: Limits,
+    /// Stop when neither a command nor a controller heartbeat arrived for
+    /// this long, ms.
+    pub watchdog_ms: u64,
+    /// Wait after the wheels stop before capturing the answer, ms.
+    pub settle_ms: u64,
+    /// Give up on camera frames after this long, ms.
+    pub frame_timeout_ms: u64,
+    /// Velocity commands per second while moving.
+    pub control_hz: f64,
+    /// A tracker pose older than this cannot steer navigation, ms.
+    pub pose_stale_ms: u64,
+    /// The enclosure layout (built-in world name or TOML path): the map
+    /// reset navigation plans on.
+    pub world: String,
+    /// Reset navigation tuning.
+    pub nav: NavConfig,
+}
+
+impl Default for AgentConfig {
+    fn default() -> Self {
+        Self {
+            key_style: KeyStyle::default(),
+            ros_namespace: String::new(),
+            topics: RobotTopics::default(),
+            limits: Limits::default(),
+            watchdog_ms: 200,
+            settle_ms: 250,
+            frame_timeout_ms: 2000,
+            control_hz: 50.0,
+            pose_stale_ms: 500,
+            world: "monolith".into(),
+            nav: NavConfig::default(),
+        }
+    }
+}
+
+impl AgentConfig {
+    /// Reads a TOML file.
+    pub fn load(path: &Path) -> Result<Self, AgentError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| AgentError::Config(format!("{}: {e}", path.display())))?;
+        let config: Self = toml::from_str(&text)
+            .map_err(|e| AgentError::Config(format!("{}: {e}", path.display())))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Rejects values that would make the robot unsafe or the agent stuck.
+    pub fn validate(&self) -> Result<(), AgentError> {
+        let l = &self.limits;
+        let positive = [
+            l.max_linear,
+            l.max_angular,
+            l.max_linear_accel,
+            l.max_angular_accel,
+            self.control_hz,
+        ];
+        if positive.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(AgentError::Config(
+                "limits and control_hz must be finite and positive".into(),
+            ));
+        }
+        if self.watchdog_ms == 0 || self.watchdog_ms > 5_000 {
+            return Err(AgentError::Config(format!(
+                "watchdog_ms must be in 1..=5000, got {}",
+                self.watchdog_ms
+            )));
+        }
+        self.graph()?;
+        Ok(())
+    }
+
+    /// The robot's ROS graph.
+    pub fn graph(&self) -> Result<RosGraph, AgentError> {
+        Ok(RosGraph::new(self.key_style.clone(), &self.ros_namespace)?)
+    }
+
+    /// The enclosure map.
+    pub fn world_spec(&self) -> Result<WorldSpec, AgentError> {
+        let world = if self.world.ends_with(".toml") {
+            WorldSpec::load(Path::new(&self.world))
+        } else {
+            WorldSpec::builtin(&self.world)
+        };
+        world.map_err(|e| AgentError::Config(e.to_string()))
+    }
+
+    /// The watchdog window.
+    pub fn watchdog(&self) -> Duration {
+        Duration::from_millis(self.watchdog_ms)
+    }
+}

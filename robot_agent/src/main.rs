@@ -1,0 +1,59 @@
+//! `robot_agent`: serve a real enclosure's robot.
+//!
+//! `robot_agent --env real/enclosure-a --config robot.toml` connects to
+//! tcp/127.0.0.1:7447 unless endpoints are given; without `--config` it
+//! drives a ROSbot on rmw_zenoh domain 0 in the root namespace.
+
+use std::path::PathBuf;
+
+use clap::Parser;
+use offworld_robot_agent::{AgentConfig, Ros2Robot};
+use offworld_runtime::{CommonArgs, EnvId, Realm};
+
+#[derive(Parser)]
+#[command(about = "Run the OffWorld robot agent (ROS 2 robot over Zenoh)")]
+struct Args {
+    /// Env id served (under `real/`).
+    #[arg(long, default_value = "real/enclosure-0")]
+    env: EnvId,
+    /// Agent configuration (TOML); defaults fit a ROSbot on rmw_zenoh.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Enclosure layout for reset navigation (overrides the config).
+    #[arg(long)]
+    world: Option<String>,
+    /// Watchdog window, ms (overrides the config).
+    #[arg(long)]
+    watchdog_ms: Option<u64>,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    offworld_runtime::session::init_logging();
+    let args = Args::parse();
+    anyhow::ensure!(
+        args.env.realm() == Realm::Real,
+        "the robot agent serves `real/…` envs, not {}",
+        args.env
+    );
+    let mut config = match &args.config {
+        Some(path) => AgentConfig::load(path)?,
+        None => AgentConfig::default(),
+    };
+    if let Some(world) = args.world {
+        config.world = world;
+    }
+    if let Some(ms) = args.watchdog_ms {
+        config.watchdog_ms = ms;
+    }
+    config.validate()?;
+    let session = args.common.client_config().open().await?;
+    let robot = Ros2Robot::connect(&session, &config.graph()?, &config.topics).await?;
+    let agent = offworld_robot_agent::spawn(&session, args.env.clone(), config, robot).await?;
+    tracing::info!(env = %args.env, "robot agent ready; Ctrl-C to stop");
+    tokio::signal::ctrl_c().await?;
+    agent.shutdown().await;
+    Ok(())
+}

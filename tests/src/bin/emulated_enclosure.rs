@@ -1,0 +1,55 @@
+//! `emulated_enclosure`: the whole real-side deployment on one machine —
+//! env_controller, robot_agent and tracker_agent as separate processes
+//! under `real/<world>-0`, driving `sim_twin --emulate-hardware` as if it
+//! were the robot and the lighthouse tracker.
+//!
+//! ```text
+//! emulated_enclosure --task MonolithDiscrete              # serve until Ctrl-C
+//! emulated_enclosure -- python3 py_client/examples/random_agent.py --env OffWorldMonolithDiscreteReal-v0
+//! ```
+//! A command after `--` runs with `OFFWORLD_GYM_CONNECT` and
+//! `OFFWORLD_GYM_ACCESS_TOKEN` set; the deployment stops when it exits.
+
+use std::process::Command;
+
+use anyhow::Context;
+use clap::Parser;
+use offworld_tests::emulated::{EmulatedEnclosure, Options};
+
+#[derive(Parser)]
+#[command(about = "Run the real stack against an emulated enclosure")]
+struct Args {
+    /// Task served (MonolithDiscrete, MonolithContinuous, MonolithObstacleDiscrete, …).
+    #[arg(long, default_value = "MonolithDiscrete")]
+    task: String,
+    /// Command to run against the deployment (after `--`).
+    #[arg(last = true)]
+    command: Vec<String>,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let options = Options::new(&args.task)?;
+    let deployment = EmulatedEnclosure::start(&options).context("starting the deployment")?;
+    eprintln!(
+        "emulated enclosure {} serving {}",
+        deployment.env, args.task
+    );
+    eprintln!("  OFFWORLD_GYM_CONNECT={}", deployment.endpoint);
+    eprintln!("  OFFWORLD_GYM_ACCESS_TOKEN={}", deployment.token);
+    let Some((program, rest)) = args.command.split_first() else {
+        eprintln!("Ctrl-C to stop");
+        tokio::signal::ctrl_c().await?;
+        return Ok(());
+    };
+    let status = Command::new(program)
+        .args(rest)
+        .env("OFFWORLD_GYM_CONNECT", &deployment.endpoint)
+        .env("OFFWORLD_GYM_ACCESS_TOKEN", &deployment.token)
+        .status()
+        .with_context(|| format!("running {program}"))?;
+    drop(deployment);
+    anyhow::ensure!(status.success(), "{program} failed: {status}");
+    Ok(())
+}

@@ -1,0 +1,305 @@
+//! The emulated enclosure deployment: the real stack (env_controller,
+//! robot_agent, tracker_agent) as separate processes under a `real/…`
+//! namespace, driving `sim_twin --emulate-hardware` as if it were the
+//! physical robot and lighthouse tracker. Used by the launcher binary
+//! `emulated_enclosure` and by the end-to-end tests.
+
+use std::io::{BufRead, BufReader, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::PathBuf;
+use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use offworld_runtime::session::loopback_endpoint;
+use offworld_runtime::EnvId;
+use offworld_sim_twin::enclosure::default_world_from_tracking;
+
+use crate::{binary_dir, Process};
+
+/// What to start.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// Env served, e.g. `real/monolith-0` (what Python's `…Real-v0` ids use
+    /// by default).
+    pub env: EnvId,
+    /// Task name (`MonolithDiscrete`, `MonolithObstacleContinuous`, …).
+    pub task: String,
+    /// Route the tracker stream through a [`LineProxy`] the caller can pause
+    /// (tracker silence).
+    pub pausable_tracker: bool,
+    /// Robot agent watchdog window, ms.
+    pub watchdog_ms: u64,
+    /// Log filter of the children (`RUST_LOG`).
+    pub log: String,
+}
+
+impl Options {
+    /// `task` on `real/<world>-0`, the env id Python's `…Real-v0` ids use
+    /// by default.
+    pub fn new(task: &str) -> Result<Self, offworld_runtime::ContractError> {
+        Ok(Self {
+            env: EnvId::real(&format!("{}-0", world_of(task)))?,
+            task: task.to_owned(),
+            pausable_tracker: false,
+            watchdog_ms: 200,
+            log: "warn".into(),
+        })
+    }
+
+    fn world(&self) -> &'static str {
+        world_of(&self.task)
+    }
+}
+
+fn world_of(task: &str) -> &'static str {
+    if task.starts_with("MonolithObstacle") {
+        "monolith_obstacle"
+    } else {
+        "monolith"
+    }
+}
+
+/// A running emulated deployment; every process is killed when dropped.
+pub struct EmulatedEnclosure {
+    /// The Zenoh endpoint the controller listens on (clients connect here).
+    pub endpoint: String,
+    /// The env served.
+    pub env: EnvId,
+    /// An access token of a registered user.
+    pub token: String,
+    /// Scratch directory (database, calibration).
+    pub dir: PathBuf,
+    /// The tracker stream proxy, when requested.
+    pub tracker_proxy: Option<LineProxy>,
+    controller: Option<Process>,
+    others: Vec<Process>,
+}
+
+impl EmulatedEnclosure {
+    /// Starts controller, emulator, tracker agent and robot agent.
+    pub fn start(options: &Options) -> std::io::Result<Self> {
+        let dir = std::env::temp_dir().join(format!(
+            "offworld-emulated-{}-{}",
+            std::process::id(),
+            offworld_runtime::client::random_id()
+        ));
+        std::fs::create_dir_all(&dir)?;
+        let db = dir.join("gym.db");
+        let db_arg = db.to_string_lossy().into_owned();
+        let token = register_user(&db_arg, "researcher")?;
+        let endpoint = loopback_endpoint()?;
+        let env = options.env.to_string();
+        let spawn = |binary: &str, args: &[&str]| Process::spawn_logged(binary, args, &options.log);
+
+        let controller = spawn(
+            "env_controller",
+            &[
+                "--db",
+                &db_arg,
+                "serve",
+                "--env",
+                &format!("{env}={}", options.task),
+                "--listen",
+                &endpoint,
+            ],
+        )?;
+        let tracker_port = free_port()?;
+        let tracker_listen = format!("127.0.0.1:{tracker_port}");
+        let emulator = spawn(
+            "sim_twin",
+            &[
+                "--emulate-hardware",
+                "--world",
+                options.world(),
+                "--tracker-listen",
+                &tracker_listen,
+                "--connect",
+                &endpoint,
+            ],
+        )?;
+        let tracker_addr: SocketAddr = tracker_listen
+            .parse()
+            .map_err(|e| std::io::Error::other(format!("{e}")))?;
+        let tracker_proxy = if options.pausable_tracker {
+            Some(LineProxy::start(tracker_addr)?)
+        } else {
+            None
+        };
+        let source = match &tracker_proxy {
+            Some(proxy) => format!("tcp://{}", proxy.addr()),
+            None => format!("tcp://{tracker_listen}"),
+        };
+        let calibration = dir.join("tracker_calibration.toml");
+        std::fs::write(&calibration, emulator_calibration_toml())?;
+        let tracker = spawn(
+            "tracker_agent",
+            &[
+                "run",
+                "--env",
+                &env,
+                "--source",
+                &source,
+                "--calibration",
+                &calibration.to_string_lossy(),
+                "--connect",
+                &endpoint,
+            ],
+        )?;
+        let robot = spawn(
+            "robot_agent",
+            &[
+                "--env",
+                &env,
+                "--world",
+                options.world(),
+                "--watchdog-ms",
+                &options.watchdog_ms.to_string(),
+                "--connect",
+                &endpoint,
+            ],
+        )?;
+        Ok(Self {
+            endpoint,
+            env: options.env.clone(),
+            token,
+            dir,
+            tracker_proxy,
+            controller: Some(controller),
+            others: vec![emulator, tracker, robot],
+        })
+    }
+
+    /// Kills the controller process at once (SIGKILL), like a crash.
+    pub fn kill_controller(&mut self) {
+        drop(self.controller.take());
+    }
+}
+
+impl Drop for EmulatedEnclosure {
+    fn drop(&mut self) {
+        self.controller.take();
+        self.others.clear();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// The tracker agent's calibration matching the emulator's lighthouse
+/// placement (what `tracker_agent calibrate` finds on a real site).
+pub fn emulator_calibration_toml() -> String {
+    let world_from_tracking = default_world_from_tracking();
+    let t = world_from_tracking.translation.vector;
+    let q = world_from_tracking.rotation.coords;
+    format!(
+        "# Written by the emulated deployment: the emulator's lighthouse placement.\n\
+         [world_from_tracking]\n\
+         translation = [{:.12}, {:.12}, {:.12}]\n\
+         rotation = [{:.12}, {:.12}, {:.12}, {:.12}]\n\n\
+         [tracker_in_base_link]\n\
+         translation = [-0.03, 0.0, 0.14]\n\
+         rotation = [0.0, 0.0, 0.0, 1.0]\n",
+        t.x, t.y, t.z, q.x, q.y, q.z, q.w
+    )
+}
+
+fn register_user(db: &str, name: &str) -> std::io::Result<String> {
+    let out = Command::new(binary_dir().join("env_controller"))
+        .args(["--db", db, "users", "add", name])
+        .env("RUST_LOG", "warn")
+        .output()?;
+    if !out.status.success() {
+        return Err(std::io::Error::other(format!(
+            "users add failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        )));
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
+}
+
+fn free_port() -> std::io::Result<u16> {
+    Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+/// Forwards a line stream from `upstream` to whoever connects, and can be
+/// paused: tracker silence (occluded lighthouse) on demand.
+pub struct LineProxy {
+    addr: SocketAddr,
+    paused: Arc<AtomicBool>,
+    stop: Arc<AtomicBool>,
+}
+
+impl LineProxy {
+    /// Listens on a free loopback port.
+    pub fn start(upstream: SocketAddr) -> std::io::Result<Self> {
+        let listener = TcpListener::bind("127.0.0.1:0")?;
+        let addr = listener.local_addr()?;
+        let paused = Arc::new(AtomicBool::new(false));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (p, s) = (paused.clone(), stop.clone());
+        std::thread::Builder::new()
+            .name("tracker-proxy".into())
+            .spawn(move || {
+                for downstream in listener.incoming() {
+                    if s.load(Ordering::SeqCst) {
+                        return;
+                    }
+                    let Ok(downstream) = downstream else { continue };
+                    let (p, s) = (p.clone(), s.clone());
+                    std::thread::spawn(move || forward(upstream, downstream, &p, &s));
+                }
+            })?;
+        Ok(Self { addr, paused, stop })
+    }
+
+    /// Where tracker agents connect.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Stops (true) or resumes (false) forwarding lines.
+    pub fn pause(&self, paused: bool) {
+        self.paused.store(paused, Ordering::SeqCst);
+    }
+}
+
+impl Drop for LineProxy {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        // Wake the acceptor so it sees the flag.
+        let _ = TcpStream::connect_timeout(&self.addr, Duration::from_millis(100));
+    }
+}
+
+fn forward(
+    upstream: SocketAddr,
+    mut downstream: TcpStream,
+    paused: &AtomicBool,
+    stop: &AtomicBool,
+) {
+    // The emulator may still be starting: retry for a while.
+    let mut source = None;
+    for _ in 0..100 {
+        if let Ok(s) = TcpStream::connect(upstream) {
+            source = Some(s);
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let Some(source) = source else { return };
+    let mut reader = BufReader::new(source);
+    let mut line = String::new();
+    while !stop.load(Ordering::SeqCst) {
+        line.clear();
+        match reader.read_line(&mut line) {
+            Ok(0) | Err(_) => return,
+            Ok(_) => {}
+        }
+        if paused.load(Ordering::SeqCst) {
+            continue;
+        }
+        if downstream.write_all(line.as_bytes()).is_err() {
+            return;
+        }
+    }
+}

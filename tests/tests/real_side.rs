@@ -1,0 +1,306 @@
+//! The real stack end to end on the emulated enclosure: env_controller,
+//! robot_agent and tracker_agent as separate processes under `real/…`,
+//! driving `sim_twin --emulate-hardware` in real time over its ROS 2 topics
+//! and raw tracker stream. This test process plays the researcher (a gym
+//! client with a token) and, separately, an observer of the robot's
+//! `cmd_vel` (what the motors were told).
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::codec;
+use offworld_runtime::keys::{EnvId, Topic};
+use offworld_runtime::msg::*;
+use offworld_runtime::ros2::{RobotTopics, RosGraph, RosType};
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{ErrorCode, SessionConfig, WireError};
+use offworld_tests::emulated::{EmulatedEnclosure, Options};
+
+/// The monolith's ground-plane centre (runtime/worlds/monolith.toml).
+const MONOLITH: (f64, f64) = (0.0109, -0.2034);
+
+fn open_request(token: &str, experiment: &str) -> OpenRequest {
+    OpenRequest {
+        token: token.to_owned(),
+        client_id: String::new(),
+        experiment_name: experiment.to_owned(),
+        resume_experiment: false,
+        learning_type: LearningType::EndToEnd,
+        algorithm_mode: AlgorithmMode::Test,
+        obs: ObsOptions {
+            channels: Channels::Rgbd,
+            height: 84,
+            width: 84,
+            depth_format: DepthFormat::Meters,
+        },
+    }
+}
+
+/// Opens the env once the deployment is up (bounded wait).
+async fn open(deployment: &EmulatedEnclosure, experiment: &str) -> (Session, EnvClient) {
+    let session = SessionConfig::connecting(&deployment.endpoint)
+        .open()
+        .await
+        .expect("client session");
+    for _ in 0..300 {
+        let request = open_request(&deployment.token, experiment);
+        match EnvClient::open(
+            &session,
+            &deployment.env,
+            request,
+            ClientTimeouts::default(),
+        )
+        .await
+        {
+            Ok(client) => return (session, client),
+            // Controller, agents or tracker still starting.
+            Err(e)
+                if matches!(
+                    e.code,
+                    ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
+                ) =>
+            {
+                tokio::time::sleep(Duration::from_millis(100)).await
+            }
+            Err(e) => panic!("open failed: {e}"),
+        }
+    }
+    panic!("the emulated deployment did not come up within 30 s");
+}
+
+/// Resets, retrying while the tracker's first poses are still arriving.
+async fn reset(gym: &mut EnvClient, seed: u64) -> ResetReply {
+    let mut last = None;
+    for _ in 0..50 {
+        match gym.reset(Seed::Fixed(seed)).await {
+            Ok(r) => return r,
+            Err(e) if e.code == ErrorCode::Unavailable => {
+                last = Some(e);
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(e) => panic!("reset failed: {e}"),
+        }
+    }
+    panic!("reset kept failing: {last:?}");
+}
+
+/// Every velocity the robot's base was told, with arrival times.
+#[derive(Clone, Default)]
+struct CmdVelLog(Arc<Mutex<Vec<(Instant, f64, f64)>>>);
+
+impl CmdVelLog {
+    async fn watch(session: &Session) -> (Self, offworld_runtime::zenoh::pubsub::Subscriber<()>) {
+        let log = CmdVelLog::default();
+        let key = RosGraph::new(Default::default(), "")
+            .and_then(|g| g.subscription_key(&RobotTopics::default().cmd_vel, RosType::Twist))
+            .expect("cmd_vel key");
+        let sink = log.0.clone();
+        let sub = session
+            .declare_subscriber(key)
+            .callback(move |s: Sample| {
+                if let (Ok(t), Ok(mut v)) =
+                    (codec::decode_payload::<Twist>(s.payload()), sink.lock())
+                {
+                    v.push((Instant::now(), t.linear.x, t.angular.z));
+                }
+            })
+            .await
+            .expect("cmd_vel subscriber");
+        (log, sub)
+    }
+
+    fn snapshot(&self) -> Vec<(Instant, f64, f64)> {
+        self.0.lock().map(|v| v.clone()).unwrap_or_default()
+    }
+}
+
+/// Latest calibrated robot pose as published by the tracker agent.
+async fn watch_pose(
+    session: &Session,
+    env: &EnvId,
+) -> (
+    Arc<Mutex<Option<Pose2D>>>,
+    offworld_runtime::zenoh::pubsub::Subscriber<()>,
+) {
+    let latest = Arc::new(Mutex::new(None));
+    let sink = latest.clone();
+    let sub = session
+        .declare_subscriber(env.key(Topic::Pose))
+        .callback(move |s: Sample| {
+            if let (Ok(p), Ok(mut v)) = (
+                codec::decode_payload::<PoseStamped>(s.payload()),
+                sink.lock(),
+            ) {
+                *v = Some(Pose2D {
+                    x: p.pose.position.x,
+                    y: p.pose.position.y,
+                    yaw: p.pose.orientation.yaw(),
+                });
+            }
+        })
+        .await
+        .expect("pose subscriber");
+    (latest, sub)
+}
+
+fn wrap(a: f64) -> f64 {
+    (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_the_robot() {
+    let options = Options::new("MonolithContinuous").expect("options");
+    let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    let (session, mut gym) = open(&deployment, "emulated-e2e").await;
+    assert_eq!(gym.spec().task, "MonolithContinuous");
+    let (pose, _pose_sub) = watch_pose(&session, &deployment.env).await;
+    let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&session).await;
+
+    // Reset: the robot agent drives the robot to the sampled spawn pose.
+    let started = Instant::now();
+    let first = reset(&mut gym, 3).await;
+    let reset_time = started.elapsed();
+    assert_eq!(
+        (
+            first.observation.height,
+            first.observation.width,
+            first.observation.channels
+        ),
+        (84, 84, 4)
+    );
+    assert!(
+        cmd_vel
+            .snapshot()
+            .iter()
+            .any(|(_, v, w)| *v != 0.0 || *w != 0.0),
+        "the reset drove the robot"
+    );
+
+    // A scripted policy with privileged access to the tracker pose steers to
+    // the monolith: the episode ends with the success reward.
+    let mut steps = 0;
+    let last = loop {
+        let here = pose.lock().ok().and_then(|p| *p).expect("tracker pose");
+        let (dx, dy) = (MONOLITH.0 - here.x, MONOLITH.1 - here.y);
+        let error = wrap(dy.atan2(dx) - here.yaw);
+        let distance = dx.hypot(dy);
+        let turn = (1.5 * error / 2.5).clamp(-1.0, 1.0) as f32;
+        let forward = if error.abs() < 0.4 {
+            ((distance - 0.25).clamp(0.05, 0.3) / 0.7) as f32
+        } else {
+            0.0
+        };
+        let reply = gym
+            .step(Action::Continuous(vec![forward, turn]))
+            .await
+            .expect("step");
+        steps += 1;
+        assert_eq!(reply.info.step, steps);
+        if reply.terminated || reply.truncated {
+            break reply;
+        }
+    };
+    assert!(last.terminated, "reached the monolith, not the step limit");
+    assert_eq!(last.reward, 1.0);
+    eprintln!("emulated enclosure: reset drive {reset_time:?}, success in {steps} steps");
+
+    // Next episode; kill the controller while the robot is moving.
+    reset(&mut gym, 4).await;
+    let stepping = tokio::spawn(async move {
+        let result = gym.step(Action::Continuous(vec![0.0, 0.6])).await;
+        (gym, result)
+    });
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let moving = cmd_vel.snapshot().last().map(|(_, v, w)| (*v, *w));
+    assert!(
+        moving.is_some_and(|(v, w)| v != 0.0 || w != 0.0),
+        "mid-motion: {moving:?}"
+    );
+    deployment.kill_controller();
+    let killed = Instant::now();
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let after: Vec<_> = cmd_vel
+        .snapshot()
+        .into_iter()
+        .filter(|(t, _, _)| *t >= killed)
+        .collect();
+    let first_zero = after
+        .iter()
+        .position(|(_, v, w)| *v == 0.0 && *w == 0.0)
+        .expect("a zero velocity after the kill");
+    assert!(
+        after[first_zero..]
+            .iter()
+            .all(|(_, v, w)| *v == 0.0 && *w == 0.0),
+        "the robot stays stopped"
+    );
+    let latency = after[first_zero].0.saturating_duration_since(killed);
+    eprintln!("controller killed mid-motion: commanded velocity zero after {latency:?}");
+    assert!(
+        latency < Duration::from_millis(500),
+        "stopped within the watchdog window (+ margin): {latency:?}"
+    );
+    let (_gym, result) = stepping.await.expect("step task");
+    let err: WireError = result.expect_err("the step cannot succeed without its controller");
+    assert!(
+        matches!(
+            err.code,
+            ErrorCode::Timeout | ErrorCode::NotFound | ErrorCode::Unavailable
+        ),
+        "{err}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tracker_silence_fails_the_step_with_a_typed_error_and_stops_the_robot() {
+    let mut options = Options::new("MonolithDiscrete").expect("options");
+    options.pausable_tracker = true;
+    let deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    let (session, mut gym) = open(&deployment, "tracker-silence").await;
+    let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&session).await;
+    reset(&mut gym, 5).await;
+    let ok = gym
+        .step(Action::Discrete(0))
+        .await
+        .expect("a step while tracked");
+    assert_eq!(ok.info.step, 1);
+
+    let proxy = deployment.tracker_proxy.as_ref().expect("proxy");
+    proxy.pause(true);
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let silenced = Instant::now();
+    let err = gym
+        .step(Action::Discrete(2))
+        .await
+        .expect_err("no step is scored on a stale pose");
+    assert_eq!(err.code, ErrorCode::Unavailable, "{err}");
+    assert!(err.message.contains("tracking lost"), "{err}");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let since: Vec<_> = cmd_vel
+        .snapshot()
+        .into_iter()
+        .filter(|(t, _, _)| *t >= silenced)
+        .collect();
+    assert!(
+        since.iter().all(|(_, v, w)| *v == 0.0 && *w == 0.0),
+        "the robot was not moved while tracking was lost: {since:?}"
+    );
+
+    // The episode was aborted (recorded with the reason), not silently kept.
+    let err = gym
+        .step(Action::Discrete(0))
+        .await
+        .expect_err("aborted episode");
+    assert_eq!(err.code, ErrorCode::InvalidState, "{err}");
+
+    // Tracking back: a new episode starts and steps again.
+    proxy.pause(false);
+    reset(&mut gym, 6).await;
+    let again = gym
+        .step(Action::Discrete(2))
+        .await
+        .expect("step after recovery");
+    assert_eq!(again.info.step, 1);
+}
