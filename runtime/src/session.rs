@@ -222,12 +222,16 @@ impl From<CommonArgs> for SessionConfig {
     }
 }
 
-/// Logging for binaries and examples: `RUST_LOG` or `info`.
+/// Logging for binaries and examples: `RUST_LOG` or `info`, on stderr
+/// (stdout stays for a command's output, e.g. a printed token).
 pub fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     // A second init (tests, embedding) is harmless.
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).try_init();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
 }
 
 /// A TCP endpoint on a free loopback port, for tests and benches that need

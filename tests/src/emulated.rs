@@ -31,7 +31,7 @@ pub struct Options {
     pub pausable_tracker: bool,
     /// Robot agent watchdog window, ms.
     pub watchdog_ms: u64,
-    /// Log filter of the children (`RUST_LOG`).
+    /// Log filter of the children (default: this process's `RUST_LOG`, else `warn`).
     pub log: String,
 }
 
@@ -44,7 +44,7 @@ impl Options {
             task: task.to_owned(),
             pausable_tracker: false,
             watchdog_ms: 200,
-            log: "warn".into(),
+            log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
         })
     }
 
@@ -63,8 +63,11 @@ fn world_of(task: &str) -> &'static str {
 
 /// A running emulated deployment; every process is killed when dropped.
 pub struct EmulatedEnclosure {
-    /// The Zenoh endpoint the controller listens on (clients connect here).
+    /// The Zenoh endpoint the controller listens on (gym clients connect here).
     pub endpoint: String,
+    /// The robot computer's Zenoh router (the ROS 2 side: `cmd_vel`,
+    /// camera, odometry; the agents are its clients).
+    pub robot_endpoint: String,
     /// The env served.
     pub env: EnvId,
     /// An access token of a registered user.
@@ -90,9 +93,30 @@ impl EmulatedEnclosure {
         let db_arg = db.to_string_lossy().into_owned();
         let token = register_user(&db_arg, "researcher")?;
         let endpoint = loopback_endpoint()?;
+        let robot_endpoint = loopback_endpoint()?;
         let env = options.env.to_string();
         let spawn = |binary: &str, args: &[&str]| Process::spawn_logged(binary, args, &options.log);
-
+        // The robot's computer: on a real ROSbot, rmw_zenoh's router runs
+        // there and the ROS nodes and robot_agent are its clients, so the
+        // agent always reaches the motors, whatever happens to the
+        // controller or the site network.
+        let tracker_listen = format!("127.0.0.1:{}", free_port()?);
+        let emulator = spawn(
+            "sim_twin",
+            &[
+                "--emulate-hardware",
+                "--world",
+                options.world(),
+                "--tracker-listen",
+                &tracker_listen,
+                "--mode",
+                "router",
+                "--listen",
+                &robot_endpoint,
+            ],
+        )?;
+        // Zenoh clients give up when their router is not there yet.
+        wait_until_listening(&robot_endpoint, Duration::from_secs(20))?;
         let controller = spawn(
             "env_controller",
             &[
@@ -103,22 +127,11 @@ impl EmulatedEnclosure {
                 &format!("{env}={}", options.task),
                 "--listen",
                 &endpoint,
-            ],
-        )?;
-        let tracker_port = free_port()?;
-        let tracker_listen = format!("127.0.0.1:{tracker_port}");
-        let emulator = spawn(
-            "sim_twin",
-            &[
-                "--emulate-hardware",
-                "--world",
-                options.world(),
-                "--tracker-listen",
-                &tracker_listen,
                 "--connect",
-                &endpoint,
+                &robot_endpoint,
             ],
         )?;
+        wait_until_listening(&endpoint, Duration::from_secs(20))?;
         let tracker_addr: SocketAddr = tracker_listen
             .parse()
             .map_err(|e| std::io::Error::other(format!("{e}")))?;
@@ -143,8 +156,11 @@ impl EmulatedEnclosure {
                 &source,
                 "--calibration",
                 &calibration.to_string_lossy(),
+                // A Zenoh client of the robot's router.
+                "--mode",
+                "client",
                 "--connect",
-                &endpoint,
+                &robot_endpoint,
             ],
         )?;
         let robot = spawn(
@@ -156,12 +172,16 @@ impl EmulatedEnclosure {
                 options.world(),
                 "--watchdog-ms",
                 &options.watchdog_ms.to_string(),
+                // A Zenoh client of the robot's router.
+                "--mode",
+                "client",
                 "--connect",
-                &endpoint,
+                &robot_endpoint,
             ],
         )?;
         Ok(Self {
             endpoint,
+            robot_endpoint,
             env: options.env.clone(),
             token,
             dir,
@@ -169,6 +189,16 @@ impl EmulatedEnclosure {
             controller: Some(controller),
             others: vec![emulator, tracker, robot],
         })
+    }
+
+    /// Sends a signal (`STOP`, `CONT`, …) to the controller process.
+    pub fn signal_controller(&self, signal: &str) {
+        if let Some(controller) = &self.controller {
+            let pid = controller.0.id().to_string();
+            let _ = Command::new("kill")
+                .args([format!("-{signal}"), pid])
+                .status();
+        }
     }
 
     /// Kills the controller process at once (SIGKILL), like a crash.
@@ -215,6 +245,26 @@ fn register_user(db: &str, name: &str) -> std::io::Result<String> {
         )));
     }
     Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
+}
+
+/// Waits until something accepts TCP connections at `tcp/HOST:PORT`.
+fn wait_until_listening(endpoint: &str, limit: Duration) -> std::io::Result<()> {
+    let addr: SocketAddr = endpoint
+        .trim_start_matches("tcp/")
+        .parse()
+        .map_err(|e| std::io::Error::other(format!("{endpoint}: {e}")))?;
+    let deadline = std::time::Instant::now() + limit;
+    loop {
+        if TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok() {
+            return Ok(());
+        }
+        if std::time::Instant::now() >= deadline {
+            return Err(std::io::Error::other(format!(
+                "nothing listens at {endpoint} after {limit:?}"
+            )));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
 
 fn free_port() -> std::io::Result<u16> {

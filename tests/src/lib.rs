@@ -8,14 +8,16 @@ pub mod emulated;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 
-/// The directory holding the workspace's release binaries (next to the
-/// running test executable's `deps/`).
+/// The directory holding the workspace's release binaries: next to the
+/// running executable, or one level up from a test executable's `deps/`.
 pub fn binary_dir() -> PathBuf {
     let exe = std::env::current_exe().unwrap_or_default();
-    exe.parent()
-        .and_then(|deps| deps.parent())
-        .map(PathBuf::from)
-        .unwrap_or_default()
+    let dir = exe.parent().map(PathBuf::from).unwrap_or_default();
+    if dir.file_name().is_some_and(|n| n == "deps") {
+        dir.parent().map(PathBuf::from).unwrap_or_default()
+    } else {
+        dir
+    }
 }
 
 /// A child process killed when dropped.

@@ -70,6 +70,13 @@ async fn open(deployment: &EmulatedEnclosure, experiment: &str) -> (Session, Env
     panic!("the emulated deployment did not come up within 30 s");
 }
 
+/// An observer on the robot computer's network (sees `cmd_vel`).
+async fn robot_side(deployment: &EmulatedEnclosure) -> Session {
+    let mut config = SessionConfig::connecting(&deployment.robot_endpoint);
+    config.mode = offworld_runtime::session::Mode::Client;
+    config.open().await.expect("robot-side session")
+}
+
 /// Resets, retrying while the tracker's first poses are still arriving.
 async fn reset(gym: &mut EnvClient, seed: u64) -> ResetReply {
     let mut last = None;
@@ -153,10 +160,11 @@ fn wrap(a: f64) -> f64 {
 async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_the_robot() {
     let options = Options::new("MonolithContinuous").expect("options");
     let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
-    let (session, mut gym) = open(&deployment, "emulated-e2e").await;
+    let (_session, mut gym) = open(&deployment, "emulated-e2e").await;
     assert_eq!(gym.spec().task, "MonolithContinuous");
-    let (pose, _pose_sub) = watch_pose(&session, &deployment.env).await;
-    let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&session).await;
+    let robot_side = robot_side(&deployment).await;
+    let (pose, _pose_sub) = watch_pose(&robot_side, &deployment.env).await;
+    let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&robot_side).await;
 
     // Reset: the robot agent drives the robot to the sampled spawn pose.
     let started = Instant::now();
@@ -206,37 +214,32 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
     assert_eq!(last.reward, 1.0);
     eprintln!("emulated enclosure: reset drive {reset_time:?}, success in {steps} steps");
 
-    // Next episode; kill the controller while the robot is moving.
+    // Next episode. Freeze the controller mid-motion (SIGSTOP: its session
+    // and liveliness token stay, its heartbeats stop): the watchdog window
+    // stops the robot.
     reset(&mut gym, 4).await;
     let stepping = tokio::spawn(async move {
         let result = gym.step(Action::Continuous(vec![0.0, 0.6])).await;
         (gym, result)
     });
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    let moving = cmd_vel.snapshot().last().map(|(_, v, w)| (*v, *w));
+    let latency = stop_latency(&cmd_vel, || deployment.signal_controller("STOP")).await;
+    eprintln!("controller frozen mid-motion: commanded velocity zero after {latency:?}");
     assert!(
-        moving.is_some_and(|(v, w)| v != 0.0 || w != 0.0),
-        "mid-motion: {moving:?}"
+        latency >= Duration::from_millis(100) && latency < Duration::from_millis(500),
+        "the heartbeat watchdog (200 ms) stopped the robot: {latency:?}"
     );
-    deployment.kill_controller();
-    let killed = Instant::now();
-    tokio::time::sleep(Duration::from_millis(1000)).await;
-    let after: Vec<_> = cmd_vel
-        .snapshot()
-        .into_iter()
-        .filter(|(t, _, _)| *t >= killed)
-        .collect();
-    let first_zero = after
-        .iter()
-        .position(|(_, v, w)| *v == 0.0 && *w == 0.0)
-        .expect("a zero velocity after the kill");
-    assert!(
-        after[first_zero..]
-            .iter()
-            .all(|(_, v, w)| *v == 0.0 && *w == 0.0),
-        "the robot stays stopped"
-    );
-    let latency = after[first_zero].0.saturating_duration_since(killed);
+    deployment.signal_controller("CONT");
+    let (mut gym, _cut_short) = stepping.await.expect("step task");
+
+    // Kill it mid-motion (SIGKILL): its liveliness token vanishes at once.
+    gym.reset(Seed::Fixed(5))
+        .await
+        .expect("reset after the freeze");
+    let stepping = tokio::spawn(async move {
+        let result = gym.step(Action::Continuous(vec![0.0, 0.6])).await;
+        (gym, result)
+    });
+    let latency = stop_latency(&cmd_vel, || deployment.kill_controller()).await;
     eprintln!("controller killed mid-motion: commanded velocity zero after {latency:?}");
     assert!(
         latency < Duration::from_millis(500),
@@ -253,13 +256,51 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
     );
 }
 
+/// Waits until the robot is moving, runs `act`, and returns how long until
+/// the base was commanded zero (and stayed there for a second).
+async fn stop_latency(cmd_vel: &CmdVelLog, act: impl FnOnce()) -> Duration {
+    for _ in 0..100 {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        let moving = cmd_vel.snapshot().last().map(|(_, v, w)| (*v, *w));
+        if moving.is_some_and(|(v, w)| v != 0.0 || w != 0.0) {
+            break;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let moving = cmd_vel.snapshot().last().map(|(_, v, w)| (*v, *w));
+    assert!(
+        moving.is_some_and(|(v, w)| v != 0.0 || w != 0.0),
+        "mid-motion: {moving:?}"
+    );
+    act();
+    let acted = Instant::now();
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let after: Vec<_> = cmd_vel
+        .snapshot()
+        .into_iter()
+        .filter(|(t, _, _)| *t >= acted)
+        .collect();
+    let first_zero = after
+        .iter()
+        .position(|(_, v, w)| *v == 0.0 && *w == 0.0)
+        .expect("a zero velocity afterwards");
+    assert!(
+        after[first_zero..]
+            .iter()
+            .all(|(_, v, w)| *v == 0.0 && *w == 0.0),
+        "the robot stays stopped"
+    );
+    after[first_zero].0.saturating_duration_since(acted)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tracker_silence_fails_the_step_with_a_typed_error_and_stops_the_robot() {
     let mut options = Options::new("MonolithDiscrete").expect("options");
     options.pausable_tracker = true;
     let deployment = EmulatedEnclosure::start(&options).expect("deployment");
-    let (session, mut gym) = open(&deployment, "tracker-silence").await;
-    let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&session).await;
+    let (_session, mut gym) = open(&deployment, "tracker-silence").await;
+    let robot_side = robot_side(&deployment).await;
+    let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&robot_side).await;
     reset(&mut gym, 5).await;
     let ok = gym
         .step(Action::Discrete(0))
