@@ -141,6 +141,10 @@ impl RobotLink {
         let (alive_tx, embodiment_alive) = watch::channel(false);
         let twin_key = env.alive_key(Component::SimTwin);
         let robot_key = env.alive_key(Component::RobotAgent);
+        let tracker_key = env.alive_key(Component::TrackerAgent);
+        // A crashed tracker agent cannot say that tracking is lost: its
+        // vanished token says it for it.
+        let tracker_lost = tracking_lost.clone();
         let present = std::sync::Mutex::new(std::collections::BTreeSet::<String>::new());
         let liveliness = session
             .liveliness()
@@ -148,6 +152,9 @@ impl RobotLink {
             .history(true)
             .callback(move |sample: Sample| {
                 let key = sample.key_expr().as_str().to_owned();
+                if key == tracker_key && sample.kind() == SampleKind::Delete {
+                    tracker_lost.store(true, Ordering::SeqCst);
+                }
                 if key != twin_key && key != robot_key {
                     return;
                 }

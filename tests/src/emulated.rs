@@ -12,8 +12,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use offworld_runtime::session::loopback_endpoint;
-use offworld_runtime::EnvId;
+use offworld_runtime::client;
+use offworld_runtime::codec;
+use offworld_runtime::msg::{EnvState, TrackingStatus};
+use offworld_runtime::session::{loopback_endpoint, Mode};
+use offworld_runtime::{EnvId, SessionConfig, Topic};
 use offworld_sim_twin::enclosure::default_world_from_tracking;
 
 use crate::{binary_dir, Process};
@@ -189,6 +192,46 @@ impl EmulatedEnclosure {
             controller: Some(controller),
             others: vec![emulator, tracker, robot],
         })
+    }
+
+    /// Waits (bounded) until the env is online and the tracker agent reports
+    /// tracking, so a first `reset` can navigate.
+    pub async fn ready(&self, limit: Duration) -> Result<(), String> {
+        let mut config = SessionConfig::connecting(&self.robot_endpoint);
+        config.mode = Mode::Client;
+        let session = config.open().await.map_err(|e| e.to_string())?;
+        let tracking = session
+            .declare_subscriber(self.env.key(Topic::Tracking))
+            .await
+            .map_err(|e| e.to_string())?;
+        let deadline = tokio::time::Instant::now() + limit;
+        let tracked = tokio::time::timeout_at(deadline, async {
+            while let Ok(sample) = tracking.recv_async().await {
+                if codec::decode_payload::<TrackingStatus>(sample.payload())
+                    .is_ok_and(|s| s.tracking)
+                {
+                    return true;
+                }
+            }
+            false
+        })
+        .await
+        .unwrap_or(false);
+        if !tracked {
+            return Err(format!("{}: no tracking within {limit:?}", self.env));
+        }
+        let hub = SessionConfig::connecting(&self.endpoint)
+            .open()
+            .await
+            .map_err(|e| e.to_string())?;
+        while tokio::time::Instant::now() < deadline {
+            let status = client::status(&hub, &self.env, Duration::from_secs(1)).await;
+            if status.is_ok_and(|s| !matches!(s.state, EnvState::Offline { .. })) {
+                return Ok(());
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        Err(format!("{} stayed offline for {limit:?}", self.env))
     }
 
     /// Sends a signal (`STOP`, `CONT`, …) to the controller process.

@@ -160,6 +160,10 @@ fn wrap(a: f64) -> f64 {
 async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_the_robot() {
     let options = Options::new("MonolithContinuous").expect("options");
     let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    deployment
+        .ready(Duration::from_secs(60))
+        .await
+        .expect("deployment ready");
     let (_session, mut gym) = open(&deployment, "emulated-e2e").await;
     assert_eq!(gym.spec().task, "MonolithContinuous");
     let robot_side = robot_side(&deployment).await;
@@ -298,6 +302,10 @@ async fn tracker_silence_fails_the_step_with_a_typed_error_and_stops_the_robot()
     let mut options = Options::new("MonolithDiscrete").expect("options");
     options.pausable_tracker = true;
     let deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    deployment
+        .ready(Duration::from_secs(60))
+        .await
+        .expect("deployment ready");
     let (_session, mut gym) = open(&deployment, "tracker-silence").await;
     let robot_side = robot_side(&deployment).await;
     let (cmd_vel, _cmd_sub) = CmdVelLog::watch(&robot_side).await;

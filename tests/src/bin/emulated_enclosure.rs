@@ -32,6 +32,10 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let options = Options::new(&args.task)?;
     let deployment = EmulatedEnclosure::start(&options).context("starting the deployment")?;
+    deployment
+        .ready(std::time::Duration::from_secs(60))
+        .await
+        .map_err(anyhow::Error::msg)?;
     eprintln!(
         "emulated enclosure {} serving {}",
         deployment.env, args.task

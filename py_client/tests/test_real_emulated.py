@@ -1,0 +1,52 @@
+"""`OffWorldMonolithDiscreteReal-v0` through gymnasium against the emulated
+enclosure: env_controller + robot_agent + tracker_agent as processes under
+`real/monolith-0`, driving `sim_twin --emulate-hardware` in real time
+(started by the `emulated_enclosure` launcher)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+from conftest import _binary
+
+AGENT = textwrap.dedent(
+    """
+    import gymnasium, numpy as np, offworld_gym
+    from offworld_gym.envs.common.channels import Channels
+    from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
+
+    env = gymnasium.make(
+        "OffWorldMonolithDiscreteReal-v0",
+        experiment_name="emulated-py",
+        resume_experiment=False,
+        learning_type=LearningType.END_TO_END,
+        algorithm_mode=AlgorithmMode.TRAIN,
+        channel_type=Channels.DEPTH_ONLY,
+        resolution=(84, 84),
+    )
+    obs, info = env.reset(seed=7)  # the robot agent drives to the spawn pose
+    assert obs.shape == (84, 84, 1) and obs.dtype == np.uint8, obs.shape
+    assert 0 < int(obs.max()) <= 255
+    total = 0
+    for step in range(1, 4):
+        obs, reward, terminated, truncated, info = env.step(step % 2)  # LEFT / RIGHT turns stay inside
+        assert info["step"] == step, info
+        assert not truncated
+        total += 1
+    env.close()
+    print("real steps", total)
+    """
+)
+
+
+def test_real_id_trains_against_the_emulated_enclosure() -> None:
+    result = subprocess.run(
+        [str(_binary("emulated_enclosure")), "--task", "MonolithDiscrete", "--", sys.executable, "-c", AGENT],
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert result.returncode == 0, result.stderr[-3000:] + result.stdout[-2000:]
+    assert "real steps 3" in result.stdout
