@@ -1,6 +1,8 @@
-"""A random agent on the embedded sim (no router, no robot needed).
+"""A random agent on the embedded sim (no router, no robot needed), or on
+any deployment named by OFFWORLD_GYM_CONNECT / OFFWORLD_GYM_ACCESS_TOKEN.
 
     python py_client/examples/random_agent.py --episodes 3
+    python py_client/examples/random_agent.py --env OffWorldMonolithDiscreteReal-v0 --max-steps 20
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ def main() -> None:
     parser.add_argument("--env", default="OffWorldMonolithDiscreteSim-v0")
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-steps", type=int, default=0, help="stop after this many steps in all (0 = no limit)")
     args = parser.parse_args()
 
     started = time.perf_counter()
@@ -30,11 +33,14 @@ def main() -> None:
     loop_start = time.perf_counter()
     for episode in range(args.episodes):
         episode_return, done = 0.0, False
-        while not done:
+        while not done and not (args.max_steps and steps >= args.max_steps):
             obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
             episode_return += reward
             steps += 1
             done = terminated or truncated
+        if not done:
+            print(f"episode {episode}: stopped after {info['step']} steps (--max-steps)")
+            break
         outcome = "reached the monolith" if terminated and reward > 0 else ("left the arena" if terminated else "time limit")
         print(f"episode {episode}: return {episode_return:.0f} in {info['step']} steps ({outcome})")
         obs, info = env.reset()

