@@ -11,7 +11,9 @@
 //!   and attachments;
 //! - streams raw tracker poses in the tracker's own frame over the tracker
 //!   line protocol (a TCP server), through a calibration the controller
-//!   never sees.
+//!   never sees;
+//! - optionally streams the site's overhead camera view on an env's
+//!   `overhead/<camera>` key (a camera streamer at the site would).
 //!
 //! It declares nothing under `offworld/…`: only the agents speak there.
 
@@ -33,6 +35,7 @@ use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::{Session, Wait};
 
 use crate::error::SimError;
+use crate::overhead::OverheadStream;
 use crate::physics::DT;
 use crate::ros_out;
 use crate::twin::SimTwin;
@@ -59,6 +62,9 @@ pub struct EnclosureConfig {
     pub world_from_tracking: Isometry3<f64>,
     /// Depth encoding published (`16UC1` like an Astra, or `32FC1`).
     pub depth_encoding: PixelEncoding,
+    /// Where the site's overhead camera streams (an env's
+    /// `overhead/<camera>` key), if anywhere.
+    pub overhead_key: Option<String>,
 }
 
 impl EnclosureConfig {
@@ -77,6 +83,7 @@ impl EnclosureConfig {
             tracker_device: "LHR-EMULATED".into(),
             world_from_tracking: default_world_from_tracking(),
             depth_encoding: PixelEncoding::Depth16UC1,
+            overhead_key: None,
         })
     }
 }
@@ -159,7 +166,12 @@ impl EmulatedEnclosure {
                 .spawn(move || accept_loop(listener, clients, stop))
                 .map_err(|e| SimError::Io(e.to_string()))?
         };
+        let overhead = config
+            .overhead_key
+            .clone()
+            .map(|key| OverheadStream::new(twin.scene(), key, OverheadStream::DEFAULT_HZ));
         let hardware = Hardware {
+            overhead,
             session: session.clone(),
             twin,
             keys,
@@ -248,6 +260,7 @@ struct Hardware {
     depth_id: RmwPublisherId,
     odom_id: RmwPublisherId,
     buffer: Vec<u8>,
+    overhead: Option<OverheadStream>,
 }
 
 /// A periodic deadline that never bursts to catch up.
@@ -306,6 +319,10 @@ impl Hardware {
             }
             if tracker.due(now) {
                 self.stream_tracker(now);
+            }
+            if let Some(stream) = &mut self.overhead {
+                let pose = self.twin.ground_truth();
+                stream.maybe_publish(&self.session, self.twin.scene(), &pose);
             }
         }
     }

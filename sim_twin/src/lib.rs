@@ -10,6 +10,7 @@
 //! - [`camera`]: intrinsics and the ray-cast RGBD renderers.
 //! - [`tracker`]: the simulated Vive tracker.
 //! - [`twin`]: all of it as one deterministic simulator.
+//! - [`overhead`]: the enclosure's overhead camera (top-down view for spectators).
 //! - [`ros_out`]: twin state as the ROS messages a real robot publishes.
 //! - [`node`]: the twin served over Zenoh (lockstep or real time).
 //! - [`enclosure`]: the twin behaving like the hardware (ROS 2 topics and a
@@ -19,6 +20,7 @@ pub mod camera;
 pub mod enclosure;
 mod error;
 pub mod node;
+pub mod overhead;
 pub mod physics;
 pub mod ros_out;
 pub mod scene;

@@ -73,6 +73,10 @@ struct Args {
     /// Emulated robot's ROS 2 namespace.
     #[arg(long, default_value = "")]
     ros_namespace: String,
+    /// Stream the emulated site's overhead camera under this env
+    /// (`offworld/@v1/<env>/overhead/top`).
+    #[arg(long)]
+    overhead_env: Option<EnvId>,
     /// Where the emulated tracker streams its line protocol (TCP server).
     #[arg(long, default_value = "127.0.0.1:7600")]
     tracker_listen: std::net::SocketAddr,
@@ -135,6 +139,10 @@ async fn main() -> anyhow::Result<()> {
             },
             &args.ros_namespace,
         )?;
+        enclosure.overhead_key = match &args.overhead_env {
+            Some(env) => Some(env.overhead_key(offworld_sim_twin::node::OVERHEAD_CAMERA)?),
+            None => None,
+        };
         let session = args.common.client_config().open().await?;
         let emulator = EmulatedEnclosure::spawn(&session, twin, enclosure)?;
         tracing::info!(tracker = %emulator.tracker_addr(), "emulating the enclosure hardware; Ctrl-C to stop");

@@ -33,6 +33,7 @@ use offworld_runtime::zenoh::{Session, Wait};
 use offworld_runtime::WireError;
 
 use crate::error::SimError;
+use crate::overhead::OverheadStream;
 use crate::physics::{BodyPose, PlanarPose, DT};
 use crate::ros_out;
 use crate::twin::SimTwin;
@@ -54,6 +55,9 @@ enum Event {
     EStop(Sample),
     Shutdown,
 }
+
+/// Name of the simulated overhead camera (`overhead/top`).
+pub const OVERHEAD_CAMERA: &str = "top";
 
 /// Bound of the event queue (commands arrive one per step).
 const QUEUE: usize = 256;
@@ -204,6 +208,7 @@ struct Worker {
     frame_msg: CameraFrame,
     buffer: Vec<u8>,
     rejected: u64,
+    overhead: Option<OverheadStream>,
 }
 
 struct Keys {
@@ -219,7 +224,12 @@ impl Worker {
             odom: env.key(Topic::Odom),
             pose: env.key(Topic::Pose),
         };
+        let overhead = env
+            .overhead_key(OVERHEAD_CAMERA)
+            .ok()
+            .map(|key| OverheadStream::new(twin.scene(), key, OverheadStream::DEFAULT_HZ));
         Ok(Self {
+            overhead,
             session,
             env,
             twin,
@@ -326,6 +336,7 @@ impl Worker {
                 let reading = self.twin.tracker_reading();
                 self.publish_pose(&reading, None);
                 next_pose = now + tracker_period;
+                self.publish_overhead();
             }
         }
     }
@@ -393,6 +404,14 @@ impl Worker {
     }
 
     /// Publishes odometry, pose and camera frames answering `seq`.
+    /// The overhead view, rate-limited (spectators only).
+    fn publish_overhead(&mut self) {
+        if let Some(stream) = &mut self.overhead {
+            let pose = self.twin.ground_truth();
+            stream.maybe_publish(&self.session, self.twin.scene(), &pose);
+        }
+    }
+
     fn answer(&mut self, seq: u64) {
         let stamp = Time::now();
         let tag = SeqTag { seq };
@@ -413,6 +432,8 @@ impl Worker {
         if let Err(e) = put {
             tracing::warn!("obs put failed: {e}");
         }
+        // After the answer: the step never waits for the spectators' view.
+        self.publish_overhead();
     }
 
     fn publish_pose(&mut self, reading: &BodyPose, tag: Option<SeqTag>) {

@@ -162,6 +162,31 @@ async fn commands_in_frames_and_poses_out_with_matching_seq() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_overhead_view_is_streamed_for_spectators() {
+    let (_node, client, _server) = setup("monolith", (64, 48)).await;
+    let key = client
+        .env
+        .overhead_key(offworld_sim_twin::node::OVERHEAD_CAMERA)
+        .expect("key");
+    let overhead = client
+        .session
+        .declare_subscriber(key)
+        .await
+        .expect("subscriber");
+    client.connect().await;
+    client.command(9, 0.10, 0.0, 0.6).await;
+    client.answer(9).await.expect("answer");
+    let sample = tokio::time::timeout(Duration::from_secs(5), overhead.recv_async())
+        .await
+        .expect("an overhead frame")
+        .expect("sample");
+    let image: Image = codec::decode_payload(sample.payload()).expect("image");
+    assert_eq!(image.validate(), Ok(PixelEncoding::Rgb8));
+    assert_eq!(image.width, 320);
+    assert_eq!(image.header.frame_id, "overhead");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
     let (_node, client, _server) = setup("monolith_obstacle", (32, 24)).await;
     client.connect().await;

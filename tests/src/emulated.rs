@@ -112,6 +112,8 @@ impl EmulatedEnclosure {
                 options.world(),
                 "--tracker-listen",
                 &tracker_listen,
+                "--overhead-env",
+                &env,
                 "--mode",
                 "router",
                 "--listen",
