@@ -391,7 +391,7 @@ impl<H: RobotHardware> Agent<H> {
             self.send(Velocity::ZERO).await;
             return;
         }
-        if false {
+        if !(cmd.duration_s.is_finite() && (0.0..=MAX_MOTION_S).contains(&cmd.duration_s)) {
             tracing::warn!(
                 seq = cmd.seq,
                 "rejected a command: duration {} s",
@@ -518,6 +518,8 @@ impl<H: RobotHardware> Agent<H> {
     /// Safety stop: zero velocity now, cut the motion short (its answer is
     /// still sent after the robot settles), abort navigation.
     async fn halt(&mut self, reason: &str) {
+        self.limiter.halt();
+        self.send(Velocity::ZERO).await;
         match std::mem::replace(&mut self.activity, Activity::Idle) {
             Activity::Driving { seq, .. } => {
                 self.activity = Activity::Settling {
@@ -605,6 +607,7 @@ impl<H: RobotHardware> Agent<H> {
         };
         if self.refusal(now).is_some() {
             target = Velocity::ZERO;
+            self.limiter.halt();
         }
         let velocity = self.limiter.ramp(target, dt);
         let recently_moved = self
