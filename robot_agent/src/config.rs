@@ -112,6 +112,12 @@ impl AgentConfig {
                 "limits and control_hz must be finite and positive".into(),
             ));
         }
+        if self.control_hz > 1000.0 {
+            return Err(AgentError::Config(format!(
+                "control_hz must be at most 1000, got {}",
+                self.control_hz
+            )));
+        }
         if self.watchdog_ms == 0 || self.watchdog_ms > 5_000 {
             return Err(AgentError::Config(format!(
                 "watchdog_ms must be in 1..=5000, got {}",
@@ -156,8 +162,10 @@ mod tests {
 
     #[test]
     fn unsafe_values_are_typed_errors() {
-        let mut config = AgentConfig::default();
-        config.watchdog_ms = 0;
+        let config = AgentConfig {
+            watchdog_ms: 0,
+            ..AgentConfig::default()
+        };
         assert!(matches!(config.validate(), Err(AgentError::Config(_))));
         let mut config = AgentConfig::default();
         config.limits.max_linear = f64::NAN;

@@ -1,0 +1,927 @@
+//! robot_agent end to end over real Zenoh, with only the robot's hardware
+//! doubled: a [`RecordingRobot`] records every velocity the agent commands
+//! and serves synthetic camera frames, while all traffic (commands,
+//! heartbeats, liveliness, e-stops, answers, poses, `goto` queries) crosses
+//! two real Zenoh sessions joined over TCP on loopback. The test plays the
+//! controller (liveliness token + heartbeats every 50 ms) and, for reset
+//! navigation, the tracker.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use offworld_robot_agent::hardware::{Received, RobotHardware, Sensors};
+use offworld_robot_agent::limiter::Velocity;
+use offworld_robot_agent::nav::NavConfig;
+use offworld_robot_agent::{AgentConfig, AgentError, AgentHandle, Limits};
+use offworld_runtime::codec;
+use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
+use offworld_runtime::msg::{
+    CameraFrame, EStop, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
+    PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
+};
+use offworld_runtime::session::loopback_pair;
+use offworld_runtime::wire::{self, RequestError};
+use offworld_runtime::zenoh::liveliness::LivelinessToken;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{ErrorCode, WireError};
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinHandle;
+
+/// Synthetic camera size.
+const WIDTH: u32 = 8;
+const HEIGHT: u32 = 6;
+/// The agent's control period at the default 50 Hz: every ramp step is
+/// computed with exactly this dt, however late the tick runs.
+const DT: f64 = 0.02;
+/// Generous bound for anything that must happen "at once" or within the
+/// 200 ms watchdog window (the machine may be loaded).
+const PROMPTLY: Duration = Duration::from_secs(1);
+/// Bound for a command's answer.
+const ANSWER: Duration = Duration::from_secs(5);
+/// Cruise speed the stop tests drive at, m/s.
+const CRUISE: f64 = 0.3;
+
+// ---------------------------------------------------------------- hardware
+
+/// One velocity the agent sent to the base.
+#[derive(Debug, Clone, Copy)]
+struct Sent {
+    at: Instant,
+    wall: SystemTime,
+    velocity: Velocity,
+}
+
+/// The hardware double: records every velocity, serves camera frames the
+/// test feeds through its `watch::Sender`.
+#[derive(Clone)]
+struct RecordingRobot {
+    sent: Arc<Mutex<Vec<Sent>>>,
+    sensors: Arc<watch::Sender<Sensors>>,
+}
+
+impl RecordingRobot {
+    fn new() -> Self {
+        Self {
+            sent: Arc::new(Mutex::new(Vec::new())),
+            sensors: Arc::new(watch::channel(Sensors::default()).0),
+        }
+    }
+
+    /// Everything sent so far.
+    fn sent(&self) -> Vec<Sent> {
+        self.sent.lock().expect("log").clone()
+    }
+
+    /// Everything sent at or after `t`.
+    fn sent_since(&self, t: Instant) -> Vec<Sent> {
+        self.sent().into_iter().filter(|s| s.at >= t).collect()
+    }
+
+    fn clear(&self) {
+        self.sent.lock().expect("log").clear();
+    }
+
+    /// The velocity last sent (zero before any).
+    fn last(&self) -> Velocity {
+        self.sent
+            .lock()
+            .expect("log")
+            .last()
+            .map_or(Velocity::ZERO, |s| s.velocity)
+    }
+
+    /// Publishes a colour and a depth frame stamped `Time::now()` at 30 Hz.
+    fn feed_camera(&self) -> JoinHandle<()> {
+        let sensors = self.sensors.clone();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_millis(33));
+            for k in 0usize.. {
+                tick.tick().await;
+                let stamp = Time::now();
+                let color = color_image(k, stamp);
+                let depth = depth_image(k, stamp);
+                let at = Instant::now();
+                sensors.send_modify(|s| {
+                    s.color = Some(Received {
+                        msg: Arc::new(color),
+                        at,
+                    });
+                    s.depth = Some(Received {
+                        msg: Arc::new(depth),
+                        at,
+                    });
+                });
+            }
+        })
+    }
+}
+
+impl RobotHardware for RecordingRobot {
+    async fn drive(&self, velocity: Velocity) -> Result<(), AgentError> {
+        self.sent.lock().expect("log").push(Sent {
+            at: Instant::now(),
+            wall: SystemTime::now(),
+            velocity,
+        });
+        Ok(())
+    }
+
+    fn sensors(&self) -> watch::Receiver<Sensors> {
+        self.sensors.subscribe()
+    }
+}
+
+fn color_pattern(k: usize) -> Vec<u8> {
+    (0..(WIDTH * HEIGHT * 3) as usize)
+        .map(|i| ((i * 7 + k) % 256) as u8)
+        .collect()
+}
+
+fn depth_pattern(k: usize) -> Vec<u8> {
+    (0..(WIDTH * HEIGHT) as usize)
+        .flat_map(|i| ((1000 + (k % 1000) + i) as u16).to_le_bytes())
+        .collect()
+}
+
+fn color_image(k: usize, stamp: Time) -> Image {
+    let header = Header::new(stamp, &format!("frame-{k}"));
+    Image::packed(header, WIDTH, HEIGHT, PixelEncoding::Rgb8, color_pattern(k))
+}
+
+fn depth_image(k: usize, stamp: Time) -> Image {
+    let header = Header::new(stamp, &format!("frame-{k}"));
+    Image::packed(
+        header,
+        WIDTH,
+        HEIGHT,
+        PixelEncoding::Depth16UC1,
+        depth_pattern(k),
+    )
+}
+
+fn wall_clock(t: Time) -> SystemTime {
+    UNIX_EPOCH + Duration::new(t.sec as u64, t.nanosec)
+}
+
+// ---------------------------------------------------------------- the rig
+
+/// Agent on one session, the test (as controller) on the other.
+struct Rig {
+    env: EnvId,
+    ctl: Session,
+    _agent_session: Session,
+    robot: RecordingRobot,
+    agent: Option<AgentHandle>,
+    token: Option<LivelinessToken>,
+    beating: Arc<AtomicBool>,
+    frames: mpsc::UnboundedReceiver<CameraFrame>,
+    /// Sequence numbers of every answer received, in order.
+    seen: Vec<u64>,
+    tasks: Vec<JoinHandle<()>>,
+    _obs: Subscriber<()>,
+}
+
+impl Rig {
+    /// Starts the agent, plays the controller and waits until a probe
+    /// command makes the robot move (subscriptions propagated both ways,
+    /// watchdog armed); the velocity log is then cleared.
+    async fn start(name: &str, config: AgentConfig) -> Rig {
+        let (agent_session, ctl) = loopback_pair().await.expect("loopback sessions");
+        let env = EnvId::real(name).expect("env id");
+        let robot = RecordingRobot::new();
+        let mut tasks = vec![robot.feed_camera()];
+        let agent = offworld_robot_agent::spawn(&agent_session, env.clone(), config, robot.clone())
+            .await
+            .expect("agent");
+        let (tx, frames) = mpsc::unbounded_channel();
+        let obs = ctl
+            .declare_subscriber(env.key(Topic::Obs))
+            .callback(move |s: Sample| {
+                let frame: CameraFrame = codec::decode_payload(s.payload()).expect("CameraFrame");
+                let _ = tx.send(frame);
+            })
+            .await
+            .expect("obs subscriber");
+        let token = ctl
+            .liveliness()
+            .declare_token(env.alive_key(Component::Controller))
+            .await
+            .expect("controller token");
+        let beating = Arc::new(AtomicBool::new(true));
+        let (beat_session, beat_key, flag) =
+            (ctl.clone(), env.key(Topic::Heartbeat), beating.clone());
+        tasks.push(tokio::spawn(async move {
+            for counter in 0.. {
+                if flag.load(Ordering::SeqCst) {
+                    let beat = Heartbeat {
+                        stamp: Time::now(),
+                        counter,
+                    };
+                    let _ = wire::put(&beat_session, &beat_key, &beat).await;
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }));
+        let mut rig = Rig {
+            env,
+            ctl,
+            _agent_session: agent_session,
+            robot,
+            agent: Some(agent),
+            token: Some(token),
+            beating,
+            frames,
+            seen: Vec::new(),
+            tasks,
+            _obs: obs,
+        };
+        rig.until_motion_allowed().await;
+        rig
+    }
+
+    /// Probes with short commands until one moves the robot (bounded), then
+    /// clears the log and the answers seen.
+    async fn until_motion_allowed(&mut self) {
+        let deadline = Instant::now() + Duration::from_secs(15);
+        for (attempt, probe) in (1_000_000u64..).enumerate() {
+            assert!(
+                Instant::now() < deadline,
+                "the agent never allowed motion on {}",
+                self.env
+            );
+            let since = Instant::now();
+            self.cmd(probe, 0.1, 0.0, 0.3).await;
+            // An answer takes ~0.7 s; the first probes may be lost while
+            // the declarations propagate, later ones get more time.
+            let patience = Duration::from_millis(1200 + 400 * attempt.min(5) as u64);
+            if self.try_answer(probe, patience).await.is_some()
+                && moved(&self.robot.sent_since(since))
+            {
+                break;
+            }
+        }
+        self.robot.clear();
+        self.seen.clear();
+    }
+
+    async fn cmd(&self, seq: u64, linear_x: f64, angular_z: f64, duration_s: f64) {
+        let cmd = MotionCommand {
+            seq,
+            linear_x,
+            angular_z,
+            duration_s,
+        };
+        wire::put(&self.ctl, &self.env.key(Topic::Cmd), &cmd)
+            .await
+            .expect("put cmd");
+    }
+
+    async fn put_raw(&self, key: &str, bytes: Vec<u8>) {
+        self.ctl.put(key, bytes).await.expect("raw put");
+    }
+
+    async fn estop(&self, key: &str, engaged: bool) {
+        let stop = EStop {
+            engaged,
+            reason: format!("test ({})", if engaged { "engage" } else { "release" }),
+        };
+        wire::put(&self.ctl, key, &stop).await.expect("put estop");
+    }
+
+    /// The answer to `seq`, if it arrives within `timeout`.
+    async fn try_answer(&mut self, seq: u64, timeout: Duration) -> Option<CameraFrame> {
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            let frame = tokio::time::timeout_at(deadline, self.frames.recv())
+                .await
+                .ok()?
+                .expect("obs channel");
+            self.seen.push(frame.seq);
+            if frame.seq == seq {
+                return Some(frame);
+            }
+        }
+    }
+
+    async fn answer(&mut self, seq: u64) -> CameraFrame {
+        match self.try_answer(seq, ANSWER).await {
+            Some(frame) => frame,
+            None => panic!("command {seq} was not answered within {ANSWER:?}"),
+        }
+    }
+
+    /// Waits until the robot is driving at exactly `v` (the ramp is over).
+    async fn until_driving_at(&self, v: Velocity) {
+        let robot = self.robot.clone();
+        let reached = wait_until(Duration::from_secs(5), move || robot.last() == v).await;
+        assert!(reached, "the robot never reached {v:?}");
+    }
+
+    async fn goto_raw(
+        &self,
+        payload: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<GotoReply, RequestError> {
+        let key = self.env.key(Topic::Goto);
+        // The queryable's declaration may still be propagating.
+        for _ in 0..50 {
+            match wire::request_raw(&self.ctl, &key, payload.clone(), timeout).await {
+                Err(RequestError::NoResponder(_)) => {
+                    tokio::time::sleep(Duration::from_millis(100)).await
+                }
+                other => return other,
+            }
+        }
+        panic!("nothing serves {key}");
+    }
+
+    async fn goto(
+        &self,
+        request: &GotoRequest,
+        timeout: Duration,
+    ) -> Result<GotoReply, RequestError> {
+        self.goto_raw(codec::encode(request).expect("encode"), timeout)
+            .await
+    }
+
+    /// Publishes the tracker pose `pose` (world frame) at 50 Hz, moving it
+    /// with the velocities the agent sends (a unicycle integrated over real
+    /// time) when `closed_loop`. Returns the live pose.
+    fn track(&mut self, start: Pose2D, closed_loop: bool) -> Arc<Mutex<Pose2D>> {
+        let pose = Arc::new(Mutex::new(start));
+        let (session, key, robot, shared) = (
+            self.ctl.clone(),
+            self.env.key(Topic::Pose),
+            self.robot.clone(),
+            pose.clone(),
+        );
+        self.tasks.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_millis(20));
+            let mut last = Instant::now();
+            loop {
+                tick.tick().await;
+                let now = Instant::now();
+                let dt = now.duration_since(last).as_secs_f64();
+                last = now;
+                let p = {
+                    let mut p = shared.lock().expect("pose");
+                    if closed_loop {
+                        let v = robot.last();
+                        p.x += v.linear * p.yaw.cos() * dt;
+                        p.y += v.linear * p.yaw.sin() * dt;
+                        p.yaw += v.angular * dt;
+                    }
+                    *p
+                };
+                let msg = PoseStamped {
+                    header: Header::new(Time::now(), "world"),
+                    pose: Pose {
+                        position: Point {
+                            x: p.x,
+                            y: p.y,
+                            z: 0.0,
+                        },
+                        orientation: Quaternion::from_yaw(p.yaw),
+                    },
+                };
+                let _ = wire::put(&session, &key, &msg).await;
+            }
+        }));
+        pose
+    }
+
+    async fn finish(mut self) {
+        if let Some(agent) = self.agent.take() {
+            agent.shutdown().await;
+        }
+        for task in &self.tasks {
+            task.abort();
+        }
+        let last = self.robot.sent().last().map(|s| s.velocity);
+        assert_eq!(last, Some(Velocity::ZERO), "the agent ends stopped");
+    }
+}
+
+// ---------------------------------------------------------------- helpers
+
+/// Polls `cond` every 5 ms until true or `timeout`.
+async fn wait_until(timeout: Duration, cond: impl Fn() -> bool) -> bool {
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        if cond() {
+            return true;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    cond()
+}
+
+fn moved(log: &[Sent]) -> bool {
+    log.iter().any(|s| !s.velocity.is_zero())
+}
+
+fn v(linear: f64, angular: f64) -> Velocity {
+    Velocity { linear, angular }
+}
+
+/// The robot was driving at `cruise` and, after `since`, was stopped at
+/// once: the first velocity that is not `cruise` is exactly zero (a brake,
+/// not a ramp-down), it came within [`PROMPTLY`], and nothing but zero
+/// followed. Returns when the stop was sent.
+fn assert_braked(log: &[Sent], since: Instant, cruise: Velocity, what: &str) -> Instant {
+    let after: Vec<&Sent> = log.iter().filter(|s| s.at >= since).collect();
+    let Some(stop) = after.iter().position(|s| s.velocity != cruise) else {
+        panic!(
+            "{what}: the robot never stopped ({} velocities)",
+            after.len()
+        );
+    };
+    assert_eq!(
+        after[stop].velocity,
+        Velocity::ZERO,
+        "{what}: braked to zero at once, no ramp-down"
+    );
+    let delay = after[stop].at.duration_since(since);
+    assert!(delay < PROMPTLY, "{what}: stopped only after {delay:?}");
+    assert!(
+        after[stop..].iter().all(|s| s.velocity.is_zero()),
+        "{what}: nothing but zero after the stop"
+    );
+    after[stop].at
+}
+
+fn assert_code(result: Result<GotoReply, RequestError>, code: ErrorCode, what: &str) -> WireError {
+    match result {
+        Err(RequestError::Remote(e)) => {
+            assert_eq!(e.code, code, "{what}: {e}");
+            assert_eq!(e.code as u16, code as u16);
+            e
+        }
+        other => panic!("{what}: expected {code:?}, got {other:?}"),
+    }
+}
+
+fn pose(x: f64, y: f64, yaw: f64) -> Pose2D {
+    Pose2D { x, y, yaw }
+}
+
+fn angle_diff(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(std::f64::consts::TAU);
+    d.min(std::f64::consts::TAU - d)
+}
+
+// ---------------------------------------------------------------- tests
+
+/// A command moves the robot at the commanded velocity for its duration,
+/// then stops; the answer carries its seq and the robot's own frames,
+/// captured after the motion ended (no odometry needed).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_motion_command_is_driven_then_answered_with_frames_captured_after_it() {
+    let mut rig = Rig::start("motion", AgentConfig::default()).await;
+    let sent_at = Instant::now();
+    rig.cmd(7, 0.2, -0.5, 0.5).await;
+    let frame = rig.answer(7).await;
+    let log = rig.robot.sent();
+
+    // Driving: every velocity on the way from and back to rest lies between
+    // zero and the command, and the command itself was held.
+    assert!(log
+        .iter()
+        .all(|s| (0.0..=0.2).contains(&s.velocity.linear)
+            && (-0.5..=0.0).contains(&s.velocity.angular)));
+    assert!(
+        log.iter().any(|s| s.velocity == v(0.2, -0.5)),
+        "the commanded velocity was reached"
+    );
+    let last_moving = log
+        .iter()
+        .rposition(|s| !s.velocity.is_zero())
+        .expect("the robot moved");
+    assert!(
+        log[last_moving].at >= sent_at + Duration::from_millis(500),
+        "the velocity was held for the command's 0.5 s"
+    );
+    // ... then zero.
+    let stopped = log
+        .get(last_moving + 1)
+        .expect("a stop followed the motion");
+    assert_eq!(stopped.velocity, Velocity::ZERO);
+    assert_eq!(rig.robot.last(), Velocity::ZERO);
+
+    // The answer: seq 7, the camera's own bytes, captured after the stop.
+    assert_eq!(frame.seq, 7);
+    assert_eq!(rig.seen, vec![7], "exactly one answer");
+    for (image, encoding) in [(&frame.color, "rgb8"), (&frame.depth, "16UC1")] {
+        assert_eq!(image.encoding, encoding);
+        assert_eq!((image.width, image.height), (WIDTH, HEIGHT));
+        image.validate().expect("valid image");
+        assert!(
+            wall_clock(image.header.stamp) >= stopped.wall,
+            "{encoding} frame captured after the motion ended"
+        );
+    }
+    let k: usize = frame.color.header.frame_id[6..].parse().expect("frame-<k>");
+    assert_eq!(frame.color.data, color_pattern(k));
+    let k: usize = frame.depth.header.frame_id[6..].parse().expect("frame-<k>");
+    assert_eq!(frame.depth.data, depth_pattern(k));
+    rig.finish().await;
+}
+
+/// 2.0 m/s and −9 rad/s are clamped to exactly the ROSbot's 0.7 m/s and
+/// −2.5 rad/s, reached through a ramp within the acceleration limits.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commands_beyond_the_limits_are_clamped_and_ramped() {
+    let mut rig = Rig::start("limits", AgentConfig::default()).await;
+    rig.cmd(8, 2.0, -9.0, 1.2).await;
+    assert_eq!(rig.answer(8).await.seq, 8);
+    let log: Vec<Velocity> = rig.robot.sent().iter().map(|s| s.velocity).collect();
+
+    let limits = Limits::default();
+    let max_linear = log.iter().map(|v| v.linear).fold(f64::MIN, f64::max);
+    let min_angular = log.iter().map(|v| v.angular).fold(f64::MAX, f64::min);
+    assert_eq!(max_linear, 0.7);
+    assert_eq!(min_angular, -2.5);
+    assert!(log.contains(&v(0.7, -2.5)), "both limits held together");
+    assert!(log
+        .iter()
+        .all(|v| (0.0..=0.7).contains(&v.linear) && (-2.5..=0.0).contains(&v.angular)));
+
+    // Ramped: the first step is one control period of acceleration, and no
+    // step (up or down) exceeds it.
+    let first = log.iter().find(|v| !v.is_zero()).expect("moved");
+    assert!((first.linear - limits.max_linear_accel * DT).abs() < 1e-12);
+    assert!((first.angular + limits.max_angular_accel * DT).abs() < 1e-12);
+    let mut previous = Velocity::ZERO;
+    for v in &log {
+        assert!((v.linear - previous.linear).abs() <= limits.max_linear_accel * DT + 1e-9);
+        assert!((v.angular - previous.angular).abs() <= limits.max_angular_accel * DT + 1e-9);
+        previous = *v;
+    }
+    assert_eq!(previous, Velocity::ZERO, "ramped back down to rest");
+    rig.finish().await;
+}
+
+/// The env e-stop brakes mid-motion at once; the interrupted command is
+/// still answered; while engaged, commands are answered without moving and
+/// `goto` is refused (InvalidState); a release lets the robot move again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
+    let mut rig = Rig::start("estop", AgentConfig::default()).await;
+    let estop_key = rig.env.key(Topic::EStop);
+    let cruise = v(CRUISE, 0.0);
+
+    rig.cmd(10, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(cruise).await;
+    let engaged = Instant::now();
+    rig.estop(&estop_key, true).await;
+    assert_eq!(
+        rig.answer(10).await.seq,
+        10,
+        "the stopped command is answered"
+    );
+    let stopped = assert_braked(&rig.robot.sent(), engaged, cruise, "env e-stop");
+
+    // Engaged: answered, never moved.
+    rig.cmd(11, CRUISE, 0.5, 0.5).await;
+    assert_eq!(rig.answer(11).await.seq, 11);
+    let request = GotoRequest {
+        seq: 1,
+        target: pose(0.5, 0.5, 0.0),
+        timeout_s: 10.0,
+    };
+    let refused = rig.goto(&request, Duration::from_secs(5)).await;
+    assert_code(refused, ErrorCode::InvalidState, "goto under e-stop");
+    assert!(
+        !moved(&rig.robot.sent_since(stopped)),
+        "no motion while engaged"
+    );
+    assert_eq!(rig.seen, vec![10, 11]);
+
+    // Released: motion again. (The release and the next command travel
+    // different internal paths, so give the release a head start.)
+    rig.estop(&estop_key, false).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let released = Instant::now();
+    rig.cmd(12, CRUISE, 0.0, 0.5).await;
+    assert_eq!(rig.answer(12).await.seq, 12);
+    let log = rig.robot.sent_since(released);
+    assert!(moved(&log), "the robot moves after the release: {log:?}");
+    rig.finish().await;
+}
+
+/// The site-wide e-stop acts like the env one, and a malformed e-stop
+/// payload (on either key) engages rather than being ignored.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn site_wide_and_malformed_estops_engage() {
+    let mut rig = Rig::start("estop-site", AgentConfig::default()).await;
+    let cruise = v(CRUISE, 0.0);
+
+    // Site-wide.
+    rig.cmd(20, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(cruise).await;
+    let engaged = Instant::now();
+    rig.estop(&global_estop_key(), true).await;
+    assert_eq!(rig.answer(20).await.seq, 20);
+    let stopped = assert_braked(&rig.robot.sent(), engaged, cruise, "site-wide e-stop");
+    rig.cmd(21, CRUISE, 0.0, 0.5).await;
+    assert_eq!(rig.answer(21).await.seq, 21);
+    assert!(!moved(&rig.robot.sent_since(stopped)));
+    rig.estop(&global_estop_key(), false).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    // Malformed payloads: garbage on the env key, truncated CDR on the
+    // site-wide key.
+    let valid = codec::encode(&EStop {
+        engaged: false,
+        reason: "a release cut short".into(),
+    })
+    .expect("encode");
+    let malformed = [
+        (
+            rig.env.key(Topic::EStop),
+            vec![0xde, 0xad, 0xbe, 0xef, 0x01],
+        ),
+        (global_estop_key(), valid[..valid.len() - 3].to_vec()),
+    ];
+    for (i, (key, bytes)) in malformed.into_iter().enumerate() {
+        let seq = 22 + 10 * i as u64;
+        rig.cmd(seq, CRUISE, 0.0, 5.0).await;
+        rig.until_driving_at(cruise).await;
+        let engaged = Instant::now();
+        rig.put_raw(&key, bytes).await;
+        assert_eq!(rig.answer(seq).await.seq, seq);
+        let stopped = assert_braked(
+            &rig.robot.sent(),
+            engaged,
+            cruise,
+            &format!("malformed {key}"),
+        );
+        rig.cmd(seq + 1, CRUISE, 0.0, 0.5).await;
+        assert_eq!(rig.answer(seq + 1).await.seq, seq + 1);
+        assert!(
+            !moved(&rig.robot.sent_since(stopped)),
+            "malformed e-stop holds"
+        );
+        rig.estop(&key, false).await;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+    assert_eq!(rig.seen, vec![20, 21, 22, 23, 32, 33]);
+    rig.finish().await;
+}
+
+/// Heartbeats stop mid-motion (and no command comes): the watchdog brakes
+/// within its window. With heartbeats still absent a new command is a sign
+/// of life by design, so it moves the robot only until the window runs out
+/// again (not for its 3 s); both are answered. Heartbeats back: commands
+/// run their full duration again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn watchdog_brakes_when_heartbeats_stop_and_rearms_when_they_resume() {
+    let mut rig = Rig::start("watchdog", AgentConfig::default()).await;
+    let cruise = v(CRUISE, 0.0);
+
+    rig.cmd(40, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(cruise).await;
+    let silent = Instant::now();
+    rig.beating.store(false, Ordering::SeqCst);
+    assert_eq!(rig.answer(40).await.seq, 40, "the cut motion is answered");
+    assert_braked(&rig.robot.sent(), silent, cruise, "heartbeat loss");
+
+    // Heartbeats still absent: the command's own arrival is the only sign
+    // of life, so its motion ends when the window (200 ms) does.
+    let sent_at = Instant::now();
+    rig.cmd(41, CRUISE, 0.0, 3.0).await;
+    assert_eq!(rig.answer(41).await.seq, 41);
+    let log = rig.robot.sent_since(sent_at);
+    let first = log.iter().find(|s| !s.velocity.is_zero());
+    let last = log.iter().rev().find(|s| !s.velocity.is_zero());
+    if let (Some(first), Some(last)) = (first, last) {
+        let span = last.at.duration_since(first.at);
+        assert!(
+            span < PROMPTLY,
+            "moved {span:?} on a 3 s command without heartbeats"
+        );
+    }
+    assert_eq!(rig.robot.last(), Velocity::ZERO);
+
+    // Heartbeats back: the full duration is driven again.
+    rig.beating.store(true, Ordering::SeqCst);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let sent_at = Instant::now();
+    rig.cmd(42, CRUISE, 0.0, 0.6).await;
+    assert_eq!(rig.answer(42).await.seq, 42);
+    let log = rig.robot.sent_since(sent_at);
+    let last = log
+        .iter()
+        .rposition(|s| !s.velocity.is_zero())
+        .expect("moved with heartbeats back");
+    assert!(
+        log[last].at >= sent_at + Duration::from_millis(600),
+        "held for the full 0.6 s"
+    );
+    assert_eq!(rig.seen, vec![40, 41, 42]);
+    rig.finish().await;
+}
+
+/// The controller's liveliness token vanishes mid-motion (heartbeats keep
+/// coming): the robot brakes at once; commands are answered without
+/// motion until the token is back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn losing_the_controller_token_brakes_and_refuses_motion() {
+    let mut rig = Rig::start("token", AgentConfig::default()).await;
+    let cruise = v(CRUISE, 0.0);
+
+    rig.cmd(50, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(cruise).await;
+    let gone = Instant::now();
+    rig.token
+        .take()
+        .expect("token")
+        .undeclare()
+        .await
+        .expect("undeclare");
+    assert_eq!(rig.answer(50).await.seq, 50);
+    let stopped = assert_braked(&rig.robot.sent(), gone, cruise, "controller token gone");
+
+    rig.cmd(51, CRUISE, 0.0, 1.0).await;
+    assert_eq!(rig.answer(51).await.seq, 51);
+    assert!(
+        !moved(&rig.robot.sent_since(stopped)),
+        "no motion without the token"
+    );
+    assert_eq!(rig.seen, vec![50, 51]);
+
+    rig.token = Some(
+        rig.ctl
+            .liveliness()
+            .declare_token(rig.env.alive_key(Component::Controller))
+            .await
+            .expect("token"),
+    );
+    rig.until_motion_allowed().await;
+    rig.finish().await;
+}
+
+/// Undecodable commands are dropped, commands with a NaN, infinite,
+/// negative or over-long (> 10 s) duration are not executed (nor
+/// answered); the agent keeps serving the valid commands that follow.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_and_invalid_commands_are_ignored() {
+    let mut rig = Rig::start("malformed", AgentConfig::default()).await;
+    let key = rig.env.key(Topic::Cmd);
+    let valid = codec::encode(&MotionCommand {
+        seq: 60,
+        linear_x: 0.5,
+        angular_z: 0.5,
+        duration_s: 1.0,
+    })
+    .expect("encode");
+    rig.put_raw(&key, vec![0xff; 7]).await;
+    rig.put_raw(&key, b"not cdr at all, but long enough to be read".to_vec())
+        .await;
+    rig.put_raw(&key, valid[..valid.len() - 4].to_vec()).await;
+    rig.put_raw(&key, Vec::new()).await;
+    for (seq, duration) in [(61, f64::NAN), (62, f64::INFINITY), (63, -1.0), (64, 10.5)] {
+        rig.cmd(seq, 0.5, 0.5, duration).await;
+    }
+    // Give any wrongly accepted command ample time to start moving.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    assert!(!moved(&rig.robot.sent()), "nothing invalid was executed");
+
+    // Still serving: a look (duration 0) and a motion are both answered.
+    rig.cmd(65, 0.0, 0.0, 0.0).await;
+    assert_eq!(rig.answer(65).await.seq, 65);
+    assert!(!moved(&rig.robot.sent()));
+    rig.cmd(66, 0.1, 0.0, 0.2).await;
+    assert_eq!(rig.answer(66).await.seq, 66);
+    assert!(moved(&rig.robot.sent()));
+    assert_eq!(rig.seen, vec![65, 66], "invalid commands are not answered");
+    rig.finish().await;
+}
+
+/// `goto` failures are typed: no tracker pose → Unavailable (503); a goal
+/// inside a boulder, a NaN timeout or undecodable request bytes →
+/// BadRequest (400). The robot never moves.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn goto_failures_are_typed_errors() {
+    let config = AgentConfig {
+        world: "monolith_obstacle".into(),
+        ..AgentConfig::default()
+    };
+    let mut rig = Rig::start("goto-errors", config).await;
+    let timeout = Duration::from_secs(5);
+    let free = GotoRequest {
+        seq: 1,
+        target: pose(0.1, 0.3, 0.0),
+        timeout_s: 10.0,
+    };
+
+    let e = assert_code(
+        rig.goto(&free, timeout).await,
+        ErrorCode::Unavailable,
+        "no pose",
+    );
+    assert!(e.message.contains("pose"), "{e}");
+    let garbage = rig
+        .goto_raw(vec![0x00, 0x01, 0x00, 0x00, 0x07], timeout)
+        .await;
+    assert_code(garbage, ErrorCode::BadRequest, "malformed request");
+    assert_code(
+        rig.goto_raw(Vec::new(), timeout).await,
+        ErrorCode::BadRequest,
+        "empty request",
+    );
+
+    // A fresh pose in free space, then a goal inside a boulder
+    // (runtime/worlds/monolith_obstacle.toml: centre (0.762, −0.241)).
+    rig.track(pose(-0.2, 0.2, 0.0), false);
+    let boulder = GotoRequest {
+        seq: 2,
+        target: pose(0.762, -0.241, 0.0),
+        timeout_s: 10.0,
+    };
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let result = loop {
+        match rig.goto(&boulder, timeout).await {
+            // The first poses may still be on their way.
+            Err(RequestError::Remote(e))
+                if e.code == ErrorCode::Unavailable && Instant::now() < deadline =>
+            {
+                tokio::time::sleep(Duration::from_millis(50)).await
+            }
+            other => break other,
+        }
+    };
+    let e = assert_code(result, ErrorCode::BadRequest, "goal in a boulder");
+    assert!(e.message.contains("obstacle"), "{e}");
+    let nan_timeout = GotoRequest {
+        timeout_s: f64::NAN,
+        ..free
+    };
+    assert_code(
+        rig.goto(&nan_timeout, timeout).await,
+        ErrorCode::BadRequest,
+        "NaN timeout",
+    );
+    assert!(!moved(&rig.robot.sent()), "no failed goto moved the robot");
+    rig.finish().await;
+}
+
+/// `goto` to a nearby free pose with the loop closed: the test integrates
+/// the commanded velocities (unicycle) and publishes the result as the
+/// tracker pose at 50 Hz; the reply comes with the achieved pose on target.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn goto_drives_to_a_free_pose_on_tracker_poses() {
+    let config = AgentConfig {
+        world: "monolith_obstacle".into(),
+        ..AgentConfig::default()
+    };
+    let mut rig = Rig::start("goto-drive", config).await;
+    let live = rig.track(pose(-0.2, 0.2, 0.0), true);
+    let request = GotoRequest {
+        seq: 77,
+        target: pose(0.1, 0.35, 0.5),
+        timeout_s: 25.0,
+    };
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let reply = loop {
+        match rig.goto(&request, Duration::from_secs(30)).await {
+            Err(RequestError::Remote(e))
+                if e.code == ErrorCode::Unavailable && Instant::now() < deadline =>
+            {
+                tokio::time::sleep(Duration::from_millis(50)).await
+            }
+            other => break other.expect("goto reply"),
+        }
+    };
+    assert_eq!(reply.seq, 77);
+    let (target, achieved) = (request.target, reply.achieved);
+    let miss = (achieved.x - target.x).hypot(achieved.y - target.y);
+    assert!(
+        miss < 0.1,
+        "achieved {achieved:?}, {miss:.3} m from {target:?}"
+    );
+    assert!(
+        angle_diff(achieved.yaw, target.yaw) < 0.15,
+        "achieved heading {achieved:?}"
+    );
+    assert!(reply.elapsed_s > 0.0 && reply.elapsed_s < 30.0);
+    let now = *live.lock().expect("pose");
+    assert!(
+        (now.x - target.x).hypot(now.y - target.y) < 0.1,
+        "the robot is there: {now:?}"
+    );
+
+    // Driven within the navigation's own speed limits.
+    let nav = NavConfig::default();
+    for s in rig.robot.sent() {
+        assert!(s.velocity.linear.abs() <= nav.cruise_speed + 1e-9, "{s:?}");
+        assert!(
+            s.velocity.angular.abs() <= nav.max_turn_rate + 1e-9,
+            "{s:?}"
+        );
+    }
+    rig.finish().await;
+}
