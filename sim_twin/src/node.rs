@@ -194,6 +194,7 @@ fn reply_blocking<T: serde::Serialize>(query: &Query, result: Result<&T, WireErr
 /// A motion being executed on the real-time clock.
 struct ActiveMotion {
     seq: u64,
+    /// End of the drive on the simulated clock, s since the loop started.
     drive_until: f64,
 }
 
@@ -295,9 +296,12 @@ impl Worker {
                         let (v, w) = self.allowed(&cmd);
                         // A new command replaces the one in progress, as on hardware.
                         self.twin.physics_mut().set_targets(v as f32, w as f32);
+                        // Timed on the simulated clock: a late thread catches up
+                        // without cutting the motion short.
+                        let sim_now = self.twin.physics().time() - sim_start;
                         motion = Some(ActiveMotion {
                             seq: cmd.seq,
-                            drive_until: now + cmd.duration_s,
+                            drive_until: sim_now + cmd.duration_s,
                         });
                     }
                 }
@@ -314,7 +318,7 @@ impl Worker {
             let now = start.elapsed().as_secs_f64();
             while self.twin.physics().time() - sim_start + f64::from(DT) <= now {
                 if let Some(m) = &motion {
-                    if now >= m.drive_until {
+                    if self.twin.physics().time() - sim_start >= m.drive_until {
                         self.twin.physics_mut().set_targets(0.0, 0.0);
                     }
                 }
@@ -326,7 +330,7 @@ impl Worker {
                     && servo.angular == 0.0
                     && servo.target_linear == 0.0
                     && servo.target_angular == 0.0;
-                if now >= m.drive_until && stopped {
+                if self.twin.physics().time() - sim_start >= m.drive_until && stopped {
                     let seq = m.seq;
                     motion = None;
                     self.answer(seq);

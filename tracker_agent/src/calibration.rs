@@ -213,11 +213,7 @@ impl Calibration {
 
     /// Loads and validates a config file.
     pub fn load(path: &Path) -> Result<Self, CalibrationError> {
-        let text = std::fs::read_to_string(path).map_err(|error| CalibrationError::Io {
-            path: path.display().to_string(),
-            error,
-        })?;
-        Self::parse(&text, &path.display().to_string())
+        Self::parse(&read_text(path)?, &path.display().to_string())
     }
 
     /// The TOML form (numbers in full precision: loading it back is exact,
@@ -442,11 +438,7 @@ impl ReferenceFile {
 
     /// Loads a reference or samples file.
     pub fn load(path: &Path) -> Result<Self, CalibrationError> {
-        let text = std::fs::read_to_string(path).map_err(|error| CalibrationError::Io {
-            path: path.display().to_string(),
-            error,
-        })?;
-        Self::parse(&text, &path.display().to_string())
+        Self::parse(&read_text(path)?, &path.display().to_string())
     }
 
     /// The TOML form.
@@ -548,6 +540,14 @@ pub fn position_spread(poses: &[Isometry3<f64>]) -> f64 {
         .sum::<f64>()
         / n)
         .sqrt()
+}
+
+/// A config or reference file's text, with its path in the error.
+fn read_text(path: &Path) -> Result<String, CalibrationError> {
+    std::fs::read_to_string(path).map_err(|error| CalibrationError::Io {
+        path: path.display().to_string(),
+        error,
+    })
 }
 
 #[cfg(test)]
