@@ -18,6 +18,11 @@ use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig, WireError};
 use offworld_tests::emulated::{EmulatedEnclosure, Options};
 
+/// One emulated enclosure at a time: each runs four real-time processes,
+/// and two at once starve each other on a 2-core machine (the watchdog then
+/// rightly stops the robot).
+static ONE_ENCLOSURE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 /// The monolith's ground-plane centre (runtime/worlds/monolith.toml).
 const MONOLITH: (f64, f64) = (0.0109, -0.2034);
 
@@ -158,6 +163,7 @@ fn wrap(a: f64) -> f64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_the_robot() {
+    let _one = ONE_ENCLOSURE.lock().await;
     let options = Options::new("MonolithContinuous").expect("options");
     let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
     deployment
@@ -299,6 +305,7 @@ async fn stop_latency(cmd_vel: &CmdVelLog, act: impl FnOnce()) -> Duration {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tracker_silence_fails_the_step_with_a_typed_error_and_stops_the_robot() {
+    let _one = ONE_ENCLOSURE.lock().await;
     let mut options = Options::new("MonolithDiscrete").expect("options");
     options.pausable_tracker = true;
     let deployment = EmulatedEnclosure::start(&options).expect("deployment");
