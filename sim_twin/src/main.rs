@@ -77,6 +77,9 @@ struct Args {
     /// (`offworld/@v1/<env>/overhead/top`).
     #[arg(long)]
     overhead_env: Option<EnvId>,
+    /// Emulated camera frame rate, Hz (an Astra runs at 30).
+    #[arg(long, default_value_t = 30.0)]
+    camera_hz: f64,
     /// Where the emulated tracker streams its line protocol (TCP server).
     #[arg(long, default_value = "127.0.0.1:7600")]
     tracker_listen: std::net::SocketAddr,
@@ -139,6 +142,7 @@ async fn main() -> anyhow::Result<()> {
             },
             &args.ros_namespace,
         )?;
+        enclosure.camera_hz = args.camera_hz;
         enclosure.overhead_key = match &args.overhead_env {
             Some(env) => Some(env.overhead_key(offworld_sim_twin::node::OVERHEAD_CAMERA)?),
             None => None,

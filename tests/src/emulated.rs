@@ -114,6 +114,9 @@ impl EmulatedEnclosure {
                 &tracker_listen,
                 "--overhead-env",
                 &env,
+                // Half the Astra's rate: the whole site shares 2 cores here.
+                "--camera-hz",
+                "15",
                 "--mode",
                 "router",
                 "--listen",
