@@ -29,17 +29,14 @@ const MONOLITH: (f64, f64) = (0.0109, -0.2034);
 fn open_request(token: &str, experiment: &str) -> OpenRequest {
     OpenRequest {
         token: token.to_owned(),
-        client_id: String::new(),
         experiment_name: experiment.to_owned(),
-        resume_experiment: false,
-        learning_type: LearningType::EndToEnd,
         algorithm_mode: AlgorithmMode::Test,
-        obs: ObsOptions {
+        ..OpenRequest::anonymous(ObsOptions {
             channels: Channels::Rgbd,
             height: 84,
             width: 84,
             depth_format: DepthFormat::Meters,
-        },
+        })
     }
 }
 

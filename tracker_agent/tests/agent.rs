@@ -162,20 +162,47 @@ fn assert_pose_eq(got: &PoseStamped, want: &Isometry3<f64>) {
     assert!((0.0..5.0).contains(&age), "stamp is the receipt clock");
 }
 
+/// An agent's session and a client watching one env's `pose` and
+/// `tracking`, routed to each other.
+struct Observed {
+    agent_session: Session,
+    client: Session,
+    env: EnvId,
+    poses: Subscriber<FifoChannelHandler<Sample>>,
+    tracking: Subscriber<FifoChannelHandler<Sample>>,
+}
+
+async fn observe(env: &str) -> Observed {
+    let (agent_session, client) = loopback_pair().await.expect("sessions");
+    let env: EnvId = env.parse().expect("env");
+    let poses = client
+        .declare_subscriber(env.key(Topic::Pose))
+        .await
+        .expect("pose subscriber");
+    let tracking = client
+        .declare_subscriber(env.key(Topic::Tracking))
+        .await
+        .expect("tracking subscriber");
+    wait_routed(&agent_session, &client).await;
+    Observed {
+        agent_session,
+        client,
+        env,
+        poses,
+        tracking,
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn agent_publishes_world_poses_skips_bad_lines_and_reports_tracking_loss() {
     tokio::time::timeout(Duration::from_secs(30), async {
-        let (agent_session, client) = loopback_pair().await.expect("sessions");
-        let env: EnvId = "real/enclosure-t".parse().expect("env");
-        let poses = client
-            .declare_subscriber(env.key(Topic::Pose))
-            .await
-            .expect("pose subscriber");
-        let tracking = client
-            .declare_subscriber(env.key(Topic::Tracking))
-            .await
-            .expect("tracking subscriber");
-        wait_routed(&agent_session, &client).await;
+        let Observed {
+            agent_session,
+            client,
+            env,
+            poses,
+            tracking,
+        } = observe("real/enclosure-t").await;
 
         let server = LineServer::start();
         let source = TcpLineSource::new(
@@ -289,17 +316,13 @@ async fn agent_publishes_world_poses_skips_bad_lines_and_reports_tracking_loss()
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replayed_file_keeps_its_timing_then_tracking_ends() {
     tokio::time::timeout(Duration::from_secs(30), async {
-        let (agent_session, client) = loopback_pair().await.expect("sessions");
-        let env: EnvId = "real/replay-t".parse().expect("env");
-        let poses = client
-            .declare_subscriber(env.key(Topic::Pose))
-            .await
-            .expect("pose subscriber");
-        let tracking = client
-            .declare_subscriber(env.key(Topic::Tracking))
-            .await
-            .expect("tracking subscriber");
-        wait_routed(&agent_session, &client).await;
+        let Observed {
+            agent_session,
+            client: _client,
+            env,
+            poses,
+            tracking,
+        } = observe("real/replay-t").await;
 
         // 6 poses 40 ms apart (unix-time stamps), replayed twice as fast.
         let truth: Vec<Isometry3<f64>> = (0..6)
@@ -358,17 +381,13 @@ async fn replayed_file_keeps_its_timing_then_tracking_ends() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn outliers_lose_tracking_until_the_relock_and_dropping_the_agent_reports_it() {
     tokio::time::timeout(Duration::from_secs(30), async {
-        let (agent_session, client) = loopback_pair().await.expect("sessions");
-        let env: EnvId = "real/relock-t".parse().expect("env");
-        let poses = client
-            .declare_subscriber(env.key(Topic::Pose))
-            .await
-            .expect("pose subscriber");
-        let tracking = client
-            .declare_subscriber(env.key(Topic::Tracking))
-            .await
-            .expect("tracking subscriber");
-        wait_routed(&agent_session, &client).await;
+        let Observed {
+            agent_session,
+            client,
+            env,
+            poses,
+            tracking,
+        } = observe("real/relock-t").await;
         let server = LineServer::start();
         let config = AgentConfig {
             lost_after: Duration::from_millis(100),
