@@ -8,6 +8,7 @@ mod errors;
 use std::sync::OnceLock;
 
 use offworld_env_controller::deployment::{self, Connection, Target};
+use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::{ActionSpace, OpenRequest, Seed};
 use offworld_runtime::{EnvId, SessionConfig, WireError};
@@ -48,6 +49,8 @@ fn controller_error(e: offworld_env_controller::ControllerError) -> PyErr {
 struct NativeEnvs {
     envs: VecEnvClient,
     space: ActionSpace,
+    // Closed after the clients so the recording sees the last episode end.
+    monitor: Option<MonitorHandle>,
     // Dropped after the clients: keeps an embedded deployment alive.
     _connection: Connection,
 }
@@ -56,7 +59,8 @@ struct NativeEnvs {
 impl NativeEnvs {
     #[new]
     #[pyo3(signature = (task, realm, num_envs, connect, env_ids, token, experiment_name, resume_experiment,
-                        learning_type, algorithm_mode, channels, height, width, depth_format))]
+                        learning_type, algorithm_mode, channels, height, width, depth_format,
+                        rerun=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -74,11 +78,16 @@ impl NativeEnvs {
         height: u32,
         width: u32,
         depth_format: &str,
+        rerun: Option<String>,
     ) -> PyResult<Self> {
         if num_envs == 0 {
             return Err(PyValueError::new_err("num_envs must be at least 1"));
         }
         let obs = convert::obs_options(channels, height, width, depth_format)?;
+        let sink = rerun
+            .map(|s| s.parse::<Sink>())
+            .transpose()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let request = OpenRequest {
             token,
             client_id: String::new(),
@@ -113,10 +122,17 @@ impl NativeEnvs {
                 Target::Remote { session, envs }
             }
         };
-        let opened = block(py, async move {
-            let connection = deployment::connect(target, &task)
-                .await
-                .map_err(controller_error)?;
+        let connection =
+            block(py, deployment::connect(target, &task))?.map_err(controller_error)?;
+        // Watching starts before the envs open, so the recording holds every episode.
+        let monitor = sink
+            .map(|sink| {
+                let config = MonitorConfig::new(sink).scope(Scope::Envs(connection.envs.clone()));
+                py.detach(|| Monitor::spawn(&connection.session, config))
+            })
+            .transpose()
+            .map_err(|e| errors::OffWorldGymError::new_err(format!("monitor: {e}")))?;
+        let clients = block(py, async {
             let mut clients = Vec::new();
             for (i, env) in connection.envs.iter().enumerate() {
                 let mut request = request.clone();
@@ -129,9 +145,8 @@ impl NativeEnvs {
                         .map_err(errors::to_py)?;
                 clients.push(client);
             }
-            Ok::<_, PyErr>((connection, clients))
+            Ok::<_, PyErr>(clients)
         })??;
-        let (connection, clients) = opened;
         let space = clients
             .first()
             .map(|c| c.spec().action_space.clone())
@@ -139,6 +154,7 @@ impl NativeEnvs {
         Ok(Self {
             envs: VecEnvClient::new(clients),
             space,
+            monitor,
             _connection: connection,
         })
     }
@@ -266,10 +282,16 @@ impl NativeEnvs {
         Ok(out)
     }
 
-    /// Releases every lease (idempotent).
+    /// Releases every lease and completes the monitor's recording
+    /// (idempotent).
     fn close(&mut self, py: Python<'_>) -> PyResult<()> {
         let envs = &mut self.envs;
-        block(py, envs.close())?.map_err(errors::to_py)
+        let closed = block(py, envs.close())?.map_err(errors::to_py);
+        if let Some(monitor) = self.monitor.take() {
+            py.detach(|| monitor.shutdown())
+                .map_err(|e| errors::OffWorldGymError::new_err(format!("monitor: {e}")))?;
+        }
+        closed
     }
 }
 

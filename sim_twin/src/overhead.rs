@@ -122,58 +122,6 @@ impl OverheadCamera {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::world::WorldSpec;
-
-    fn pixel(camera: &OverheadCamera, rgb: &[u8], x: f32, y: f32) -> [u8; 3] {
-        let column = ((x - camera.origin[0]) / camera.scale) as u32;
-        let row = ((camera.origin[1] - y) / camera.scale) as u32;
-        let at = ((row * camera.width + column) * 3) as usize;
-        [rgb[at], rgb[at + 1], rgb[at + 2]]
-    }
-
-    #[test]
-    fn shows_the_monolith_boulders_and_the_robot_where_they_are() -> Result<(), crate::SimError> {
-        let world = WorldSpec::builtin("monolith_obstacle")?;
-        let scene = Scene::build(&world);
-        let camera = OverheadCamera::new(&scene, 320);
-        assert_eq!(camera.width(), 320);
-        assert!(camera.height() > 200 && camera.height() < 260, "4:3-ish");
-        let robot = BodyPose {
-            position: [1.0, 0.5, 0.1],
-            orientation: [0.0, 0.0, 0.0, 1.0],
-            yaw: 0.0,
-            pitch: 0.0,
-            roll: 0.0,
-        };
-        let mut rgb = Vec::new();
-        camera.render(&scene, &robot, &mut rgb);
-        assert_eq!(rgb.len(), (camera.width() * camera.height() * 3) as usize);
-        let m = &world.monolith.center;
-        assert_eq!(pixel(&camera, &rgb, m[0], m[1]), MONOLITH);
-        assert_eq!(pixel(&camera, &rgb, 1.0, 0.5), ROBOT);
-        assert_eq!(
-            pixel(&camera, &rgb, 1.09, 0.5),
-            ROBOT_NOSE,
-            "nose points +x"
-        );
-        let b = &world.boulders[0];
-        let g = (255.0 * b.albedo) as u8;
-        assert_eq!(pixel(&camera, &rgb, b.center[0], b.center[1]), [g, g, g]);
-        // The robot leaves no trace when it moves on.
-        let moved = BodyPose {
-            position: [-1.0, -0.8, 0.1],
-            ..robot
-        };
-        camera.render(&scene, &moved, &mut rgb);
-        assert_ne!(pixel(&camera, &rgb, 1.0, 0.5), ROBOT);
-        assert_eq!(pixel(&camera, &rgb, -1.0, -0.8), ROBOT);
-        Ok(())
-    }
-}
-
 /// The overhead camera streamed on an env's `overhead/<camera>` key as
 /// `sensor_msgs/Image` rgb8, rate-limited by the wall clock (spectators do
 /// not need more, and the step path must not pay for it).
@@ -242,5 +190,57 @@ impl OverheadStream {
         if let Err(e) = put {
             tracing::warn!("overhead put failed: {e}");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::WorldSpec;
+
+    fn pixel(camera: &OverheadCamera, rgb: &[u8], x: f32, y: f32) -> [u8; 3] {
+        let column = ((x - camera.origin[0]) / camera.scale) as u32;
+        let row = ((camera.origin[1] - y) / camera.scale) as u32;
+        let at = ((row * camera.width + column) * 3) as usize;
+        [rgb[at], rgb[at + 1], rgb[at + 2]]
+    }
+
+    #[test]
+    fn shows_the_monolith_boulders_and_the_robot_where_they_are() -> Result<(), crate::SimError> {
+        let world = WorldSpec::builtin("monolith_obstacle")?;
+        let scene = Scene::build(&world);
+        let camera = OverheadCamera::new(&scene, 320);
+        assert_eq!(camera.width(), 320);
+        assert!(camera.height() > 200 && camera.height() < 260, "4:3-ish");
+        let robot = BodyPose {
+            position: [1.0, 0.5, 0.1],
+            orientation: [0.0, 0.0, 0.0, 1.0],
+            yaw: 0.0,
+            pitch: 0.0,
+            roll: 0.0,
+        };
+        let mut rgb = Vec::new();
+        camera.render(&scene, &robot, &mut rgb);
+        assert_eq!(rgb.len(), (camera.width() * camera.height() * 3) as usize);
+        let m = &world.monolith.center;
+        assert_eq!(pixel(&camera, &rgb, m[0], m[1]), MONOLITH);
+        assert_eq!(pixel(&camera, &rgb, 1.0, 0.5), ROBOT);
+        assert_eq!(
+            pixel(&camera, &rgb, 1.09, 0.5),
+            ROBOT_NOSE,
+            "nose points +x"
+        );
+        let b = &world.boulders[0];
+        let g = (255.0 * b.albedo) as u8;
+        assert_eq!(pixel(&camera, &rgb, b.center[0], b.center[1]), [g, g, g]);
+        // The robot leaves no trace when it moves on.
+        let moved = BodyPose {
+            position: [-1.0, -0.8, 0.1],
+            ..robot
+        };
+        camera.render(&scene, &moved, &mut rgb);
+        assert_ne!(pixel(&camera, &rgb, 1.0, 0.5), ROBOT);
+        assert_eq!(pixel(&camera, &rgb, -1.0, -0.8), ROBOT);
+        Ok(())
     }
 }

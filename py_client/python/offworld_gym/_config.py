@@ -17,6 +17,8 @@ from offworld_gym.errors import ConfigurationError
 TOKEN_ENV = "OFFWORLD_GYM_ACCESS_TOKEN"
 CONNECT_ENV = "OFFWORLD_GYM_CONNECT"
 ENV_ID_ENV = "OFFWORLD_GYM_ENV"
+#: Turns the rerun monitor on without touching code (same values as ``rerun=``).
+RERUN_ENV = "OFFWORLD_GYM_RERUN"
 
 
 @dataclass
@@ -47,8 +49,15 @@ def resolve(
     env_id: str | Sequence[str] | None = None,
     token: str | None = None,
     render_mode: str | None = None,
+    rerun: str | os.PathLike[str] | None = None,
 ) -> Resolved:
-    """Checks and resolves keyword arguments (environment variables fill gaps)."""
+    """Checks and resolves keyword arguments (environment variables fill gaps).
+
+    ``rerun``: stream the envs to the rerun viewer while they run — a
+    ``.rrd`` path (complete after ``close()``), a viewer URL such as
+    ``rerun+http://127.0.0.1:9876/proxy``, or ``serve``/``serve:<ip>:<port>``
+    to host a server viewers connect to.
+    """
     channels = Channels(channel_type)
     if len(resolution) != 2:
         raise ConfigurationError(f"resolution must be (height, width), got {resolution!r}")
@@ -57,6 +66,7 @@ def resolve(
         raise ConfigurationError(f'depth_format must be "uint8" or "meters", got {depth_format!r}')
     if render_mode not in (None, "rgb_array"):
         raise ConfigurationError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+    rerun = os.fspath(rerun) if rerun is not None else os.environ.get(RERUN_ENV) or None
     connect = connect or os.environ.get(CONNECT_ENV)
     token = token if token is not None else os.environ.get(TOKEN_ENV, "")
     remote = connect is not None or "OFFWORLD_ZENOH_CONFIG" in os.environ or "OFFWORLD_ZENOH_CONNECT" in os.environ
@@ -96,6 +106,7 @@ def resolve(
             height=height,
             width=width,
             depth_format=depth_format,
+            rerun=rerun,
         ),
         channels=channels,
         render_extra_rgb=render_extra_rgb,

@@ -1,0 +1,167 @@
+//! Step rate of a sim env with and without a monitor attached (issue 7: the
+//! monitor must cost less than 5 %). An embedded twin + controller at 84×84
+//! RGBD on one session, the gym client on a second, the monitor (saving an
+//! `.rrd` to the temp dir) on a third, all over loopback TCP; rounds
+//! alternate off/on and the medians are compared. Run:
+//! `cargo bench -p offworld-monitor --bench step_rate`
+
+use std::time::{Duration, Instant};
+
+use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::Store;
+use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::msg::*;
+use offworld_runtime::session::{loopback_endpoint, SessionConfig};
+use offworld_runtime::EnvId;
+
+const W: u32 = 84;
+const H: u32 = 84;
+fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn steps() -> usize {
+    env_usize("STEP_RATE_STEPS", 300)
+}
+
+fn rounds() -> usize {
+    env_usize("STEP_RATE_ROUNDS", 4)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Step durations of `steps()` steps (resets excluded), s.
+async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<Vec<f64>> {
+    let mut times = Vec::with_capacity(steps());
+    for i in 0..steps() {
+        let start = Instant::now();
+        let r = gym
+            .step(Action::Discrete((i % 4) as i64))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        times.push(start.elapsed().as_secs_f64());
+        if r.terminated || r.truncated {
+            gym.reset(Seed::Continue)
+                .await
+                .map_err(|e| anyhow::anyhow!(e))?;
+        }
+    }
+    Ok(times)
+}
+
+/// One round of steps with a monitor (saving to `path`) on `session`.
+async fn with_monitor(
+    session: &zenoh::Session,
+    env: &EnvId,
+    path: &std::path::Path,
+    gym: &mut EnvClient,
+) -> anyhow::Result<(Vec<f64>, MonitorStats)> {
+    let monitor = Monitor::spawn(
+        session,
+        MonitorConfig::new(Sink::File(path.to_owned())).scope(Scope::env(env.clone())),
+    )?;
+    tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
+    let times = run_steps(gym).await?;
+    let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
+    Ok((times, stats))
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() -> anyhow::Result<()> {
+    let endpoint = loopback_endpoint()?;
+    let server = SessionConfig::listening(&endpoint).open().await?;
+    let client = SessionConfig::connecting(&endpoint).open().await?;
+    let watcher = SessionConfig::connecting(&endpoint).open().await?;
+    let env = EnvId::sim("bench-monitor")?;
+    let sim = SimEnv {
+        env: env.clone(),
+        task: "MonolithDiscrete".into(),
+        resolution: Some((W, H)),
+        seed: 0,
+    };
+    let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
+    let request = OpenRequest::anonymous(ObsOptions {
+        channels: Channels::Rgbd,
+        height: H,
+        width: W,
+        depth_format: DepthFormat::Uint8,
+    });
+    // The controller's queryables take a moment to reach the client session.
+    let mut attempts = 0;
+    let mut gym = loop {
+        match EnvClient::open(&client, &env, request.clone(), ClientTimeouts::default()).await {
+            Ok(gym) => break gym,
+            Err(_) if attempts < 50 => {
+                attempts += 1;
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            Err(e) => anyhow::bail!(e),
+        }
+    };
+    gym.reset(Seed::Fixed(0))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    run_steps(&mut gym).await?; // warm-up
+
+    let path =
+        std::env::temp_dir().join(format!("offworld-monitor-bench-{}.rrd", std::process::id()));
+    // Step times per mode: off, embedded monitor, remote monitor, bare remote subscriber.
+    let mut times: [Vec<f64>; 4] = Default::default();
+    let mut dropped = 0;
+    for round in 0..rounds() {
+        let off = run_steps(&mut gym).await?;
+        // The monitor embedded next to the env (its session: local delivery).
+        let (embedded, e_stats) = with_monitor(&server, &env, &path, &mut gym).await?;
+        // The monitor as a separate peer (its own session over TCP).
+        let (remote, r_stats) = with_monitor(&watcher, &env, &path, &mut gym).await?;
+        dropped += e_stats.dropped_frames + r_stats.dropped_frames;
+        // Floor of the remote case: a subscriber that drops everything.
+        let sub = watcher
+            .declare_subscriber(format!("{}/**", env.prefix()))
+            .callback(|_sample| {})
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let bare = run_steps(&mut gym).await?;
+        sub.undeclare().await.map_err(|e| anyhow::anyhow!(e))?;
+        let rate = |t: &Vec<f64>| 1.0 / median(t.clone());
+        println!(
+            "round {round}: off {:6.0}, embedded {:6.0} ({} frames logged), remote {:6.0} ({} frames logged), bare remote subscriber {:6.0} steps/s",
+            rate(&off), rate(&embedded), e_stats.frames, rate(&remote), r_stats.frames, rate(&bare)
+        );
+        for (all, new) in times.iter_mut().zip([off, embedded, remote, bare]) {
+            all.extend(new);
+        }
+    }
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    std::fs::remove_file(&path).ok();
+    let [off, embedded, remote, bare] = times.map(|t| 1.0 / median(t));
+    let cost = |rate: f64| (1.0 - rate / off) * 100.0;
+    println!(
+        "step rate at {W}x{H} RGBD (1 / median step time over {} rounds of {} steps; {dropped} frames dropped for the viewer):",
+        rounds(),
+        steps()
+    );
+    println!("  without monitor                 : {off:6.0} steps/s");
+    println!(
+        "  monitor embedded (same session) : {embedded:6.0} steps/s  ({:+.1} %; target within 5 %: {})",
+        -cost(embedded),
+        if cost(embedded) <= 5.0 { "met" } else { "NOT met" }
+    );
+    println!(
+        "  monitor remote (own session)    : {remote:6.0} steps/s  ({:+.1} %)",
+        -cost(remote)
+    );
+    println!(
+        "  bare remote subscriber          : {bare:6.0} steps/s  ({:+.1} %: Zenoh delivery alone)",
+        -cost(bare)
+    );
+    Ok(())
+}

@@ -1,0 +1,564 @@
+//! The OffWorld Gym monitor: watches the Zenoh key space of one env or of
+//! all envs and streams it to the [rerun](https://rerun.io) viewer (rerun
+//! SDK 0.36.3) — live over gRPC, as a server viewers connect to, or into an
+//! `.rrd` file.
+//!
+//! It draws, per env under `envs/<realm>/<name>`: the static world (ground,
+//! walls, monolith, boulders, task boundary, success radius), the robot at
+//! its tracker pose with its body box and this episode's trajectory, the
+//! odometry pose beside it, the RGBD camera as a pinhole with its colour and
+//! depth images, every overhead camera, commanded velocities, rewards,
+//! returns, successes and episode lengths as time series, and episode
+//! boundaries, tracking, status and e-stops as events. The full entity tree
+//! and the timelines are in [`paths`].
+//!
+//! # Never in the way
+//!
+//! Zenoh callbacks only push the received sample into a bounded queue (one
+//! short mutex, no decoding, no waiting). Camera frames have a few slots and
+//! the oldest is evicted when full; other messages are refused when their
+//! (large) lane is full. Either way the loss is counted in
+//! [`MonitorStats`] and the publisher — the robot, the twin, the controller
+//! — never waits for the viewer. One named thread (`offworld-monitor`)
+//! wakes at most every [`MonitorConfig::batch_interval`], decodes what
+//! gathered and logs it (high-rate data as columns, one chunk per entity per
+//! 100 ms); malformed messages are counted and skipped.
+//!
+//! # Embedding
+//!
+//! ```no_run
+//! # fn demo(session: &zenoh::Session) -> Result<(), offworld_monitor::MonitorError> {
+//! use offworld_monitor::{Monitor, MonitorConfig, Scope, Sink};
+//! let env: offworld_runtime::EnvId = "sim/monolith-0".parse().expect("env id");
+//! let monitor = Monitor::spawn(
+//!     session,
+//!     MonitorConfig::new(Sink::File("run.rrd".into())).scope(Scope::env(env)),
+//! )?;
+//! // … step the env …
+//! let stats = monitor.shutdown()?; // flushes and completes run.rrd
+//! println!("{} frames, {} dropped", stats.frames, stats.dropped_frames);
+//! # Ok(()) }
+//! ```
+//!
+//! [`Monitor::spawn`] is synchronous and cheap, callable from plain threads,
+//! from async code and from Python bindings alike; dropping the
+//! [`MonitorHandle`] shuts down as [`MonitorHandle::shutdown`] does. A sink
+//! can also be given as one string (see [`Sink`]'s `FromStr`), which suits
+//! a `monitor="run.rrd"` option.
+
+mod columns;
+pub mod layout;
+pub mod paths;
+mod queue;
+mod scene;
+mod worker;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::str::FromStr;
+use std::sync::Arc;
+use std::time::{Duration, SystemTime};
+
+use offworld_runtime::keys::{all_alive_selector, all_envs_selector, global_estop_key};
+use offworld_runtime::{Component, EnvId};
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::{Session, Wait};
+
+pub use rerun;
+
+use crate::queue::{Lane, Queue};
+use crate::worker::{lane_of, Event, Shared, Worker, WorkerConfig};
+
+/// The rerun application id of every recording the monitor makes.
+pub const APPLICATION_ID: &str = "offworld_gym";
+/// The port a rerun viewer or server listens on by default.
+pub const DEFAULT_RERUN_PORT: u16 = 9876;
+
+/// Where the recording goes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Sink {
+    /// Write an `.rrd` file (completed when the monitor shuts down).
+    File(PathBuf),
+    /// Stream to a running viewer or server, e.g.
+    /// `rerun+http://127.0.0.1:9876/proxy`.
+    Connect(String),
+    /// Host a gRPC server that viewers connect to
+    /// (`rerun --connect rerun+http://<addr>/proxy`). It keeps recent data in
+    /// memory so late viewers see history.
+    Serve {
+        /// Where to listen.
+        addr: SocketAddr,
+        /// History kept for late viewers, bytes; `None`: a quarter of RAM.
+        memory_limit_bytes: Option<u64>,
+    },
+}
+
+impl Sink {
+    /// Serve on all interfaces on the default port, like `rerun` does.
+    pub fn serve_default() -> Self {
+        Sink::Serve {
+            addr: SocketAddr::from(([0, 0, 0, 0], DEFAULT_RERUN_PORT)),
+            memory_limit_bytes: None,
+        }
+    }
+
+    /// Connect to a viewer on this machine's default port.
+    pub fn connect_local() -> Self {
+        Sink::Connect(format!("rerun+http://127.0.0.1:{DEFAULT_RERUN_PORT}/proxy"))
+    }
+}
+
+impl FromStr for Sink {
+    type Err = MonitorError;
+
+    /// `path/to/file.rrd` → [`Sink::File`]; `rerun+http://…` (or
+    /// `rerun://`, `rerun+https://`) → [`Sink::Connect`]; `serve` or
+    /// `serve:<ip>:<port>` → [`Sink::Serve`].
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let s = s.trim();
+        if s.starts_with("rerun://") || s.starts_with("rerun+http") {
+            return Ok(Sink::Connect(s.to_owned()));
+        }
+        if s == "serve" {
+            return Ok(Sink::serve_default());
+        }
+        if let Some(addr) = s.strip_prefix("serve:") {
+            let addr = addr
+                .parse()
+                .map_err(|e| MonitorError::InvalidSink(format!("`{addr}`: {e}")))?;
+            return Ok(Sink::Serve {
+                addr,
+                memory_limit_bytes: None,
+            });
+        }
+        if s.ends_with(".rrd") {
+            return Ok(Sink::File(PathBuf::from(s)));
+        }
+        Err(MonitorError::InvalidSink(format!(
+            "`{s}`: expected a .rrd path, a rerun+http://…/proxy URL, `serve` or `serve:<ip>:<port>`"
+        )))
+    }
+}
+
+/// Which part of the key space to watch.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum Scope {
+    /// Every env (`offworld/@v1/**`), plus the site-wide e-stop.
+    #[default]
+    All,
+    /// These envs (`offworld/@v1/<realm>/<name>/**` each), plus the
+    /// site-wide e-stop; the monitor declares `alive/monitor` on each.
+    Envs(Vec<EnvId>),
+    /// Any key expression under `offworld/@v1/`, e.g. `offworld/@v1/sim/**`.
+    /// Liveliness is not followed.
+    KeyExpr(String),
+}
+
+impl Scope {
+    /// One env.
+    pub fn env(env: EnvId) -> Self {
+        Scope::Envs(vec![env])
+    }
+
+    /// The key expressions of the data subscription(s).
+    fn data_keys(&self) -> Vec<String> {
+        match self {
+            Scope::All => vec![all_envs_selector()],
+            Scope::Envs(envs) => envs
+                .iter()
+                .map(|env| format!("{}/**", env.prefix()))
+                .chain([global_estop_key()])
+                .collect(),
+            Scope::KeyExpr(k) => vec![k.clone()],
+        }
+    }
+
+    /// The key expressions of the liveliness subscriptions.
+    fn alive_keys(&self) -> Vec<String> {
+        match self {
+            Scope::All => vec![all_alive_selector()],
+            Scope::Envs(envs) => envs
+                .iter()
+                .map(|env| format!("{}/alive/**", env.prefix()))
+                .collect(),
+            Scope::KeyExpr(_) => Vec::new(),
+        }
+    }
+
+    /// The envs this monitor announces itself on.
+    fn watched_envs(&self) -> &[EnvId] {
+        match self {
+            Scope::Envs(envs) => envs,
+            Scope::All | Scope::KeyExpr(_) => &[],
+        }
+    }
+}
+
+/// How to run a monitor. [`MonitorConfig::new`] gives the defaults.
+#[derive(Debug, Clone)]
+pub struct MonitorConfig {
+    /// Where the recording goes.
+    pub sink: Sink,
+    /// What to watch.
+    pub scope: Scope,
+    /// Draw this built-in world for every env instead of asking each env's
+    /// controller (`spec`); `None` asks and falls back to `monolith`.
+    pub world: Option<String>,
+    /// How long a `spec` query may take.
+    pub spec_timeout: Duration,
+    /// Camera frames (colour + depth, overhead) waiting for the worker at
+    /// most; the oldest is dropped beyond.
+    pub frame_queue: usize,
+    /// Other messages waiting for the worker at most; new ones are dropped
+    /// beyond.
+    pub message_queue: usize,
+    /// Send the default layout (one tab per env).
+    pub blueprint: bool,
+    /// The worker lets messages gather this long before logging them as a
+    /// batch, so it (and rerun's threads) wake a few hundred times a second
+    /// at most, not once per message.
+    pub batch_interval: Duration,
+    /// The recording's name in the viewer.
+    pub recording_name: Option<String>,
+    /// How long shutdown waits for the sink to take the last data.
+    pub flush_timeout: Duration,
+}
+
+impl MonitorConfig {
+    /// Defaults: every env, worlds from the controllers' specs, 32 frames and
+    /// 4096 messages of queue, the default layout.
+    pub fn new(sink: Sink) -> Self {
+        Self {
+            sink,
+            scope: Scope::All,
+            world: None,
+            spec_timeout: Duration::from_secs(3),
+            frame_queue: 32,
+            message_queue: 4096,
+            blueprint: true,
+            batch_interval: Duration::from_millis(20),
+            recording_name: None,
+            flush_timeout: Duration::from_secs(10),
+        }
+    }
+
+    /// Watch `scope` instead of every env.
+    pub fn scope(mut self, scope: Scope) -> Self {
+        self.scope = scope;
+        self
+    }
+
+    /// Draw this built-in world for every env.
+    pub fn world(mut self, name: impl Into<String>) -> Self {
+        self.world = Some(name.into());
+        self
+    }
+
+    /// Queue sizes: frames, other messages.
+    pub fn queues(mut self, frames: usize, messages: usize) -> Self {
+        self.frame_queue = frames;
+        self.message_queue = messages;
+        self
+    }
+}
+
+/// Why a monitor could not start or finish.
+#[derive(Debug, thiserror::Error)]
+pub enum MonitorError {
+    /// The sink string is not understood.
+    #[error("invalid sink {0}")]
+    InvalidSink(String),
+    /// rerun refused the sink (bad URL, unwritable file, port in use, …).
+    #[error("rerun: {0}")]
+    Rerun(#[from] rerun::RecordingStreamError),
+    /// Zenoh refused a subscription.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    /// The worker thread could not start or died.
+    #[error("monitor worker: {0}")]
+    Worker(String),
+    /// The sink did not take the last data in time.
+    #[error("flushing the recording: {0}")]
+    Flush(String),
+}
+
+/// What a monitor has seen and done so far.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MonitorStats {
+    /// Samples the callbacks received.
+    pub received: u64,
+    /// Camera frames dropped for the viewer (queue full).
+    pub dropped_frames: u64,
+    /// Other messages dropped (queue full).
+    pub dropped_messages: u64,
+    /// Messages skipped as malformed.
+    pub decode_errors: u64,
+    /// Log calls rerun refused.
+    pub log_errors: u64,
+    /// Camera frames (`obs`) logged.
+    pub frames: u64,
+    /// Tracker poses logged.
+    pub poses: u64,
+    /// Odometry messages logged.
+    pub odometry: u64,
+    /// Motion commands logged.
+    pub commands: u64,
+    /// Episode events (rewards) logged.
+    pub rewards: u64,
+    /// Env status messages seen.
+    pub statuses: u64,
+    /// Overhead camera images logged.
+    pub overhead_frames: u64,
+    /// Envs seen.
+    pub envs: u64,
+}
+
+/// Starts monitors.
+pub struct Monitor;
+
+impl Monitor {
+    /// Opens the sink, subscribes on `session` and starts the worker. Returns
+    /// once subscribed; data published from then on is recorded.
+    pub fn spawn(session: &Session, config: MonitorConfig) -> Result<MonitorHandle, MonitorError> {
+        let rec = open_sink(&config)?;
+        let shared = Arc::new(Shared {
+            queue: Queue::new(config.frame_queue, config.message_queue),
+            counters: Default::default(),
+        });
+        let worker = Worker::new(
+            rec.clone(),
+            shared.clone(),
+            session.clone(),
+            WorkerConfig {
+                world: config.world.clone(),
+                spec_timeout: config.spec_timeout,
+                blueprint: config.blueprint,
+                batch_interval: config.batch_interval,
+            },
+        );
+        let thread = std::thread::Builder::new()
+            .name("offworld-monitor".into())
+            .spawn(move || worker.run())
+            .map_err(|e| MonitorError::Worker(e.to_string()))?;
+        let mut handle = MonitorHandle {
+            inner: Some(Inner {
+                subscribers: Vec::new(),
+                tokens: Vec::new(),
+                shared: shared.clone(),
+                thread,
+                rec,
+                flush_timeout: config.flush_timeout,
+            }),
+        };
+        // From here on, an error drops `handle`, which stops the worker.
+        let mut subscribers = Vec::new();
+        for key in config.scope.data_keys() {
+            let shared = shared.clone();
+            let sub = session
+                .declare_subscriber(key.as_str())
+                .callback(move |sample: Sample| {
+                    let lane = lane_of(sample.key_expr().as_str());
+                    let wall = SystemTime::now();
+                    shared.queue.push(lane, Event::Sample { sample, wall });
+                })
+                .wait()
+                .map_err(|e| MonitorError::Zenoh(format!("subscribing to `{key}`: {e}")))?;
+            subscribers.push(sub);
+        }
+        for key in config.scope.alive_keys() {
+            let shared = shared.clone();
+            let sub = session
+                .liveliness()
+                .declare_subscriber(key.as_str())
+                .history(true)
+                .callback(move |sample: Sample| {
+                    shared.queue.push(
+                        Lane::Message,
+                        Event::Alive {
+                            key: sample.key_expr().as_str().to_owned(),
+                            online: sample.kind() == SampleKind::Put,
+                            wall: SystemTime::now(),
+                        },
+                    );
+                })
+                .wait()
+                .map_err(|e| MonitorError::Zenoh(format!("liveliness `{key}`: {e}")))?;
+            subscribers.push(sub);
+        }
+        // Others can see that this env is being watched.
+        let mut tokens = Vec::new();
+        for env in config.scope.watched_envs() {
+            tokens.push(
+                session
+                    .liveliness()
+                    .declare_token(env.alive_key(Component::Monitor))
+                    .wait()
+                    .map_err(|e| MonitorError::Zenoh(format!("liveliness token: {e}")))?,
+            );
+        }
+        if let Some(inner) = handle.inner.as_mut() {
+            inner.subscribers = subscribers;
+            inner.tokens = tokens;
+        }
+        Ok(handle)
+    }
+}
+
+fn open_sink(config: &MonitorConfig) -> Result<rerun::RecordingStream, MonitorError> {
+    let mut builder = rerun::RecordingStreamBuilder::new(APPLICATION_ID);
+    if let Some(name) = &config.recording_name {
+        builder = builder.recording_name(name.clone());
+    }
+    // `wall_time` (when the sample arrived) replaces rerun's `log_time`.
+    let rec = match &config.sink {
+        Sink::File(path) => builder.save(path)?,
+        Sink::Connect(url) => builder.connect_grpc_opts(url.clone())?,
+        Sink::Serve {
+            addr,
+            memory_limit_bytes,
+        } => builder.serve_grpc_opts(
+            match addr {
+                SocketAddr::V4(a) => a.ip().to_string(),
+                SocketAddr::V6(a) => format!("[{}]", a.ip()),
+            },
+            addr.port(),
+            rerun::ServerOptions {
+                memory_limit: match memory_limit_bytes {
+                    Some(bytes) => rerun::MemoryLimit::from_bytes(*bytes),
+                    None => rerun::MemoryLimit::from_fraction_of_total(0.25),
+                },
+                ..Default::default()
+            },
+        )?,
+    };
+    rec.set_log_time_enabled(false);
+    Ok(rec)
+}
+
+struct Inner {
+    subscribers: Vec<Subscriber<()>>,
+    /// `alive/monitor` of each watched env.
+    tokens: Vec<LivelinessToken>,
+    shared: Arc<Shared>,
+    thread: std::thread::JoinHandle<()>,
+    rec: rerun::RecordingStream,
+    flush_timeout: Duration,
+}
+
+/// A running monitor. Shut it down (or drop it) to complete the recording.
+pub struct MonitorHandle {
+    inner: Option<Inner>,
+}
+
+impl MonitorHandle {
+    /// Counters so far.
+    pub fn stats(&self) -> MonitorStats {
+        self.inner
+            .as_ref()
+            .map(|i| i.shared.stats())
+            .unwrap_or_default()
+    }
+
+    /// The recording, to log extra data next to the monitor's.
+    pub fn recording(&self) -> Option<&rerun::RecordingStream> {
+        self.inner.as_ref().map(|i| &i.rec)
+    }
+
+    /// Stops listening, logs everything already queued, flushes the sink and
+    /// closes it (an `.rrd` file is complete afterwards). Blocks up to the
+    /// configured flush timeout once the queue is drained.
+    pub fn shutdown(mut self) -> Result<MonitorStats, MonitorError> {
+        self.stop()
+    }
+
+    fn stop(&mut self) -> Result<MonitorStats, MonitorError> {
+        let Some(inner) = self.inner.take() else {
+            return Ok(MonitorStats::default());
+        };
+        let mut first_error = None;
+        for sub in inner.subscribers {
+            if let Err(e) = sub.undeclare().wait() {
+                first_error.get_or_insert(MonitorError::Zenoh(e.to_string()));
+            }
+        }
+        for token in inner.tokens {
+            if let Err(e) = token.undeclare().wait() {
+                first_error.get_or_insert(MonitorError::Zenoh(e.to_string()));
+            }
+        }
+        inner.shared.queue.close();
+        if inner.thread.join().is_err() {
+            first_error.get_or_insert(MonitorError::Worker("the worker panicked".into()));
+        }
+        if let Err(e) = inner.rec.flush_with_timeout(inner.flush_timeout) {
+            first_error.get_or_insert(MonitorError::Flush(e.to_string()));
+        }
+        // Replacing the sink drops it: a file sink writes its footer and
+        // closes, a server stops.
+        inner.rec.disconnect();
+        let stats = inner.shared.stats();
+        match first_error {
+            Some(e) => Err(e),
+            None => Ok(stats),
+        }
+    }
+}
+
+impl Drop for MonitorHandle {
+    fn drop(&mut self) {
+        if let Err(e) = self.stop() {
+            tracing::warn!("monitor shutdown: {e}");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sinks_parse_from_one_string() {
+        assert_eq!(
+            "out/run.rrd".parse::<Sink>().expect("file"),
+            Sink::File("out/run.rrd".into())
+        );
+        assert_eq!(
+            "rerun+http://127.0.0.1:9876/proxy"
+                .parse::<Sink>()
+                .expect("url"),
+            Sink::connect_local()
+        );
+        assert_eq!(
+            "serve".parse::<Sink>().expect("serve"),
+            Sink::serve_default()
+        );
+        assert_eq!(
+            "serve:127.0.0.1:9000".parse::<Sink>().expect("serve addr"),
+            Sink::Serve {
+                addr: SocketAddr::from(([127, 0, 0, 1], 9000)),
+                memory_limit_bytes: None
+            }
+        );
+        assert!("serve:nowhere".parse::<Sink>().is_err());
+        assert!("out.txt".parse::<Sink>().is_err());
+    }
+
+    #[test]
+    fn scopes_subscribe_below_the_verbatim_version_chunk() {
+        let env: EnvId = "real/enclosure-a".parse().expect("env");
+        assert_eq!(Scope::All.data_keys(), ["offworld/@v1/**"]);
+        assert_eq!(
+            Scope::env(env.clone()).data_keys(),
+            ["offworld/@v1/real/enclosure-a/**", "offworld/@v1/estop"]
+        );
+        assert_eq!(
+            Scope::env(env).alive_keys(),
+            ["offworld/@v1/real/enclosure-a/alive/**"]
+        );
+        for key in Scope::All.data_keys() {
+            zenoh::key_expr::KeyExpr::try_from(key).expect("valid key expression");
+        }
+    }
+}

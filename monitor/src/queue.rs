@@ -1,0 +1,263 @@
+//! The one hand-off between Zenoh callbacks and the logging worker: a
+//! bounded, never-blocking queue with two lanes.
+//!
+//! - **frames** (camera frames, overhead images): a few slots; when full the
+//!   *oldest* queued frame is evicted, so the viewer always gets the latest
+//!   picture and a slow viewer costs frames, never the step.
+//! - **messages** (poses, commands, rewards, status, …): many slots; when
+//!   full the new message is dropped and counted.
+//!
+//! Control events (world specs resolved by a helper thread) bypass both
+//! limits: there are a handful per env. Items are popped in arrival order
+//! across lanes. Pushing takes one short mutex and never waits for the
+//! worker; a push after [`Queue::close`] is dropped.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Condvar, Mutex, MutexGuard};
+use std::time::Duration;
+
+/// Which lane an item travels in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Lane {
+    /// Big and expendable: evict the oldest when full.
+    Frame,
+    /// Small: drop the newest when full.
+    Message,
+    /// Unbounded, never dropped (rare control events).
+    Control,
+}
+
+/// Counters the queue keeps (shared with the monitor's stats).
+#[derive(Debug, Default)]
+pub(crate) struct QueueCounters {
+    /// Items offered by callbacks.
+    pub received: AtomicU64,
+    /// Frames evicted or refused.
+    pub dropped_frames: AtomicU64,
+    /// Messages refused.
+    pub dropped_messages: AtomicU64,
+}
+
+struct State<T> {
+    next_ticket: u64,
+    frames: VecDeque<(u64, T)>,
+    messages: VecDeque<(u64, T)>,
+    control: VecDeque<(u64, T)>,
+    closed: bool,
+}
+
+/// A bounded multi-producer, single-consumer queue (see the module docs).
+pub(crate) struct Queue<T> {
+    state: Mutex<State<T>>,
+    ready: Condvar,
+    frame_capacity: usize,
+    message_capacity: usize,
+    pub counters: QueueCounters,
+}
+
+impl<T> Queue<T> {
+    /// A queue holding at most `frame_capacity` frames and
+    /// `message_capacity` messages (each at least 1).
+    pub fn new(frame_capacity: usize, message_capacity: usize) -> Self {
+        Self {
+            state: Mutex::new(State {
+                next_ticket: 0,
+                frames: VecDeque::with_capacity(frame_capacity.max(1)),
+                messages: VecDeque::new(),
+                control: VecDeque::new(),
+                closed: false,
+            }),
+            ready: Condvar::new(),
+            frame_capacity: frame_capacity.max(1),
+            message_capacity: message_capacity.max(1),
+            counters: QueueCounters::default(),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State<T>> {
+        // A panic while holding this lock cannot leave the deques invalid;
+        // keep going rather than propagate the poison into Zenoh callbacks.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Offers an item; never blocks beyond one uncontended mutex. Returns
+    /// false when the item (or, for frames, an older frame) was dropped.
+    pub fn push(&self, lane: Lane, item: T) -> bool {
+        if lane != Lane::Control {
+            self.counters.received.fetch_add(1, Ordering::Relaxed);
+        }
+        let mut state = self.lock();
+        if state.closed {
+            drop(state);
+            self.count_drop(lane);
+            return false;
+        }
+        let ticket = state.next_ticket;
+        state.next_ticket += 1;
+        let mut kept_all = true;
+        match lane {
+            Lane::Frame => {
+                if state.frames.len() >= self.frame_capacity {
+                    // Evict the oldest frame: the viewer wants the newest.
+                    state.frames.pop_front();
+                    kept_all = false;
+                }
+                state.frames.push_back((ticket, item));
+            }
+            Lane::Message => {
+                if state.messages.len() >= self.message_capacity {
+                    drop(state);
+                    self.count_drop(lane);
+                    return false;
+                }
+                state.messages.push_back((ticket, item));
+            }
+            Lane::Control => state.control.push_back((ticket, item)),
+        }
+        drop(state);
+        if !kept_all {
+            self.count_drop(lane);
+        }
+        self.ready.notify_one();
+        kept_all
+    }
+
+    fn count_drop(&self, lane: Lane) {
+        let counter = match lane {
+            Lane::Frame => &self.counters.dropped_frames,
+            Lane::Message | Lane::Control => &self.counters.dropped_messages,
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Takes the oldest item of any lane, waiting up to `timeout`. Returns
+    /// `Err(())` once the queue is closed *and* empty.
+    #[cfg(test)]
+    pub fn pop(&self, timeout: Duration) -> Result<Option<T>, ()> {
+        let mut state = self.lock();
+        loop {
+            if let Some(item) = Self::take_oldest(&mut state) {
+                return Ok(Some(item));
+            }
+            if state.closed {
+                return Err(());
+            }
+            let (next, result) = self
+                .ready
+                .wait_timeout(state, timeout)
+                .unwrap_or_else(|p| p.into_inner());
+            state = next;
+            if result.timed_out() {
+                return Ok(Self::take_oldest(&mut state));
+            }
+        }
+    }
+
+    /// Waits up to `timeout` for something to arrive, then lets more arrive
+    /// for `coalesce` and takes everything queued, oldest first. Batches keep
+    /// the consumer (and rerun's threads behind it) from waking once per
+    /// message. Returns `Err(())` once the queue is closed *and* empty.
+    #[allow(clippy::result_unit_err)]
+    pub fn pop_batch(&self, timeout: Duration, coalesce: Duration) -> Result<Vec<T>, ()> {
+        let mut state = self.lock();
+        if Self::is_empty(&state) {
+            if state.closed {
+                return Err(());
+            }
+            let (next, _) = self
+                .ready
+                .wait_timeout_while(state, timeout, |s| Self::is_empty(s) && !s.closed)
+                .unwrap_or_else(|p| p.into_inner());
+            state = next;
+            if Self::is_empty(&state) {
+                return if state.closed {
+                    Err(())
+                } else {
+                    Ok(Vec::new())
+                };
+            }
+        }
+        if !state.closed && !coalesce.is_zero() {
+            drop(state);
+            std::thread::sleep(coalesce);
+            state = self.lock();
+        }
+        let mut batch =
+            Vec::with_capacity(state.frames.len() + state.messages.len() + state.control.len());
+        while let Some(item) = Self::take_oldest(&mut state) {
+            batch.push(item);
+        }
+        Ok(batch)
+    }
+
+    fn is_empty(state: &State<T>) -> bool {
+        state.frames.is_empty() && state.messages.is_empty() && state.control.is_empty()
+    }
+
+    fn take_oldest(state: &mut State<T>) -> Option<T> {
+        let heads = [
+            state.frames.front().map(|(t, _)| *t),
+            state.messages.front().map(|(t, _)| *t),
+            state.control.front().map(|(t, _)| *t),
+        ];
+        let lane = heads
+            .iter()
+            .enumerate()
+            .filter_map(|(i, t)| t.map(|t| (t, i)))
+            .min()?
+            .1;
+        let queue = match lane {
+            0 => &mut state.frames,
+            1 => &mut state.messages,
+            _ => &mut state.control,
+        };
+        queue.pop_front().map(|(_, item)| item)
+    }
+
+    /// Refuses further pushes; the consumer drains what is queued.
+    pub fn close(&self) {
+        self.lock().closed = true;
+        self.ready.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_evict_oldest_messages_drop_newest_order_is_kept() {
+        let q = Queue::new(2, 2);
+        assert!(q.push(Lane::Message, "m1"));
+        assert!(q.push(Lane::Frame, "f1"));
+        assert!(q.push(Lane::Frame, "f2"));
+        assert!(!q.push(Lane::Frame, "f3")); // evicts f1
+        assert!(q.push(Lane::Message, "m2"));
+        assert!(!q.push(Lane::Message, "m3")); // refused
+        assert!(q.push(Lane::Control, "c1"));
+        let c = &q.counters;
+        assert_eq!(c.received.load(Ordering::Relaxed), 6);
+        assert_eq!(c.dropped_frames.load(Ordering::Relaxed), 1);
+        assert_eq!(c.dropped_messages.load(Ordering::Relaxed), 1);
+        let mut got = Vec::new();
+        while let Ok(Some(x)) = q.pop(Duration::from_millis(1)) {
+            got.push(x);
+        }
+        assert_eq!(got, ["m1", "f2", "f3", "m2", "c1"]);
+        assert!(q.push(Lane::Message, "m4"));
+        assert!(q.push(Lane::Frame, "f4"));
+        let batch = q.pop_batch(Duration::from_millis(1), Duration::from_millis(1));
+        assert_eq!(batch, Ok(vec!["m4", "f4"]));
+        assert_eq!(
+            q.pop_batch(Duration::from_millis(1), Duration::ZERO),
+            Ok(vec![])
+        );
+        q.close();
+        assert!(q.pop(Duration::from_millis(1)).is_err());
+        assert!(q
+            .pop_batch(Duration::from_millis(1), Duration::ZERO)
+            .is_err());
+        assert!(!q.push(Lane::Message, "late"));
+    }
+}
