@@ -25,11 +25,11 @@ fn env_usize(name: &str, default: usize) -> usize {
 }
 
 fn steps() -> usize {
-    env_usize("STEP_RATE_STEPS", 300)
+    env_usize("STEP_RATE_STEPS", 200)
 }
 
 fn rounds() -> usize {
-    env_usize("STEP_RATE_ROUNDS", 4)
+    env_usize("STEP_RATE_ROUNDS", 8)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -115,30 +115,44 @@ async fn main() -> anyhow::Result<()> {
     // Step times per mode: off, embedded monitor, remote monitor, bare remote subscriber.
     let mut times: [Vec<f64>; 4] = Default::default();
     let mut dropped = 0;
+    // Modes run in ABCD DCBA order so a slow drift of the machine (other
+    // load, clocks) weighs on every mode alike.
     for round in 0..rounds() {
-        let off = run_steps(&mut gym).await?;
-        // The monitor embedded next to the env (its session: local delivery).
-        let (embedded, e_stats) = with_monitor(&server, &env, &path, &mut gym).await?;
-        // The monitor as a separate peer (its own session over TCP).
-        let (remote, r_stats) = with_monitor(&watcher, &env, &path, &mut gym).await?;
-        dropped += e_stats.dropped_frames + r_stats.dropped_frames;
-        // Floor of the remote case: a subscriber that drops everything.
-        let sub = watcher
-            .declare_subscriber(format!("{}/**", env.prefix()))
-            .callback(|_sample| {})
-            .await
-            .map_err(|e| anyhow::anyhow!(e))?;
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        let bare = run_steps(&mut gym).await?;
-        sub.undeclare().await.map_err(|e| anyhow::anyhow!(e))?;
-        let rate = |t: &Vec<f64>| 1.0 / median(t.clone());
-        println!(
-            "round {round}: off {:6.0}, embedded {:6.0} ({} frames logged), remote {:6.0} ({} frames logged), bare remote subscriber {:6.0} steps/s",
-            rate(&off), rate(&embedded), e_stats.frames, rate(&remote), r_stats.frames, rate(&bare)
-        );
-        for (all, new) in times.iter_mut().zip([off, embedded, remote, bare]) {
-            all.extend(new);
+        let mut order = [0usize, 1, 2, 3];
+        if round % 2 == 1 {
+            order.reverse();
         }
+        let mut rates = [0.0; 4];
+        for mode in order {
+            let block = match mode {
+                0 => run_steps(&mut gym).await?,
+                // The monitor embedded next to the env (its session: local delivery).
+                1 | 2 => {
+                    let session = if mode == 1 { &server } else { &watcher };
+                    let (block, stats) = with_monitor(session, &env, &path, &mut gym).await?;
+                    dropped += stats.dropped_frames;
+                    block
+                }
+                // Floor of the remote case: a subscriber that drops everything.
+                _ => {
+                    let sub = watcher
+                        .declare_subscriber(format!("{}/**", env.prefix()))
+                        .callback(|_sample| {})
+                        .await
+                        .map_err(|e| anyhow::anyhow!(e))?;
+                    tokio::time::sleep(Duration::from_millis(300)).await;
+                    let block = run_steps(&mut gym).await?;
+                    sub.undeclare().await.map_err(|e| anyhow::anyhow!(e))?;
+                    block
+                }
+            };
+            rates[mode] = 1.0 / median(block.clone());
+            times[mode].extend(block);
+        }
+        println!(
+            "round {round}: off {:6.0}, embedded {:6.0}, remote {:6.0}, bare remote subscriber {:6.0} steps/s",
+            rates[0], rates[1], rates[2], rates[3]
+        );
     }
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     std::fs::remove_file(&path).ok();

@@ -322,26 +322,54 @@ impl Monitor {
     /// Opens the sink, subscribes on `session` and starts the worker. Returns
     /// once subscribed; data published from then on is recorded.
     pub fn spawn(session: &Session, config: MonitorConfig) -> Result<MonitorHandle, MonitorError> {
-        let rec = open_sink(&config)?;
         let shared = Arc::new(Shared {
             queue: Queue::new(config.frame_queue, config.message_queue),
             counters: Default::default(),
         });
-        let worker = Worker::new(
-            rec.clone(),
-            shared.clone(),
-            session.clone(),
-            WorkerConfig {
-                world: config.world.clone(),
-                spec_timeout: config.spec_timeout,
-                blueprint: config.blueprint,
-                batch_interval: config.batch_interval,
-            },
-        );
-        let thread = std::thread::Builder::new()
-            .name("offworld-monitor".into())
-            .spawn(move || worker.run())
-            .map_err(|e| MonitorError::Worker(e.to_string()))?;
+        let worker_config = WorkerConfig {
+            world: config.world.clone(),
+            spec_timeout: config.spec_timeout,
+            blueprint: config.blueprint,
+            batch_interval: config.batch_interval,
+        };
+        // The sink is opened on the worker thread, after it lowered its
+        // priority, so rerun's own threads (batcher, encoder, sink) inherit
+        // the lower priority too: on a loaded machine the step path runs
+        // first and the viewer waits.
+        let (opened_tx, opened_rx) = std::sync::mpsc::sync_channel(1);
+        let thread = {
+            let shared = shared.clone();
+            let session = session.clone();
+            let config = config.clone();
+            std::thread::Builder::new()
+                .name("offworld-monitor".into())
+                .spawn(move || {
+                    lower_thread_priority();
+                    let rec = match open_sink(&config) {
+                        Ok(rec) => rec,
+                        Err(e) => {
+                            let _ = opened_tx.send(Err(e));
+                            return;
+                        }
+                    };
+                    let _ = opened_tx.send(Ok(rec.clone()));
+                    Worker::new(rec, shared, session, worker_config).run();
+                })
+                .map_err(|e| MonitorError::Worker(e.to_string()))?
+        };
+        let rec = match opened_rx.recv() {
+            Ok(Ok(rec)) => rec,
+            Ok(Err(e)) => {
+                let _ = thread.join();
+                return Err(e);
+            }
+            Err(_) => {
+                let _ = thread.join();
+                return Err(MonitorError::Worker(
+                    "the worker died while opening the sink".into(),
+                ));
+            }
+        };
         let mut handle = MonitorHandle {
             inner: Some(Inner {
                 subscribers: Vec::new(),
@@ -403,6 +431,32 @@ impl Monitor {
             inner.tokens = tokens;
         }
         Ok(handle)
+    }
+}
+
+/// Niceness of the monitor's threads (Linux: per thread; 0 is normal, 19
+/// the lowest priority).
+const MONITOR_NICENESS: libc::c_int = 10;
+
+/// Gives the calling thread (and the threads it starts) a lower scheduling
+/// priority. Best effort: without it the monitor still works, it just
+/// competes with the step path on equal terms.
+#[allow(unsafe_code)] // one libc call, see SAFETY below
+fn lower_thread_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: gettid and setpriority only read their arguments; on Linux
+        // PRIO_PROCESS with a thread id changes that one thread.
+        let result = unsafe {
+            let tid = libc::gettid();
+            libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, MONITOR_NICENESS)
+        };
+        if result != 0 {
+            tracing::debug!(
+                "monitor runs at normal priority: {}",
+                std::io::Error::last_os_error()
+            );
+        }
     }
 }
 
