@@ -29,6 +29,16 @@ pub enum Target {
         /// Which envs.
         envs: Vec<EnvId>,
     },
+    /// Use `count` free envs of the expected task in `realm`, found by
+    /// discovery (liveliness + `spec` + `status`), on any host.
+    Discover {
+        /// How to reach the deployment.
+        session: SessionConfig,
+        /// `sim` or `real`.
+        realm: offworld_runtime::Realm,
+        /// Number of envs.
+        count: usize,
+    },
 }
 
 /// An open connection; keeps an embedded deployment alive.
@@ -78,11 +88,21 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 _embedded: Some(embedded),
             })
         }
+        Target::Discover {
+            session,
+            realm,
+            count,
+        } => {
+            let session = open_remote(&session).await?;
+            let envs = pick_free(&session, realm, expected_task, count).await?;
+            Ok(Connection {
+                session,
+                envs,
+                _embedded: None,
+            })
+        }
         Target::Remote { session, envs } => {
-            let session = session
-                .open()
-                .await
-                .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+            let session = open_remote(&session).await?;
             for env in &envs {
                 let spec = wait_for_spec(&session, env).await?;
                 if spec.task != expected_task {
@@ -98,6 +118,50 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 _embedded: None,
             })
         }
+    }
+}
+
+async fn open_remote(config: &SessionConfig) -> Result<Session, ControllerError> {
+    config
+        .open()
+        .await
+        .map_err(|e| ControllerError::Zenoh(e.to_string()))
+}
+
+/// `count` free envs of `task` in `realm`, in env id order. Waits up to
+/// [`DISCOVERY`] for enough of them to show up.
+async fn pick_free(
+    session: &Session,
+    realm: offworld_runtime::Realm,
+    task: &str,
+    count: usize,
+) -> Result<Vec<EnvId>, ControllerError> {
+    let deadline = tokio::time::Instant::now() + DISCOVERY;
+    loop {
+        let listings = client::discover(session, std::time::Duration::from_secs(2))
+            .await
+            .map_err(|e| ControllerError::Zenoh(e.message))?;
+        let free: Vec<EnvId> = listings
+            .iter()
+            .filter(|l| {
+                l.env.realm() == realm
+                    && l.task == task
+                    && l.state == offworld_runtime::msg::EnvState::Free
+            })
+            .map(|l| l.env.clone())
+            .take(count.max(1))
+            .collect();
+        if free.len() == count.max(1) {
+            return Ok(free);
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(ControllerError::NotFound(format!(
+                "{count} free {realm:?} envs of task {task} wanted, {} found (of {} envs listed)",
+                free.len(),
+                listings.len()
+            )));
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
     }
 }
 

@@ -7,9 +7,9 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, EpisodeEvent,
-    ExperimentInfo, Leaderboard, MotionCommand, ObsArray, ObsOptions, OpenReply, OpenRequest,
-    Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
+    AdminRequest, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus,
+    EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsArray, ObsOptions, OpenReply,
+    OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
 };
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, WireError};
@@ -19,7 +19,7 @@ use tokio::sync::Mutex as AsyncMutex;
 use crate::episode::{judge, EndReason, SpawnSampler};
 use crate::link::{Answer, LinkTimeouts, RobotLink};
 use crate::observation::{assemble, validate_options};
-use crate::store::{now_ms, EpisodeRecord, Experiment, Store, User, ANONYMOUS};
+use crate::store::{now_ms, BookingRules, EpisodeRecord, Experiment, Store, User, ANONYMOUS};
 use crate::task::Task;
 
 /// Per-env policy.
@@ -35,6 +35,8 @@ pub struct EnvOptions {
     pub timeouts: LinkTimeouts,
     /// Seed of the spawn sampler before any `reset(seed)`.
     pub seed: u64,
+    /// Limits on bookings.
+    pub booking_rules: BookingRules,
 }
 
 impl Default for EnvOptions {
@@ -45,6 +47,7 @@ impl Default for EnvOptions {
             allow_anonymous: false,
             timeouts: LinkTimeouts::default(),
             seed: 0,
+            booking_rules: BookingRules::default(),
         }
     }
 }
@@ -58,6 +61,8 @@ struct Lease {
     expires: Instant,
     expires_unix_ms: i64,
     disconnected: bool,
+    /// End of the booked slot the lease was taken in, Unix ms.
+    booked_until_unix_ms: Option<i64>,
 }
 
 struct Episode {
@@ -272,9 +277,26 @@ impl EnvServer {
             )));
         }
         let now = Instant::now();
+        let env_id = self.env.to_string();
+        let slot = self.store(|s| s.booking_at(&env_id, now_ms()))?;
+        let booked_until_unix_ms = match &slot {
+            Some((booking, holder)) if *holder != user.id => {
+                return Err(WireError::busy(format!(
+                    "{} is booked by {} until {}",
+                    self.env,
+                    booking.user,
+                    format_unix_ms(booking.end_unix_ms)
+                )));
+            }
+            Some((booking, _)) => Some(booking.end_unix_ms),
+            None => None,
+        };
         if let Some(lease) = &state.lease {
             let live = lease.expires > now;
-            if live && lease.user.id != user.id {
+            // A slot's holder takes the lease over from a first-come user.
+            if live && lease.user.id != user.id && booked_until_unix_ms.is_some() {
+                tracing::info!(env = %self.env, user = %user.name, "booked slot: lease taken over");
+            } else if live && lease.user.id != user.id {
                 return Err(WireError::busy(format!(
                     "{} is leased by another user until {}",
                     self.env,
@@ -297,7 +319,6 @@ impl EnvServer {
         } else {
             req.experiment_name.clone()
         };
-        let env_id = self.env.to_string();
         let experiment = self.store(|s| {
             s.open_experiment(
                 &user,
@@ -327,6 +348,7 @@ impl EnvServer {
             expires: now + self.options.lease_idle,
             expires_unix_ms: lease_until_unix_ms,
             disconnected: false,
+            booked_until_unix_ms,
         });
         state.episode = None;
         self.publish_status(&mut state).await;
@@ -341,6 +363,7 @@ impl EnvServer {
     /// `reset`: spawn (seeded), move the robot there, observe.
     pub async fn reset(&self, req: ResetRequest) -> Result<ResetReply, WireError> {
         let mut state = self.state.lock().await;
+        self.enforce_slots(&mut state, &req.session_id).await?;
         self.holder(&mut state, &req.session_id)?;
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!("in maintenance: {message}")));
@@ -409,6 +432,7 @@ impl EnvServer {
     /// `step`: act, observe, judge.
     pub async fn step(&self, req: StepRequest) -> Result<StepReply, WireError> {
         let mut state = self.state.lock().await;
+        self.enforce_slots(&mut state, &req.session_id).await?;
         let lease = self.holder(&mut state, &req.session_id)?;
         let (obs, experiment) = (lease.obs, lease.experiment.name.clone());
         if let Some(message) = &state.maintenance {
@@ -511,6 +535,78 @@ impl EnvServer {
             env_id: self.env.to_string(),
             state: self.state_of(&state),
         })
+    }
+
+    /// Ends the lease of `session_id` when its booked slot is over or
+    /// someone else's slot began: the robot stops, the episode is recorded
+    /// as aborted, and the caller learns why (401).
+    async fn enforce_slots(&self, state: &mut State, session_id: &str) -> Result<(), WireError> {
+        let Some(lease) = state.lease.as_ref().filter(|l| l.session_id == session_id) else {
+            return Ok(());
+        };
+        let now = now_ms();
+        let reason = match lease.booked_until_unix_ms {
+            Some(end) if now >= end => Some(format!(
+                "your booked slot on {} ended at {}; the lease ended with it",
+                self.env,
+                format_unix_ms(end)
+            )),
+            _ => {
+                let env_id = self.env.to_string();
+                match self.store(|s| s.booking_at(&env_id, now))? {
+                    Some((booking, holder)) if holder != lease.user.id => Some(format!(
+                        "{} is booked by {} from {} to {}; your lease ended",
+                        self.env,
+                        booking.user,
+                        format_unix_ms(booking.start_unix_ms),
+                        format_unix_ms(booking.end_unix_ms)
+                    )),
+                    _ => None,
+                }
+            }
+        };
+        let Some(reason) = reason else {
+            return Ok(());
+        };
+        tracing::info!(env = %self.env, %reason, "lease ended by a booking");
+        self.link.stop().await;
+        self.abort_episode(state, "booked slot ended").await;
+        state.lease = None;
+        state.episode = None;
+        self.publish_status(state).await;
+        Err(WireError::unauthorized(reason))
+    }
+
+    /// `book`: make, list or cancel slots.
+    pub fn book(&self, req: BookingRequest) -> Result<Bookings, WireError> {
+        let env_id = self.env.to_string();
+        match req {
+            BookingRequest::Make {
+                token,
+                start_unix_ms,
+                end_unix_ms,
+            } => {
+                let user = self.authenticate(&token)?;
+                let rules = self.options.booking_rules;
+                let booking = self.store(|s| {
+                    s.book(&user, &env_id, start_unix_ms, end_unix_ms, now_ms(), rules)
+                })?;
+                tracing::info!(env = %self.env, user = %user.name, id = booking.id, "slot booked");
+                Ok(Bookings {
+                    bookings: vec![booking],
+                })
+            }
+            BookingRequest::List { from_unix_ms } => Ok(Bookings {
+                bookings: self.store(|s| s.bookings(&env_id, from_unix_ms))?,
+            }),
+            BookingRequest::Cancel { token, id } => {
+                let user = self.authenticate(&token)?;
+                self.store(|s| s.cancel_booking(&user, &env_id, id))?;
+                Ok(Bookings {
+                    bookings: self.store(|s| s.bookings(&env_id, now_ms()))?,
+                })
+            }
+        }
     }
 
     /// `leaderboard`: test-mode experiments ranked.

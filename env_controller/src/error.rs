@@ -20,6 +20,12 @@ pub enum ControllerError {
     /// Zenoh refused an operation.
     #[error("zenoh: {0}")]
     Zenoh(String),
+    /// Someone else holds it (a booked slot).
+    #[error("{0}")]
+    Busy(String),
+    /// Not allowed for this user.
+    #[error("{0}")]
+    Unauthorized(String),
 }
 
 impl From<ControllerError> for WireError {
@@ -28,6 +34,8 @@ impl From<ControllerError> for WireError {
             ControllerError::NotFound(m) => WireError::not_found(m),
             ControllerError::Conflict(m) => WireError::bad_request(m),
             ControllerError::Config(m) => WireError::bad_request(m),
+            ControllerError::Busy(m) => WireError::busy(m),
+            ControllerError::Unauthorized(m) => WireError::unauthorized(m),
             // Store and Zenoh details stay in the server log.
             ControllerError::Store(m) => {
                 tracing::error!("store failure: {m}");

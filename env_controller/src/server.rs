@@ -8,7 +8,8 @@ use std::time::Duration;
 
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest, Time,
+    AdminRequest, BookingRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest,
+    Time,
 };
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::query::Query;
@@ -94,6 +95,7 @@ impl Controller {
             Topic::Status,
             Topic::Admin,
             Topic::Leaderboard,
+            Topic::Book,
         ] {
             let queryable = self
                 .session
@@ -208,6 +210,12 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
             .await
         }
         Topic::Leaderboard => respond(query, async { server.leaderboard() }).await,
+        Topic::Book => {
+            respond(query, async {
+                server.book(wire::decode_query::<BookingRequest>(query)?)
+            })
+            .await
+        }
         other => {
             tracing::error!(?other, "no handler");
             Ok(())

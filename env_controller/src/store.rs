@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use offworld_runtime::msg::{AlgorithmMode, LeaderboardEntry, LearningType};
+use offworld_runtime::msg::{AlgorithmMode, Booking, LeaderboardEntry, LearningType};
 use rand::Rng;
 use rusqlite::{params, Connection, OptionalExtension};
 use sha2::{Digest, Sha256};
@@ -135,6 +135,16 @@ CREATE TABLE IF NOT EXISTS episodes (
     ended_ms INTEGER NOT NULL,
     UNIQUE (experiment_id, episode_index)
 );
+CREATE TABLE IF NOT EXISTS bookings (
+    id INTEGER PRIMARY KEY,
+    env_id TEXT NOT NULL,
+    user_id INTEGER NOT NULL REFERENCES users(id),
+    start_ms INTEGER NOT NULL,
+    end_ms INTEGER NOT NULL,
+    created_ms INTEGER NOT NULL,
+    CHECK (end_ms > start_ms)
+);
+CREATE INDEX IF NOT EXISTS bookings_by_env ON bookings (env_id, end_ms);
 ";
 
 /// Name of the user sim envs admit without a token.
@@ -411,4 +421,187 @@ fn experiment_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Experiment> {
         episodes: r.get::<_, i64>(7)? as u64,
         steps: r.get::<_, i64>(8)? as u64,
     })
+}
+
+/// Limits on bookings.
+#[derive(Debug, Clone, Copy)]
+pub struct BookingRules {
+    /// Longest slot.
+    pub max_slot_ms: i64,
+    /// How far ahead a slot may start.
+    pub horizon_ms: i64,
+}
+
+impl Default for BookingRules {
+    fn default() -> Self {
+        Self {
+            max_slot_ms: 4 * 3600 * 1000,
+            horizon_ms: 30 * 24 * 3600 * 1000,
+        }
+    }
+}
+
+fn format_ms(ms: i64) -> String {
+    let t = std::time::UNIX_EPOCH + std::time::Duration::from_millis(ms.max(0) as u64);
+    humantime::format_rfc3339_seconds(t).to_string()
+}
+
+const BOOKING_COLUMNS: &str =
+    "b.id, b.env_id, u.name, b.start_ms, b.end_ms, b.user_id FROM bookings b JOIN users u ON u.id = b.user_id";
+
+fn booking_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<(Booking, i64)> {
+    Ok((
+        Booking {
+            id: r.get(0)?,
+            env_id: r.get(1)?,
+            user: r.get(2)?,
+            start_unix_ms: r.get(3)?,
+            end_unix_ms: r.get(4)?,
+        },
+        r.get(5)?,
+    ))
+}
+
+impl Store {
+    /// Reserves `[start_ms, end_ms)` on `env_id` for `user`, atomically
+    /// against overlapping slots.
+    pub fn book(
+        &mut self,
+        user: &User,
+        env_id: &str,
+        start_ms: i64,
+        end_ms: i64,
+        now_ms: i64,
+        rules: BookingRules,
+    ) -> Result<Booking, ControllerError> {
+        if user.name == ANONYMOUS {
+            return Err(ControllerError::Unauthorized(
+                "bookings need a registered user's token".into(),
+            ));
+        }
+        if end_ms <= start_ms {
+            return Err(ControllerError::Config(format!(
+                "a slot must end after it starts ({} .. {})",
+                format_ms(start_ms),
+                format_ms(end_ms)
+            )));
+        }
+        if end_ms <= now_ms {
+            return Err(ControllerError::Config(format!(
+                "the slot ended already at {}",
+                format_ms(end_ms)
+            )));
+        }
+        if end_ms - start_ms > rules.max_slot_ms {
+            return Err(ControllerError::Config(format!(
+                "slots are at most {} min long",
+                rules.max_slot_ms / 60_000
+            )));
+        }
+        if start_ms > now_ms + rules.horizon_ms {
+            return Err(ControllerError::Config(format!(
+                "slots may start at most {} days ahead",
+                rules.horizon_ms / 86_400_000
+            )));
+        }
+        // A slot that started already begins now.
+        let start_ms = start_ms.max(now_ms);
+        let tx = self.conn.transaction().map_err(db)?;
+        let clash = tx
+            .query_row(
+                &format!(
+                    "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.start_ms < ?3 AND b.end_ms > ?2 ORDER BY b.start_ms LIMIT 1"
+                ),
+                params![env_id, start_ms, end_ms],
+                booking_row,
+            )
+            .optional()
+            .map_err(db)?;
+        if let Some((b, _)) = clash {
+            return Err(ControllerError::Busy(format!(
+                "{env_id} is booked by {} from {} to {}",
+                b.user,
+                format_ms(b.start_unix_ms),
+                format_ms(b.end_unix_ms)
+            )));
+        }
+        tx.execute(
+            "INSERT INTO bookings (env_id, user_id, start_ms, end_ms, created_ms) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![env_id, user.id, start_ms, end_ms, now_ms],
+        )
+        .map_err(db)?;
+        let id = tx.last_insert_rowid();
+        tx.commit().map_err(db)?;
+        Ok(Booking {
+            id,
+            env_id: env_id.to_owned(),
+            user: user.name.clone(),
+            start_unix_ms: start_ms,
+            end_unix_ms: end_ms,
+        })
+    }
+
+    /// Slots of `env_id` ending after `from_ms`, earliest first.
+    pub fn bookings(&self, env_id: &str, from_ms: i64) -> Result<Vec<Booking>, ControllerError> {
+        let mut stmt = self
+            .conn
+            .prepare(&format!(
+                "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.end_ms > ?2 ORDER BY b.start_ms"
+            ))
+            .map_err(db)?;
+        let rows = stmt
+            .query_map(params![env_id, from_ms], booking_row)
+            .map_err(db)?;
+        rows.map(|r| r.map(|(b, _)| b).map_err(db)).collect()
+    }
+
+    /// The slot of `env_id` covering `at_ms`, with its holder's user id.
+    pub fn booking_at(
+        &self,
+        env_id: &str,
+        at_ms: i64,
+    ) -> Result<Option<(Booking, i64)>, ControllerError> {
+        self.conn
+            .query_row(
+                &format!(
+                    "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.start_ms <= ?2 AND b.end_ms > ?2 LIMIT 1"
+                ),
+                params![env_id, at_ms],
+                booking_row,
+            )
+            .optional()
+            .map_err(db)
+    }
+
+    /// Cancels a slot: its holder's, or any for an operator.
+    pub fn cancel_booking(
+        &self,
+        user: &User,
+        env_id: &str,
+        id: i64,
+    ) -> Result<(), ControllerError> {
+        let holder: Option<i64> = self
+            .conn
+            .query_row(
+                "SELECT user_id FROM bookings WHERE id = ?1 AND env_id = ?2",
+                params![id, env_id],
+                |r| r.get(0),
+            )
+            .optional()
+            .map_err(db)?;
+        match holder {
+            None => Err(ControllerError::NotFound(format!(
+                "no booking {id} on {env_id}"
+            ))),
+            Some(h) if h != user.id && !user.is_operator() => Err(ControllerError::Unauthorized(
+                format!("booking {id} is someone else's"),
+            )),
+            Some(_) => {
+                self.conn
+                    .execute("DELETE FROM bookings WHERE id = ?1", params![id])
+                    .map_err(db)?;
+                Ok(())
+            }
+        }
+    }
 }

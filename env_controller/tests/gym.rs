@@ -491,3 +491,159 @@ async fn records_survive_a_restart_and_rank_on_the_leaderboard() {
     assert_eq!(board.entries[0].experiment, "eval");
     assert_eq!(board.entries[0].episodes, 1);
 }
+
+async fn booking(
+    session: &Session,
+    env: &EnvId,
+    request: BookingRequest,
+) -> Result<Vec<Booking>, WireError> {
+    client::book(session, env, &request, Duration::from_secs(5))
+        .await
+        .map(|b| b.bookings)
+}
+
+fn make(token: &str, start_unix_ms: i64, end_unix_ms: i64) -> BookingRequest {
+    BookingRequest::Make {
+        token: token.into(),
+        start_unix_ms,
+        end_unix_ms,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bookings_reserve_slots_and_end_leases_with_them() {
+    let dir = ScratchDir::new();
+    let db = dir.path().join("gym.db");
+    let d = deploy(&db, "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let now = offworld_env_controller::store::now_ms();
+
+    // Bad slots are typed errors; nothing is stored.
+    for (request, code) in [
+        (make(ALICE, now + 5_000, now + 5_000), ErrorCode::BadRequest),
+        (make(ALICE, now - 9_000, now - 1_000), ErrorCode::BadRequest),
+        (
+            make(ALICE, now, now + 5 * 3600 * 1000),
+            ErrorCode::BadRequest,
+        ),
+        (make("", now, now + 1_000), ErrorCode::Unauthorized),
+        (
+            make("wrong-token-xyz", now, now + 1_000),
+            ErrorCode::Unauthorized,
+        ),
+    ] {
+        let err = booking(&session, &d.env, request)
+            .await
+            .expect_err("refused");
+        assert_eq!(err.code, code, "{err}");
+    }
+    let listed = booking(&session, &d.env, BookingRequest::List { from_unix_ms: 0 })
+        .await
+        .expect("list");
+    assert!(listed.is_empty(), "{listed:?}");
+
+    // Bob books a slot starting in 1.5 s for 1.5 s; an overlapping one is busy.
+    let (start, end) = (now + 1_500, now + 3_000);
+    let bobs = booking(&session, &d.env, make(BOB, start, end))
+        .await
+        .expect("booked");
+    assert_eq!(bobs.len(), 1);
+    assert_eq!(
+        (
+            bobs[0].user.as_str(),
+            bobs[0].start_unix_ms,
+            bobs[0].end_unix_ms
+        ),
+        ("bob", start, end)
+    );
+    let clash = booking(&session, &d.env, make(ALICE, end - 1, end + 1_000))
+        .await
+        .expect_err("overlap");
+    assert_eq!(clash.code, ErrorCode::Busy);
+    assert!(clash.message.contains("booked by bob"), "{clash}");
+    // Alice cannot cancel Bob's slot.
+    let not_hers = booking(
+        &session,
+        &d.env,
+        BookingRequest::Cancel {
+            token: ALICE.into(),
+            id: bobs[0].id,
+        },
+    )
+    .await
+    .expect_err("not hers");
+    assert_eq!(not_hers.code, ErrorCode::Unauthorized);
+
+    // Before the slot, leases are first come: Alice steps…
+    let mut alice = open(&session, &d.env, ALICE, "before-slot")
+        .await
+        .expect("alice opens before the slot");
+    alice.reset(Seed::Fixed(1)).await.expect("reset");
+    alice.step(Action::Discrete(2)).await.expect("step");
+    // …until Bob's slot begins: her lease ends and she is told why.
+    tokio::time::sleep(Duration::from_millis(
+        (start - offworld_env_controller::store::now_ms()).max(0) as u64 + 100,
+    ))
+    .await;
+    let ended = alice
+        .step(Action::Discrete(2))
+        .await
+        .expect_err("slot began");
+    assert_eq!(ended.code, ErrorCode::Unauthorized);
+    assert!(ended.message.contains("booked by bob"), "{ended}");
+    // During the slot only Bob may take the lease.
+    let Err(busy) = open(&session, &d.env, ALICE, "during-slot").await else {
+        panic!("Alice took the lease in Bob's slot");
+    };
+    assert_eq!(busy.code, ErrorCode::Busy);
+    assert!(busy.message.contains("booked by bob until"), "{busy}");
+    let mut bob = open(&session, &d.env, BOB, "in-slot")
+        .await
+        .expect("bob opens in his slot");
+    bob.reset(Seed::Fixed(2)).await.expect("reset");
+    bob.step(Action::Discrete(2)).await.expect("step in slot");
+    // The slot ends: so does Bob's lease, with an error that says so.
+    tokio::time::sleep(Duration::from_millis(
+        (end - offworld_env_controller::store::now_ms()).max(0) as u64 + 100,
+    ))
+    .await;
+    let over = bob.step(Action::Discrete(2)).await.expect_err("slot over");
+    assert_eq!(over.code, ErrorCode::Unauthorized);
+    assert!(over.message.contains("booked slot"), "{over}");
+    assert!(over.message.contains("ended"), "{over}");
+    // Afterwards first come again.
+    let mut alice = open(&session, &d.env, ALICE, "after-slot")
+        .await
+        .expect("first come again");
+    alice.close().await.expect("close");
+
+    // Bookings live in the store: listed after a controller restart, and
+    // cancelled by their holder.
+    let later = offworld_env_controller::store::now_ms() + 60_000;
+    let made = booking(&session, &d.env, make(ALICE, later, later + 60_000))
+        .await
+        .expect("book later");
+    drop(session);
+    drop(d);
+    let d = deploy(&db, "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let listed = booking(&session, &d.env, BookingRequest::List { from_unix_ms: 0 })
+        .await
+        .expect("list after restart");
+    assert_eq!(listed.len(), 2, "{listed:?}");
+    assert_eq!(listed[1], made[0]);
+    let remaining = booking(
+        &session,
+        &d.env,
+        BookingRequest::Cancel {
+            token: ALICE.into(),
+            id: made[0].id,
+        },
+    )
+    .await
+    .expect("cancel");
+    assert!(
+        remaining.iter().all(|b| b.id != made[0].id),
+        "{remaining:?}"
+    );
+}

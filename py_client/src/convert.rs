@@ -121,3 +121,50 @@ pub fn algorithm_mode(value: &str) -> PyResult<AlgorithmMode> {
         ))),
     }
 }
+
+/// A timeout in seconds from Python (finite, positive).
+pub fn timeout(seconds: f64) -> PyResult<std::time::Duration> {
+    if seconds.is_finite() && seconds > 0.0 {
+        Ok(std::time::Duration::from_secs_f64(seconds))
+    } else {
+        Err(PyValueError::new_err(format!(
+            "timeout must be a positive number of seconds, got {seconds}"
+        )))
+    }
+}
+
+/// One discovered env as a dict.
+pub fn listing<'py>(
+    py: Python<'py>,
+    listing: &offworld_runtime::client::EnvListing,
+) -> PyResult<Bound<'py, PyDict>> {
+    use offworld_runtime::msg::EnvState;
+    let dict = PyDict::new(py);
+    dict.set_item("env_id", listing.env.to_string())?;
+    dict.set_item("task", &listing.task)?;
+    let (state, until, message) = match &listing.state {
+        EnvState::Free => ("free", None, ""),
+        EnvState::Leased { until_unix_ms } => ("leased", Some(*until_unix_ms), ""),
+        EnvState::Maintenance { message } => ("maintenance", None, message.as_str()),
+        EnvState::Offline { reason } => ("offline", None, reason.as_str()),
+    };
+    dict.set_item("state", state)?;
+    dict.set_item("until_unix_ms", until)?;
+    dict.set_item("message", message)?;
+    dict.set_item("components", &listing.components)?;
+    Ok(dict)
+}
+
+/// One booking as a dict.
+pub fn booking<'py>(
+    py: Python<'py>,
+    booking: &offworld_runtime::msg::Booking,
+) -> PyResult<Bound<'py, PyDict>> {
+    let dict = PyDict::new(py);
+    dict.set_item("id", booking.id)?;
+    dict.set_item("env_id", &booking.env_id)?;
+    dict.set_item("user", &booking.user)?;
+    dict.set_item("start_unix_ms", booking.start_unix_ms)?;
+    dict.set_item("end_unix_ms", booking.end_unix_ms)?;
+    Ok(dict)
+}

@@ -103,23 +103,27 @@ impl NativeEnvs {
                 resolution: (width, height),
                 count: num_envs,
             },
-            (connect, env_ids) => {
-                let mut session =
-                    SessionConfig::from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
-                if let Some(endpoint) = connect {
-                    session.connect = vec![endpoint];
-                }
+            (connect, None) => Target::Discover {
+                session: remote_session(connect)?,
+                realm: realm
+                    .parse()
+                    .map_err(|e: offworld_runtime::ContractError| {
+                        PyValueError::new_err(e.to_string())
+                    })?,
+                count: num_envs,
+            },
+            (connect, Some(env_ids)) => {
                 let envs: Vec<EnvId> = env_ids
-                    .ok_or_else(|| {
-                        PyValueError::new_err("env_ids are required for a remote deployment")
-                    })?
                     .iter()
                     .map(|e| {
                         e.parse::<EnvId>()
                             .map_err(|e| PyValueError::new_err(e.to_string()))
                     })
                     .collect::<PyResult<_>>()?;
-                Target::Remote { session, envs }
+                Target::Remote {
+                    session: remote_session(connect)?,
+                    envs,
+                }
             }
         };
         let connection =
@@ -295,10 +299,142 @@ impl NativeEnvs {
     }
 }
 
+/// The session config of a remote deployment: the `OFFWORLD_ZENOH_*`
+/// environment, with `connect` replacing its endpoints.
+fn remote_session(connect: Option<String>) -> PyResult<SessionConfig> {
+    let mut session =
+        SessionConfig::from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
+    if let Some(endpoint) = connect {
+        session.connect = vec![endpoint];
+    }
+    Ok(session)
+}
+
+/// Envs reachable through a deployment, as dicts (env_id, task, state,
+/// until_unix_ms, message, components).
+#[pyfunction]
+#[pyo3(signature = (connect=None, timeout_s=2.0))]
+fn list_envs<'py>(
+    py: Python<'py>,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let config = remote_session(connect)?;
+    let timeout = convert::timeout(timeout_s)?;
+    let listings = block(py, async move {
+        let session = config.open().await.map_err(|e| {
+            errors::to_py(WireError::new(
+                offworld_runtime::ErrorCode::Unavailable,
+                e.to_string(),
+            ))
+        })?;
+        let found = offworld_runtime::client::discover(&session, timeout)
+            .await
+            .map_err(errors::to_py);
+        let _ = session.close().await;
+        found
+    })??;
+    let out = PyList::empty(py);
+    for listing in &listings {
+        out.append(convert::listing(py, listing)?)?;
+    }
+    Ok(out)
+}
+
+/// Runs one booking request against `env_id`; returns the bookings as
+/// dicts (id, env_id, user, start_unix_ms, end_unix_ms).
+fn booking_request<'py>(
+    py: Python<'py>,
+    connect: Option<String>,
+    env_id: &str,
+    request: offworld_runtime::msg::BookingRequest,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let config = remote_session(connect)?;
+    let env: EnvId = env_id
+        .parse()
+        .map_err(|e: offworld_runtime::ContractError| PyValueError::new_err(e.to_string()))?;
+    let timeout = convert::timeout(timeout_s)?;
+    let bookings = block(py, async move {
+        let session = config.open().await.map_err(|e| {
+            errors::to_py(WireError::new(
+                offworld_runtime::ErrorCode::Unavailable,
+                e.to_string(),
+            ))
+        })?;
+        let answer = offworld_runtime::client::book(&session, &env, &request, timeout)
+            .await
+            .map_err(errors::to_py);
+        let _ = session.close().await;
+        answer
+    })??;
+    let out = PyList::empty(py);
+    for b in &bookings.bookings {
+        out.append(convert::booking(py, b)?)?;
+    }
+    Ok(out)
+}
+
+/// Reserves `[start_unix_ms, end_unix_ms)` on an env; returns [the booking].
+#[pyfunction]
+#[pyo3(signature = (env_id, start_unix_ms, end_unix_ms, token, connect=None, timeout_s=5.0))]
+fn book<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    start_unix_ms: i64,
+    end_unix_ms: i64,
+    token: String,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let request = offworld_runtime::msg::BookingRequest::Make {
+        token,
+        start_unix_ms,
+        end_unix_ms,
+    };
+    booking_request(py, connect, env_id, request, timeout_s)
+}
+
+/// Slots of an env ending after `from_unix_ms`.
+#[pyfunction]
+#[pyo3(signature = (env_id, from_unix_ms, connect=None, timeout_s=5.0))]
+fn bookings<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    from_unix_ms: i64,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let request = offworld_runtime::msg::BookingRequest::List { from_unix_ms };
+    booking_request(py, connect, env_id, request, timeout_s)
+}
+
+/// Cancels a slot; returns the remaining ones.
+#[pyfunction]
+#[pyo3(signature = (env_id, booking_id, token, connect=None, timeout_s=5.0))]
+fn cancel_booking<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    booking_id: i64,
+    token: String,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let request = offworld_runtime::msg::BookingRequest::Cancel {
+        token,
+        id: booking_id,
+    };
+    booking_request(py, connect, env_id, request, timeout_s)
+}
+
 /// The native half of `offworld_gym`.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<NativeEnvs>()?;
+    m.add_function(wrap_pyfunction!(list_envs, m)?)?;
+    m.add_function(wrap_pyfunction!(book, m)?)?;
+    m.add_function(wrap_pyfunction!(bookings, m)?)?;
+    m.add_function(wrap_pyfunction!(cancel_booking, m)?)?;
     errors::register(m)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

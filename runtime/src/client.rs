@@ -6,13 +6,13 @@ use std::time::Duration;
 
 use rand::Rng;
 
-use crate::keys::{EnvId, Topic};
+use crate::keys::{Component, EnvId, Topic};
 use crate::msg::{
-    Action, CloseReply, CloseRequest, EnvSpec, EnvStatus, Leaderboard, OpenReply, OpenRequest,
-    ResetReply, ResetRequest, Seed, StepReply, StepRequest,
+    Action, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, Leaderboard, OpenReply,
+    OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
 };
 use crate::wire;
-use crate::WireError;
+use crate::{ErrorCode, WireError};
 use zenoh::liveliness::LivelinessToken;
 use zenoh::Session;
 
@@ -199,6 +199,93 @@ pub async fn leaderboard(
     timeout: Duration,
 ) -> Result<Leaderboard, WireError> {
     ask(session, env, Topic::Leaderboard, &(), timeout).await
+}
+
+/// Makes, lists or cancels bookings of an env.
+pub async fn book(
+    session: &Session,
+    env: &EnvId,
+    request: &crate::msg::BookingRequest,
+    timeout: Duration,
+) -> Result<crate::msg::Bookings, WireError> {
+    ask(session, env, Topic::Book, request, timeout).await
+}
+
+/// One env found by [`discover`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct EnvListing {
+    /// The env.
+    pub env: EnvId,
+    /// Its task (`MonolithDiscrete`, …); empty when the controller did not
+    /// answer `spec`.
+    pub task: String,
+    /// Availability; `Offline` when no controller is alive for it or it did
+    /// not answer.
+    pub state: EnvState,
+    /// Components alive under the env (`controller`, `sim_twin`,
+    /// `robot_agent`, `tracker_agent`, `monitor`), sorted.
+    pub components: Vec<String>,
+}
+
+/// Lists the envs reachable through `session`: every env with a liveliness
+/// token (controller, twin or agents), with its task and availability from
+/// its controller's `spec` and `status`. Sorted by env id. Bounded by
+/// `timeout` per query; an env whose controller does not answer is listed
+/// `Offline`, never dropped.
+pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvListing>, WireError> {
+    let replies = session
+        .liveliness()
+        .get(crate::keys::all_alive_selector())
+        .timeout(timeout)
+        .await
+        .map_err(|e| WireError::new(ErrorCode::Unavailable, format!("liveliness query: {e}")))?;
+    let mut components: std::collections::BTreeMap<EnvId, std::collections::BTreeSet<String>> =
+        Default::default();
+    while let Ok(reply) = replies.recv_async().await {
+        let Ok(sample) = reply.result() else { continue };
+        let key = sample.key_expr().as_str();
+        let (Ok(env), Some((_, component))) = (EnvId::from_key(key), key.split_once("/alive/"))
+        else {
+            continue;
+        };
+        // Clients' tokens are `alive/client/<id>`: not a component.
+        if !component.starts_with("client/") {
+            components
+                .entry(env)
+                .or_default()
+                .insert(component.to_owned());
+        }
+    }
+    let listings = components.into_iter().map(|(env, alive)| async move {
+        let has_controller = alive.contains(Component::Controller.as_str());
+        let (task, state) = if has_controller {
+            let (spec, status) =
+                futures::join!(spec(session, &env, timeout), status(session, &env, timeout));
+            match (spec, status) {
+                (Ok(spec), Ok(status)) => (spec.task, status.state),
+                (_, Err(e)) | (Err(e), _) => (
+                    String::new(),
+                    EnvState::Offline {
+                        reason: format!("the controller does not answer: {}", e.message),
+                    },
+                ),
+            }
+        } else {
+            (
+                String::new(),
+                EnvState::Offline {
+                    reason: "no controller serves it".into(),
+                },
+            )
+        };
+        EnvListing {
+            env,
+            task,
+            state,
+            components: alive.into_iter().collect(),
+        }
+    });
+    Ok(futures::future::join_all(listings).await)
 }
 
 /// One sub-env's result in a vector step.

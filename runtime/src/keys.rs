@@ -194,11 +194,14 @@ pub enum Topic {
     Admin,
     /// Queryable on the controller: () → [`crate::msg::Leaderboard`].
     Leaderboard,
+    /// Queryable on the controller: [`crate::msg::BookingRequest`] →
+    /// [`crate::msg::Bookings`].
+    Book,
 }
 
 impl Topic {
     /// Every topic, in declaration order.
-    pub const ALL: [Topic; 17] = [
+    pub const ALL: [Topic; 18] = [
         Topic::Cmd,
         Topic::Obs,
         Topic::Odom,
@@ -216,6 +219,7 @@ impl Topic {
         Topic::Close,
         Topic::Admin,
         Topic::Leaderboard,
+        Topic::Book,
     ];
 
     /// The key chunk of this topic.
@@ -238,6 +242,7 @@ impl Topic {
             Topic::Close => "close",
             Topic::Admin => "admin",
             Topic::Leaderboard => "leaderboard",
+            Topic::Book => "book",
         }
     }
 }

@@ -14,6 +14,9 @@ pub const ENV_MODE: &str = "OFFWORLD_ZENOH_MODE";
 pub const ENV_CONNECT: &str = "OFFWORLD_ZENOH_CONNECT";
 /// Environment variable: comma-separated endpoints to listen on.
 pub const ENV_LISTEN: &str = "OFFWORLD_ZENOH_LISTEN";
+/// Environment variable: `;`-separated `KEY:VALUE` config overrides (as
+/// zenohd's `--cfg`), e.g. `transport/auth/usrpwd/password:"…"`.
+pub const ENV_CFG: &str = "OFFWORLD_ZENOH_CFG";
 
 /// Zenoh session role.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
@@ -65,6 +68,10 @@ pub struct SessionConfig {
     pub listen: Vec<String>,
     /// Discover peers by UDP multicast.
     pub multicast_scouting: bool,
+    /// `KEY:VALUE` overrides applied last, as zenohd's `--cfg`: the key is
+    /// a config path (`transport/link/tls/root_ca_certificate`), the value
+    /// JSON5 (`"certs/ca.pem"`, `true`, `["tls/…"]`).
+    pub overrides: Vec<String>,
 }
 
 impl SessionConfig {
@@ -113,6 +120,15 @@ impl SessionConfig {
             connect: list(ENV_CONNECT),
             listen: list(ENV_LISTEN),
             multicast_scouting: false,
+            overrides: std::env::var(ENV_CFG)
+                .map(|v| {
+                    v.split(';')
+                        .map(str::trim)
+                        .filter(|s| !s.is_empty())
+                        .map(str::to_owned)
+                        .collect()
+                })
+                .unwrap_or_default(),
         })
     }
 
@@ -151,6 +167,14 @@ impl SessionConfig {
                 self.multicast_scouting.to_string(),
             )?;
         }
+        for item in &self.overrides {
+            let (key, value) = item.split_once(':').ok_or_else(|| {
+                ContractError::Config(format!(
+                    "`{item}`: expected KEY:VALUE, e.g. mode:\"client\""
+                ))
+            })?;
+            set(&mut config, key.trim(), value.trim().to_owned())?;
+        }
         Ok(config)
     }
 
@@ -180,6 +204,10 @@ pub struct CommonArgs {
     /// Enable UDP multicast scouting.
     #[arg(long)]
     pub multicast_scouting: bool,
+    /// Override one config value, `KEY:VALUE` with a JSON5 value
+    /// (repeatable), e.g. `--cfg 'transport/auth/usrpwd/password:"…"'`.
+    #[arg(long = "cfg", value_name = "KEY:VALUE", env = ENV_CFG, value_delimiter = ';')]
+    pub cfg: Vec<String>,
 }
 
 /// Where standalone processes meet when no endpoint is given: servers
@@ -218,6 +246,7 @@ impl From<CommonArgs> for SessionConfig {
             connect: args.connect,
             listen: args.listen,
             multicast_scouting: args.multicast_scouting,
+            overrides: args.cfg,
         }
     }
 }
@@ -299,5 +328,40 @@ mod tests {
             ..SessionConfig::default()
         };
         assert!(matches!(cfg.to_zenoh(), Err(ContractError::Config(_))));
+    }
+
+    #[test]
+    fn overrides_apply_last_and_bad_ones_are_typed_errors() {
+        let cfg = SessionConfig {
+            mode: Mode::Client,
+            overrides: vec![
+                r#"transport/auth/usrpwd/user:"trainer""#.into(),
+                "transport/link/tls/enable_mtls: true".into(),
+                r#"mode:"router""#.into(),
+            ],
+            ..SessionConfig::default()
+        };
+        let config = cfg.to_zenoh().expect("config");
+        assert_eq!(
+            config.get_json("transport/auth/usrpwd/user").expect("user"),
+            "\"trainer\""
+        );
+        assert_eq!(
+            config
+                .get_json("transport/link/tls/enable_mtls")
+                .expect("mtls"),
+            "true"
+        );
+        assert_eq!(config.get_json("mode").expect("mode"), "\"router\"");
+        for bad in ["no-colon", "nonexistent/key:1", "mode:[unclosed"] {
+            let cfg = SessionConfig {
+                overrides: vec![bad.into()],
+                ..SessionConfig::default()
+            };
+            assert!(
+                matches!(cfg.to_zenoh(), Err(ContractError::Config(_))),
+                "{bad}"
+            );
+        }
     }
 }

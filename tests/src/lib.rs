@@ -4,6 +4,7 @@
 //! independent Python peers under `tests/python/` that other suites drive.
 
 pub mod emulated;
+pub mod site;
 
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};

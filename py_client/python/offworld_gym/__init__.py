@@ -16,6 +16,8 @@ ids need a deployment and an access token (``OFFWORLD_GYM_ACCESS_TOKEN``).
 from offworld_gym import errors
 from offworld_gym._native import __version__
 from offworld_gym._registration import ENV_IDS, LEGACY_IDS, register_envs
+from offworld_gym.bookings import Booking, book, bookings, cancel_booking
+from offworld_gym.discovery import EnvInfo, list_envs
 from offworld_gym.envs.common.channels import Channels
 from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
 
@@ -25,9 +27,15 @@ __all__ = [
     "ENV_IDS",
     "LEGACY_IDS",
     "AlgorithmMode",
+    "Booking",
     "Channels",
+    "EnvInfo",
     "LearningType",
     "__version__",
+    "book",
+    "bookings",
+    "cancel_booking",
     "errors",
+    "list_envs",
     "register_envs",
 ]

@@ -17,6 +17,9 @@ from offworld_gym.errors import ConfigurationError
 TOKEN_ENV = "OFFWORLD_GYM_ACCESS_TOKEN"
 CONNECT_ENV = "OFFWORLD_GYM_CONNECT"
 ENV_ID_ENV = "OFFWORLD_GYM_ENV"
+#: ``env_id=DISCOVER``: use any free envs of the task the deployment lists
+#: (on any host behind its router).
+DISCOVER = "discover"
 #: Turns the rerun monitor on without touching code (same values as ``rerun=``).
 RERUN_ENV = "OFFWORLD_GYM_RERUN"
 
@@ -81,12 +84,15 @@ def resolve(
     if remote:
         world = "monolith_obstacle" if task.startswith("MonolithObstacle") else "monolith"
         chosen = env_id or os.environ.get(ENV_ID_ENV) or f"{realm}/{world}-0"
-        env_ids = [chosen] if isinstance(chosen, str) else list(chosen)
-        if len(env_ids) == 1 and num_envs > 1:
-            base = env_ids[0]
-            env_ids = [f"{base}-{i}" for i in range(num_envs)]
-        if len(env_ids) != num_envs:
-            raise ConfigurationError(f"{num_envs} envs need {num_envs} env ids, got {env_ids}")
+        if chosen == DISCOVER:
+            env_ids = None  # the native layer picks free envs of the task
+        else:
+            env_ids = [chosen] if isinstance(chosen, str) else list(chosen)
+            if len(env_ids) == 1 and num_envs > 1:
+                base = env_ids[0]
+                env_ids = [f"{base}-{i}" for i in range(num_envs)]
+            if len(env_ids) != num_envs:
+                raise ConfigurationError(f"{num_envs} envs need {num_envs} env ids, got {env_ids}")
     # Rendering needs colour: fetch RGBD and keep the requested channels.
     render_extra_rgb = render_mode == "rgb_array" and channels == Channels.DEPTH_ONLY
     wire_channels = Channels.RGBD if render_extra_rgb else channels

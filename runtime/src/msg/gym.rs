@@ -432,3 +432,53 @@ pub struct Leaderboard {
     /// Ranked entries.
     pub entries: Vec<LeaderboardEntry>,
 }
+
+/// A reserved time slot on an env: during it only its holder may take the
+/// lease.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Booking {
+    /// Store id (cancel by it).
+    pub id: i64,
+    /// `real/enclosure-a` etc.
+    pub env_id: String,
+    /// Holder's user name.
+    pub user: String,
+    /// Slot start, Unix ms.
+    pub start_unix_ms: i64,
+    /// Slot end (exclusive), Unix ms.
+    pub end_unix_ms: i64,
+}
+
+/// Bookings of one env: make, list, cancel.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum BookingRequest {
+    /// Reserve `[start, end)`; refused (409) if it overlaps another slot.
+    Make {
+        /// The user's access token.
+        token: String,
+        /// Unix ms.
+        start_unix_ms: i64,
+        /// Unix ms.
+        end_unix_ms: i64,
+    },
+    /// Slots that end after `from_unix_ms`, earliest first.
+    List {
+        /// Unix ms.
+        from_unix_ms: i64,
+    },
+    /// Cancel one of your slots (operators: any slot).
+    Cancel {
+        /// The user's access token.
+        token: String,
+        /// [`Booking::id`].
+        id: i64,
+    },
+}
+
+/// Answer to a [`BookingRequest`]: the slot made, or the slots listed or
+/// remaining after a cancel.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Bookings {
+    /// Earliest first.
+    pub bookings: Vec<Booking>,
+}

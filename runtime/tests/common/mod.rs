@@ -360,5 +360,33 @@ macro_rules! for_each_sample {
             },
         );
         $f("WireError", wire_error());
+        $f(
+            "BookingRequest",
+            BookingRequest::Make {
+                token: "t".into(),
+                start_unix_ms: 1_800_000_000_000,
+                end_unix_ms: 1_800_000_900_000,
+            },
+        );
+        $f("BookingRequest", BookingRequest::List { from_unix_ms: -1 });
+        $f(
+            "BookingRequest",
+            BookingRequest::Cancel {
+                token: "t".into(),
+                id: 7,
+            },
+        );
+        $f(
+            "Bookings",
+            Bookings {
+                bookings: vec![Booking {
+                    id: 7,
+                    env_id: "real/enclosure-a".into(),
+                    user: "alice".into(),
+                    start_unix_ms: 1_800_000_000_000,
+                    end_unix_ms: 1_800_000_900_000,
+                }],
+            },
+        );
     }};
 }

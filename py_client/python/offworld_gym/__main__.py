@@ -1,0 +1,91 @@
+"""``python -m offworld_gym``: what a deployment offers, from the command line.
+
+    python -m offworld_gym envs --connect tls/router.example:7447
+    python -m offworld_gym bookings --env real/enclosure-a
+    python -m offworld_gym book --env real/enclosure-a --start 2026-12-01T14:00 --minutes 60
+    python -m offworld_gym cancel-booking --env real/enclosure-a --id 3
+
+Credentials: ``OFFWORLD_GYM_ACCESS_TOKEN`` (or ``--token``); TLS and Zenoh
+user/password from the config file in ``OFFWORLD_ZENOH_CONFIG``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+
+from offworld_gym.bookings import Booking, book, bookings, cancel_booking
+from offworld_gym.discovery import list_envs
+from offworld_gym.errors import OffWorldGymError
+
+
+def _when(unix_ms: int | None) -> str:
+    if unix_ms is None:
+        return ""
+    return datetime.datetime.fromtimestamp(unix_ms / 1000, tz=datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m offworld_gym", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    envs = sub.add_parser("envs", help="list envs, their tasks and availability")
+    envs.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
+    envs.add_argument("--timeout", type=float, default=2.0, help="seconds per query")
+    envs.add_argument("--json", action="store_true", help="print JSON")
+    listing = sub.add_parser("bookings", help="list an env's booked slots")
+    made = sub.add_parser("book", help="reserve a slot on an env")
+    made.add_argument("--start", required=True, help="ISO time, e.g. 2026-12-01T14:00 (local) or …Z")
+    made.add_argument("--minutes", type=float, required=True, help="slot length")
+    cancel = sub.add_parser("cancel-booking", help="cancel one of your slots")
+    cancel.add_argument("--id", type=int, required=True, help="booking id (see `bookings`)")
+    for p in (listing, made, cancel):
+        p.add_argument("--env", required=True, help="env id, e.g. real/enclosure-a")
+        p.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
+        p.add_argument("--json", action="store_true", help="print JSON")
+    for p in (made, cancel):
+        p.add_argument("--token", help="access token (default: OFFWORLD_GYM_ACCESS_TOKEN)")
+    args = parser.parse_args(argv)
+    try:
+        if args.command != "envs":
+            return _bookings_command(args)
+        listed = list_envs(args.connect, args.timeout)
+    except (OffWorldGymError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(listed, indent=1))
+        return 0
+    for env in listed:
+        state = env["state"]
+        if state == "leased":
+            state += f" until {_when(env['until_unix_ms'])}"
+        elif env["message"]:
+            state += f" ({env['message']})"
+        print(f"{env['env_id']:<28} {env['task'] or '-':<26} {state:<40} {','.join(env['components'])}")
+    if not listed:
+        print("no envs found", file=sys.stderr)
+    return 0
+
+
+def _bookings_command(args: argparse.Namespace) -> int:
+    slots: list[Booking]
+    if args.command == "book":
+        start = datetime.datetime.fromisoformat(args.start)
+        end = start + datetime.timedelta(minutes=args.minutes)
+        slots = [book(args.env, start, end, token=args.token, connect=args.connect)]
+    elif args.command == "cancel-booking":
+        slots = cancel_booking(args.env, args.id, token=args.token, connect=args.connect)
+    else:
+        slots = bookings(args.env, connect=args.connect)
+    if args.json:
+        print(json.dumps(slots, indent=1))
+        return 0
+    for b in slots:
+        print(f"{b['id']:>5}  {b['env_id']:<24} {_when(b['start_unix_ms'])} .. {_when(b['end_unix_ms'])}  {b['user']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

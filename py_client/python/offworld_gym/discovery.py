@@ -1,0 +1,33 @@
+"""What a deployment offers: its envs, their tasks and availability."""
+
+from __future__ import annotations
+
+import os
+from typing import TypedDict
+
+from offworld_gym import _native
+from offworld_gym._config import CONNECT_ENV
+
+
+class EnvInfo(TypedDict):
+    """One env of a deployment."""
+
+    env_id: str
+    #: ``MonolithDiscrete`` etc.; empty when the env has no live controller.
+    task: str
+    #: ``free``, ``leased``, ``maintenance`` or ``offline``.
+    state: str
+    #: Lease expiry (Unix ms) while ``leased``.
+    until_unix_ms: int | None
+    #: Maintenance message or why the env is offline.
+    message: str
+    #: Live components: ``controller``, ``sim_twin``, ``robot_agent``, …
+    components: list[str]
+
+
+def list_envs(connect: str | None = None, timeout: float = 2.0) -> list[EnvInfo]:
+    """Lists the envs reachable through ``connect`` (or ``OFFWORLD_GYM_CONNECT``;
+    the Zenoh config file in ``OFFWORLD_ZENOH_CONFIG`` supplies TLS and
+    credentials), sorted by env id."""
+    connect = connect or os.environ.get(CONNECT_ENV)
+    return _native.list_envs(connect, timeout)  # type: ignore[return-value]

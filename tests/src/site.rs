@@ -1,0 +1,299 @@
+//! A distributed deployment for tests, built from the repository's own
+//! deployment files: the real `zenohd` router (installed by `.ci/setup`)
+//! with `deploy/router/zenohd.json5` (TLS, mutual TLS for site components,
+//! user/password for everyone, access control), and every component as a
+//! separate process connecting with its role file from `deploy/roles/`.
+//! Certificates come from `deploy/certs/generate.sh`; only paths, passwords
+//! and addresses are overridden (`--cfg`), never the rules.
+//!
+//! The router listens on two loopback addresses other than 127.0.0.1:
+//! `127.0.0.2` for trainers (server-authenticated TLS) and `127.0.0.3` for
+//! site components (mutual TLS).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use offworld_runtime::SessionConfig;
+
+use crate::Process;
+
+/// The roles of `deploy/roles/` (and of the router's ACL subjects).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// A researcher's client: gym queries and spectator keys only.
+    Trainer,
+    /// The gym server.
+    Controller,
+    /// A sim twin (an agent).
+    SimTwin,
+    /// The robot agent.
+    RobotAgent,
+    /// An operator: e-stops, admin, watching everything.
+    Operator,
+}
+
+impl Role {
+    /// The role's user name, certificate common name and file stem.
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Trainer => "trainer",
+            Role::Controller => "env_controller",
+            Role::SimTwin => "sim_twin",
+            Role::RobotAgent => "robot_agent",
+            Role::Operator => "operator",
+        }
+    }
+
+    /// Site components connect with a client certificate (mutual TLS).
+    pub fn is_site(self) -> bool {
+        self != Role::Trainer
+    }
+
+    const ALL: [Role; 5] = [
+        Role::Trainer,
+        Role::Controller,
+        Role::SimTwin,
+        Role::RobotAgent,
+        Role::Operator,
+    ];
+}
+
+/// The repository's `deploy/` folder.
+pub fn deploy_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap_or_else(|| Path::new(".."))
+        .join("deploy")
+}
+
+/// A free TCP port on `ip`.
+fn free_port(ip: &str) -> std::io::Result<u16> {
+    Ok(std::net::TcpListener::bind((ip, 0))?.local_addr()?.port())
+}
+
+fn json_string(s: &str) -> String {
+    serde_json::to_string(s).unwrap_or_else(|_| format!("\"{s}\""))
+}
+
+/// The router and the files of one deployment (removed on drop).
+pub struct RouterSite {
+    /// Certificates, users.txt, databases.
+    pub dir: PathBuf,
+    /// Where trainers connect: `tls/127.0.0.2:<port>`.
+    pub trainer_endpoint: String,
+    /// Where site components connect: `tls/127.0.0.3:<port>` (mutual TLS).
+    pub site_endpoint: String,
+    router: Option<Process>,
+}
+
+impl RouterSite {
+    /// Generates certificates and passwords, starts `zenohd` and waits until
+    /// both listeners accept connections.
+    pub fn start(name: &str) -> anyhow::Result<Self> {
+        let dir = std::env::temp_dir().join(format!(
+            "offworld-site-{name}-{}-{}",
+            std::process::id(),
+            offworld_runtime::client::random_id()
+        ));
+        std::fs::create_dir_all(&dir)?;
+        let status = Command::new("bash")
+            .arg(deploy_dir().join("certs/generate.sh"))
+            .arg(&dir)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()?;
+        anyhow::ensure!(
+            status.success(),
+            "deploy/certs/generate.sh failed: {status}"
+        );
+        let users: String = Role::ALL
+            .iter()
+            .map(|r| format!("{}:{}\n", r.name(), Self::password(r.name())))
+            .collect();
+        std::fs::write(dir.join("users.txt"), users)?;
+        let mut site = Self {
+            trainer_endpoint: format!("tls/127.0.0.2:{}", free_port("127.0.0.2")?),
+            site_endpoint: format!("tls/127.0.0.3:{}", free_port("127.0.0.3")?),
+            dir,
+            router: None,
+        };
+        site.start_router()?;
+        Ok(site)
+    }
+
+    /// The test password of a user (users.txt).
+    pub fn password(user: &str) -> String {
+        format!("{user}-secret")
+    }
+
+    /// Starts (or restarts) `zenohd` on the same endpoints and waits until it
+    /// accepts connections.
+    pub fn start_router(&mut self) -> anyhow::Result<()> {
+        self.stop_router();
+        let file = |name: &str| json_string(&self.dir.join(name).to_string_lossy());
+        let listen = format!(
+            "[{},{}]",
+            json_string(&self.trainer_endpoint),
+            json_string(&format!("{}#enable_mtls=true", self.site_endpoint))
+        );
+        let overrides = [
+            format!("transport/link/tls/root_ca_certificate:{}", file("ca.pem")),
+            format!(
+                "transport/link/tls/listen_private_key:{}",
+                file("router.key")
+            ),
+            format!(
+                "transport/link/tls/listen_certificate:{}",
+                file("router.pem")
+            ),
+            format!(
+                "transport/auth/usrpwd/dictionary_file:{}",
+                file("users.txt")
+            ),
+            format!("listen/endpoints:{listen}"),
+        ];
+        let mut args = vec![
+            "-c".to_owned(),
+            deploy_dir()
+                .join("router/zenohd.json5")
+                .to_string_lossy()
+                .into_owned(),
+        ];
+        for o in overrides {
+            args.push("--cfg".into());
+            args.push(o);
+        }
+        let child = Command::new(zenohd())
+            .args(&args)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .map_err(|e| anyhow::anyhow!("zenohd (installed by .ci/setup): {e}"))?;
+        self.router = Some(Process(child));
+        for endpoint in [&self.trainer_endpoint, &self.site_endpoint] {
+            wait_listening(endpoint, Duration::from_secs(20))?;
+        }
+        Ok(())
+    }
+
+    /// Kills the router (SIGKILL): every link drops at once.
+    pub fn stop_router(&mut self) {
+        self.router = None;
+    }
+
+    /// The endpoint a role connects to.
+    pub fn endpoint(&self, role: Role) -> &str {
+        if role.is_site() {
+            &self.site_endpoint
+        } else {
+            &self.trainer_endpoint
+        }
+    }
+
+    /// `--cfg` overrides a role's process needs on top of its role file:
+    /// certificate paths and its password.
+    pub fn overrides(&self, role: Role) -> Vec<String> {
+        let file = |name: &str| json_string(&self.dir.join(name).to_string_lossy());
+        let mut o = vec![
+            format!("transport/link/tls/root_ca_certificate:{}", file("ca.pem")),
+            format!(
+                "transport/auth/usrpwd/password:{}",
+                json_string(&Self::password(role.name()))
+            ),
+        ];
+        if role.is_site() {
+            o.push(format!(
+                "transport/link/tls/connect_private_key:{}",
+                file(&format!("{}.key", role.name()))
+            ));
+            o.push(format!(
+                "transport/link/tls/connect_certificate:{}",
+                file(&format!("{}.pem", role.name()))
+            ));
+        }
+        o
+    }
+
+    /// The Zenoh flags of a component process of `role`:
+    /// `-c deploy/roles/<role>.json5 --connect <endpoint> --cfg …`.
+    pub fn role_args(&self, role: Role) -> Vec<String> {
+        let mut args = vec![
+            "-c".to_owned(),
+            role_file(role).to_string_lossy().into_owned(),
+            "--connect".to_owned(),
+            self.endpoint(role).to_owned(),
+        ];
+        for o in self.overrides(role) {
+            args.push("--cfg".into());
+            args.push(o);
+        }
+        args
+    }
+
+    /// The session config of an in-test participant of `role`.
+    pub fn session(&self, role: Role) -> SessionConfig {
+        SessionConfig {
+            config_file: Some(role_file(role)),
+            connect: vec![self.endpoint(role).to_owned()],
+            overrides: self.overrides(role),
+            ..SessionConfig::default()
+        }
+    }
+
+    /// Starts a workspace binary as `role` with extra arguments after the
+    /// Zenoh flags.
+    pub fn spawn(
+        &self,
+        binary: &str,
+        role: Role,
+        before: &[&str],
+        after: &[&str],
+    ) -> anyhow::Result<Process> {
+        let mut args: Vec<String> = before.iter().map(|s| s.to_string()).collect();
+        args.extend(self.role_args(role));
+        args.extend(after.iter().map(|s| s.to_string()));
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        Ok(Process::spawn_logged(binary, &refs, "warn")?)
+    }
+}
+
+impl Drop for RouterSite {
+    fn drop(&mut self) {
+        self.stop_router();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// `deploy/roles/<role>.json5`.
+pub fn role_file(role: Role) -> PathBuf {
+    deploy_dir().join(format!("roles/{}.json5", role.name()))
+}
+
+/// The router binary: `$ZENOHD` or `zenohd` on `PATH` (`.ci/env` puts the
+/// project's install first).
+pub fn zenohd() -> PathBuf {
+    std::env::var_os("ZENOHD")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("zenohd"))
+}
+
+fn wait_listening(endpoint: &str, timeout: Duration) -> anyhow::Result<()> {
+    let addr = endpoint
+        .split_once('/')
+        .map(|(_, a)| a)
+        .unwrap_or(endpoint)
+        .to_owned();
+    let deadline = Instant::now() + timeout;
+    loop {
+        if std::net::TcpStream::connect(&addr).is_ok() {
+            return Ok(());
+        }
+        anyhow::ensure!(
+            Instant::now() < deadline,
+            "zenohd is not listening on {addr}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
