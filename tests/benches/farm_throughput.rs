@@ -1,0 +1,178 @@
+//! Sim-farm throughput: total steps/s a trainer gets from N sim twins
+//! (separate `sim_twin` processes, 84×84, lockstep) behind one
+//! `env_controller` process, stepped together with `VecEnvClient`
+//! (one concurrent fan-out per step), for N = 1, 2, 4 — through the
+//! `zenohd` router with the repository's deployment files (TLS, mTLS,
+//! passwords, ACL) against plain TCP peer to peer, in one run.
+//!
+//! `cargo bench -p offworld-tests --bench farm_throughput`
+//! (`FARM_SECONDS` per measurement, default 8; `FARM_SIZES`, default `1,2,4`).
+
+use std::time::{Duration, Instant};
+
+use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
+use offworld_runtime::msg::*;
+use offworld_runtime::session::loopback_endpoint;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
+use offworld_tests::site::{Role, RouterSite};
+use offworld_tests::Process;
+
+fn seconds() -> f64 {
+    std::env::var("FARM_SECONDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8.0)
+}
+
+fn sizes() -> Vec<usize> {
+    std::env::var("FARM_SIZES")
+        .ok()
+        .map(|v| v.split(',').filter_map(|s| s.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![1, 2, 4])
+}
+
+fn envs(n: usize, tag: &str) -> anyhow::Result<Vec<EnvId>> {
+    (0..n)
+        .map(|i| Ok(EnvId::sim(&format!("farm-{tag}-{n}-{i}"))?))
+        .collect()
+}
+
+fn serve_args(db: &str, envs: &[EnvId]) -> Vec<String> {
+    let mut args = vec!["--db".into(), db.into(), "serve".into()];
+    for env in envs {
+        args.push("--env".into());
+        args.push(format!("{env}=MonolithDiscrete"));
+    }
+    args
+}
+
+fn twin_args(env: &EnvId) -> Vec<String> {
+    vec![
+        "--env".into(),
+        env.to_string(),
+        "--resolution".into(),
+        "84x84".into(),
+    ]
+}
+
+async fn open_all(session: &Session, envs: &[EnvId]) -> anyhow::Result<VecEnvClient> {
+    let request = OpenRequest::anonymous(ObsOptions {
+        channels: Channels::DepthOnly,
+        height: 84,
+        width: 84,
+        depth_format: DepthFormat::Uint8,
+    });
+    let mut clients = Vec::new();
+    for env in envs {
+        let mut attempts = 0;
+        let client = loop {
+            match EnvClient::open(session, env, request.clone(), ClientTimeouts::default()).await {
+                Ok(c) => break c,
+                Err(e)
+                    if attempts < 300
+                        && matches!(
+                            e.code,
+                            ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
+                        ) =>
+                {
+                    attempts += 1;
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+                Err(e) => anyhow::bail!("open {env}: {e}"),
+            }
+        };
+        clients.push(client);
+    }
+    Ok(VecEnvClient::new(clients))
+}
+
+/// Total steps/s over `seconds()` after a warm-up.
+async fn measure(vec: &mut VecEnvClient) -> anyhow::Result<f64> {
+    let n = vec.len();
+    let seeds: Vec<Seed> = (0..n as u64).map(Seed::Fixed).collect();
+    vec.reset(&seeds).await.map_err(|e| anyhow::anyhow!(e))?;
+    let actions = |i: usize| {
+        (0..n)
+            .map(|k| Action::Discrete(((i + k) % 4) as i64))
+            .collect()
+    };
+    for i in 0..20 {
+        vec.step(actions(i)).await.map_err(|e| anyhow::anyhow!(e))?;
+    }
+    let start = Instant::now();
+    let mut rounds = 0usize;
+    while start.elapsed().as_secs_f64() < seconds() {
+        vec.step(actions(rounds))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        rounds += 1;
+    }
+    let rate = (rounds * n) as f64 / start.elapsed().as_secs_f64();
+    vec.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    Ok(rate)
+}
+
+fn spawn(binary: &str, args: &[String]) -> anyhow::Result<Process> {
+    let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+    Ok(Process::spawn_logged(binary, &refs, "warn")?)
+}
+
+async fn through_router(site: &RouterSite, n: usize) -> anyhow::Result<f64> {
+    let envs = envs(n, "router")?;
+    let db = site.dir.join(format!("router-{n}.db"));
+    let mut processes = Vec::new();
+    for env in &envs {
+        let mut args = twin_args(env);
+        args.extend(site.role_args(Role::SimTwin));
+        processes.push(spawn("sim_twin", &args)?);
+    }
+    let mut args = serve_args(&db.to_string_lossy(), &envs);
+    args.extend(site.role_args(Role::Controller));
+    processes.push(spawn("env_controller", &args)?);
+    let trainer = site.session(Role::Trainer).open().await?;
+    let mut vec = open_all(&trainer, &envs).await?;
+    let rate = measure(&mut vec).await;
+    drop(processes);
+    rate
+}
+
+async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
+    let envs = envs(n, "p2p")?;
+    let endpoint = loopback_endpoint()?;
+    let db = dir.join(format!("p2p-{n}.db"));
+    let mut processes = Vec::new();
+    let mut args = serve_args(&db.to_string_lossy(), &envs);
+    args.extend(["--listen".into(), endpoint.clone()]);
+    processes.push(spawn("env_controller", &args)?);
+    for env in &envs {
+        let mut args = twin_args(env);
+        args.extend(["--connect".into(), endpoint.clone()]);
+        processes.push(spawn("sim_twin", &args)?);
+    }
+    let trainer = SessionConfig::connecting(&endpoint).open().await?;
+    let mut vec = open_all(&trainer, &envs).await?;
+    let rate = measure(&mut vec).await;
+    drop(processes);
+    rate
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() -> anyhow::Result<()> {
+    let site = RouterSite::start("bench")?;
+    println!(
+        "sim farm throughput, 84x84 depth, lockstep twins, {} s per point, {} cores:",
+        seconds(),
+        std::thread::available_parallelism().map_or(0, |n| n.get())
+    );
+    println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
+    for n in sizes() {
+        let routed = through_router(&site, n).await?;
+        let direct = peer_to_peer(&site.dir, n).await?;
+        println!(
+            "  {n:>5} | {routed:>17.0} steps/s | {direct:>12.0} steps/s | {:>9.2}",
+            routed / direct
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,529 @@
+//! Beyond one machine: a sim site behind the real `zenohd` router with the
+//! repository's deployment files (TLS, mutual TLS for site components,
+//! user/password for every connection, access control). Every component is
+//! a separate process on its own loopback address pair; see
+//! `offworld_tests::site`.
+//!
+//! Every "denied" claim has a positive control: the same observer sees the
+//! allowed role do the same thing.
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::codec;
+use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
+use offworld_runtime::msg::*;
+use offworld_runtime::wire;
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::{ContractError, ErrorCode};
+use offworld_tests::site::{Role, RouterSite};
+use offworld_tests::Process;
+
+/// One site at a time: each runs a router and two component processes.
+static ONE_SITE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+const FORWARD: i64 = 2;
+
+/// A router, a sim twin (agent role) and a controller (controller role).
+struct SimSite {
+    site: RouterSite,
+    env: EnvId,
+    _twin: Process,
+    _controller: Process,
+}
+
+impl SimSite {
+    fn start(name: &str) -> anyhow::Result<Self> {
+        let site = RouterSite::start(name)?;
+        let env = EnvId::sim(&format!("{name}-0"))?;
+        let env_arg = env.to_string();
+        let twin = site.spawn(
+            "sim_twin",
+            Role::SimTwin,
+            &[],
+            &[
+                "--env",
+                &env_arg,
+                "--world",
+                "monolith",
+                "--resolution",
+                "84x84",
+            ],
+        )?;
+        let db = site.dir.join("gym.db");
+        let db = db.to_string_lossy();
+        let serve = format!("{env}=MonolithDiscrete");
+        let controller = site.spawn(
+            "env_controller",
+            Role::Controller,
+            &["--db", &db, "serve", "--env", &serve],
+            &[],
+        )?;
+        Ok(Self {
+            site,
+            env,
+            _twin: twin,
+            _controller: controller,
+        })
+    }
+
+    async fn session(&self, role: Role) -> Session {
+        self.site
+            .session(role)
+            .open()
+            .await
+            .unwrap_or_else(|e| panic!("{} session: {e}", role.name()))
+    }
+}
+
+fn request(experiment: &str, resume: bool) -> OpenRequest {
+    OpenRequest {
+        experiment_name: experiment.to_owned(),
+        resume_experiment: resume,
+        ..OpenRequest::anonymous(ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 84,
+            width: 84,
+            depth_format: DepthFormat::Uint8,
+        })
+    }
+}
+
+/// Opens the env once the controller and twin are up (bounded wait).
+async fn open(session: &Session, env: &EnvId, experiment: &str, resume: bool) -> EnvClient {
+    let mut last = None;
+    for _ in 0..300 {
+        match EnvClient::open(
+            session,
+            env,
+            request(experiment, resume),
+            ClientTimeouts::default(),
+        )
+        .await
+        {
+            Ok(client) => return client,
+            Err(e)
+                if matches!(
+                    e.code,
+                    ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
+                ) =>
+            {
+                last = Some(e);
+                tokio::time::sleep(Duration::from_millis(100)).await
+            }
+            Err(e) => panic!("open failed: {e}"),
+        }
+    }
+    panic!("the site did not come up within 30 s: {last:?}");
+}
+
+/// One received sample: key, seq attachment if any, payload.
+type Received = (String, Option<u64>, Vec<u8>);
+
+/// Everything a subscriber saw.
+#[derive(Clone, Default)]
+struct Seen(Arc<Mutex<Vec<Received>>>);
+
+impl Seen {
+    async fn watch(
+        session: &Session,
+        key: &str,
+    ) -> (Self, offworld_runtime::zenoh::pubsub::Subscriber<()>) {
+        let seen = Seen::default();
+        let log = seen.clone();
+        let sub = session
+            .declare_subscriber(key)
+            .callback(move |sample: Sample| {
+                let seq = wire::decode_attachment::<SeqTag>(&sample).map(|t| t.seq);
+                if let Ok(mut v) = log.0.lock() {
+                    v.push((
+                        sample.key_expr().as_str().to_owned(),
+                        seq,
+                        sample.payload().to_bytes().to_vec(),
+                    ));
+                }
+            })
+            .await
+            .expect("subscriber");
+        (seen, sub)
+    }
+
+    fn count(&self, topic: &str, seq: Option<u64>) -> usize {
+        self.0
+            .lock()
+            .map(|v| {
+                v.iter()
+                    .filter(|(k, s, _)| {
+                        k.ends_with(&format!("/{topic}")) && (seq.is_none() || *s == seq)
+                    })
+                    .count()
+            })
+            .unwrap_or(0)
+    }
+
+    /// The pose answering command `seq`, waiting up to 3 s for it (the
+    /// spy is a separate session: it may hear it after the step's reply).
+    async fn wait_pose(&self, seq: u64) -> Option<PoseStamped> {
+        for _ in 0..60 {
+            if let Some(p) = self.pose(seq) {
+                return Some(p);
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        None
+    }
+
+    /// The pose answering command `seq`.
+    fn pose(&self, seq: u64) -> Option<PoseStamped> {
+        let v = self.0.lock().ok()?;
+        v.iter()
+            .find(|(k, s, _)| k.ends_with("/pose") && *s == Some(seq))
+            .and_then(|(_, _, p)| codec::decode::<PoseStamped>(p).ok())
+    }
+
+    fn cmds(&self) -> Vec<MotionCommand> {
+        self.0
+            .lock()
+            .map(|v| {
+                v.iter()
+                    .filter(|(k, _, _)| k.ends_with("/cmd"))
+                    .filter_map(|(_, _, p)| codec::decode::<MotionCommand>(p).ok())
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
+}
+
+fn planar_distance(a: &PoseStamped, b: &PoseStamped) -> f64 {
+    let (pa, pb) = (&a.pose.position, &b.pose.position);
+    ((pa.x - pb.x).powi(2) + (pa.y - pb.y).powi(2)).sqrt()
+}
+
+/// Lets denied and allowed messages cross the router (or not).
+async fn settle() {
+    tokio::time::sleep(Duration::from_millis(700)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_episode_runs_through_the_router_over_tls_with_passwords() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = SimSite::start("episode")?;
+    let trainer = site.session(Role::Trainer).await;
+    let mut gym = open(&trainer, &site.env, "through-router", false).await;
+    let reset = gym
+        .reset(Seed::Fixed(7))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(reset.info.step, 0);
+    let o = &reset.observation;
+    assert_eq!((o.height, o.width, o.channels), (84, 84, 1));
+    let mut steps = 0u32;
+    let mut last = None;
+    for i in 0..100 {
+        let r = gym
+            .step(Action::Discrete([FORWARD, 0, FORWARD, 1][i % 4]))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        steps += 1;
+        assert_eq!(r.info.step, steps);
+        assert_eq!(r.observation.data.len(), 84 * 84);
+        let done = r.terminated || r.truncated;
+        last = Some(r);
+        if done {
+            break;
+        }
+    }
+    let last = last.expect("stepped");
+    assert!(
+        last.terminated || last.truncated,
+        "an episode ends by step 100"
+    );
+    let closed = gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(closed.experiment.episodes, 1);
+    assert_eq!(closed.experiment.steps, u64::from(steps));
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = RouterSite::start("auth")?;
+    let refused = |config: offworld_runtime::SessionConfig| async move {
+        match config.open().await {
+            Err(ContractError::Zenoh(_)) => Ok(()),
+            Err(e) => Err(anyhow::anyhow!("refused with an unexpected error: {e}")),
+            Ok(_) => Err(anyhow::anyhow!("the router accepted the connection")),
+        }
+    };
+    // Positive control: the trainer's own credentials work.
+    site.session(Role::Trainer).open().await?;
+    // No user/password.
+    let mut anonymous = site.session(Role::Trainer);
+    anonymous
+        .overrides
+        .retain(|o| !o.starts_with("transport/auth"));
+    anonymous
+        .overrides
+        .push("transport/auth/usrpwd/user:null".into());
+    anonymous
+        .overrides
+        .push("transport/auth/usrpwd/password:null".into());
+    refused(anonymous).await?;
+    // A wrong password.
+    let mut wrong = site.session(Role::Trainer);
+    wrong
+        .overrides
+        .push(r#"transport/auth/usrpwd/password:"guess""#.into());
+    refused(wrong).await?;
+    // Plain TCP to the TLS port.
+    let mut plain = site.session(Role::Trainer);
+    plain.connect = vec![site.trainer_endpoint.replace("tls/", "tcp/")];
+    refused(plain).await?;
+    // The site port needs a client certificate: a trainer's password is not enough.
+    let mut no_cert = site.session(Role::Trainer);
+    no_cert.connect = vec![site.site_endpoint.clone()];
+    refused(no_cert).await?;
+    // A certificate signed by another CA.
+    let other_ca = site.dir.join("other-ca");
+    let status = std::process::Command::new("bash")
+        .arg(offworld_tests::site::deploy_dir().join("certs/generate.sh"))
+        .arg(&other_ca)
+        .stderr(std::process::Stdio::null())
+        .status()?;
+    assert!(status.success());
+    let mut forged = site.session(Role::SimTwin);
+    forged.overrides.push(format!(
+        "transport/link/tls/connect_certificate:{:?}",
+        other_ca.join("sim_twin.pem")
+    ));
+    forged.overrides.push(format!(
+        "transport/link/tls/connect_private_key:{:?}",
+        other_ca.join("sim_twin.key")
+    ));
+    refused(forged).await?;
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = SimSite::start("acl")?;
+    let env = site.env.clone();
+    let operator = site.session(Role::Operator).await;
+    let (spy, _spy_sub) = Seen::watch(&operator, &format!("{}/**", env.prefix())).await;
+    let (spy_global, _spy_global_sub) = Seen::watch(&operator, &global_estop_key()).await;
+    let trainer = site.session(Role::Trainer).await;
+    let mut gym = open(&trainer, &env, "acl", false).await;
+    gym.reset(Seed::Fixed(3))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+
+    // A trainer cannot read localisation or sensor data.
+    let mallory = site.session(Role::Trainer).await;
+    let (stolen, _stolen_sub) = Seen::watch(&mallory, &env.key(Topic::Pose)).await;
+    let (stolen_obs, _stolen_obs_sub) = Seen::watch(&mallory, &env.key(Topic::Obs)).await;
+    // …but may watch episode events.
+    let (events, _events_sub) = Seen::watch(&mallory, &env.key(Topic::Reward)).await;
+    settle().await;
+    for _ in 0..3 {
+        step(&mut gym, &spy).await;
+    }
+    settle().await;
+    assert!(spy.count("pose", None) >= 3, "control: poses flow");
+    assert_eq!(stolen.count("pose", None), 0, "a trainer read poses");
+    assert_eq!(stolen_obs.count("obs", None), 0, "a trainer read frames");
+    assert!(
+        events.count("reward", None) >= 3,
+        "spectator keys are readable"
+    );
+
+    // Only the controller commands the robot: a trainer's and an agent's
+    // commands never arrive, and the twin never moves for them.
+    let cmds_before = spy.cmds().len();
+    assert!(
+        cmds_before >= 4,
+        "control: the controller's commands arrive"
+    );
+    let rogue = MotionCommand {
+        seq: 900_001,
+        linear_x: 0.3,
+        angular_z: 0.0,
+        duration_s: 1.0,
+    };
+    wire::put(&mallory, &env.key(Topic::Cmd), &rogue).await?;
+    let agent = site.session(Role::SimTwin).await;
+    let agent_cmd = MotionCommand {
+        seq: 900_002,
+        ..rogue
+    };
+    wire::put(&agent, &env.key(Topic::Cmd), &agent_cmd).await?;
+    settle().await;
+    let seqs: Vec<u64> = spy.cmds().iter().map(|c| c.seq).collect();
+    assert!(
+        !seqs.contains(&900_001) && !seqs.contains(&900_002),
+        "{seqs:?}"
+    );
+    for seq in [900_001, 900_002] {
+        assert_eq!(spy.count("pose", Some(seq)), 0, "the twin answered {seq}");
+        assert_eq!(spy.count("obs", Some(seq)), 0, "the twin answered {seq}");
+    }
+
+    // Only agents publish sensor data: a trainer's and the controller's
+    // fake poses never arrive.
+    let fake = PoseStamped {
+        header: Header::new(Time::default(), "forged"),
+        pose: Pose::default(),
+    };
+    wire::put(&mallory, &env.key(Topic::Pose), &fake).await?;
+    let controller_session = site.session(Role::Controller).await;
+    wire::put(&controller_session, &env.key(Topic::Pose), &fake).await?;
+    settle().await;
+    let forged = spy
+        .0
+        .lock()
+        .map(|v| {
+            v.iter()
+                .filter(|(k, _, p)| {
+                    k.ends_with("/pose")
+                        && codec::decode::<PoseStamped>(p)
+                            .map(|p| p.header.frame_id == "forged")
+                            .unwrap_or(false)
+                })
+                .count()
+        })
+        .unwrap_or(0);
+    assert_eq!(forged, 0, "a forged pose arrived");
+
+    // E-stops are for operators: a trainer's and the controller's e-stops
+    // do not stop the robot…
+    let engage = EStop {
+        engaged: true,
+        reason: "test".into(),
+    };
+    wire::put(&mallory, &env.key(Topic::EStop), &engage).await?;
+    wire::put(&mallory, &global_estop_key(), &engage).await?;
+    wire::put(&controller_session, &env.key(Topic::EStop), &engage).await?;
+    settle().await;
+    assert_eq!(spy.count("estop", None), 0);
+    assert_eq!(spy_global.count("estop", None), 0);
+    let moved_seq = step(&mut gym, &spy).await;
+    let before = spy.wait_pose(moved_seq - 1).await.expect("pose before");
+    let after = spy.wait_pose(moved_seq).await.expect("pose after");
+    assert!(
+        planar_distance(&before, &after) > 0.03,
+        "the robot moved: {before:?} -> {after:?}"
+    );
+    // …an operator's does.
+    wire::put(&operator, &env.key(Topic::EStop), &engage).await?;
+    settle().await;
+    assert_eq!(spy.count("estop", None), 1);
+    let held_seq = step(&mut gym, &spy).await;
+    let before = spy.wait_pose(held_seq - 1).await.expect("pose before");
+    let after = spy.wait_pose(held_seq).await.expect("pose after");
+    assert!(
+        planar_distance(&before, &after) < 0.005,
+        "the e-stopped robot moved: {before:?} -> {after:?}"
+    );
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    Ok(())
+}
+
+/// Steps FORWARD and returns the command's seq as the spy saw it; on
+/// failure, says what the spy saw of that command.
+async fn step(gym: &mut EnvClient, spy: &Seen) -> u64 {
+    let before = spy.cmds().len();
+    if let Err(e) = gym.step(Action::Discrete(FORWARD)).await {
+        let seq = last_cmd_seq(spy);
+        let seqs: Vec<u64> = spy.cmds().iter().map(|c| c.seq).collect();
+        panic!(
+            "step failed: {e}; commands seen {seqs:?}; answers to {seq}: pose {} obs {} odom {}",
+            spy.count("pose", Some(seq)),
+            spy.count("obs", Some(seq)),
+            spy.count("odom", Some(seq))
+        );
+    }
+    for _ in 0..60 {
+        if spy.cmds().len() > before {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    last_cmd_seq(spy)
+}
+
+/// The seq of the newest command the spy saw.
+fn last_cmd_seq(spy: &Seen) -> u64 {
+    spy.cmds().last().map(|c| c.seq).expect("a command")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() -> anyhow::Result<()>
+{
+    let _one = ONE_SITE.lock().await;
+    let mut site = SimSite::start("restart")?;
+    let trainer = site.session(Role::Trainer).await;
+    let mut gym = open(&trainer, &site.env, "survives-restart", false).await;
+    // One whole episode, then two steps into the next.
+    gym.reset(Seed::Fixed(11))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let mut first = 0u64;
+    loop {
+        let r = gym
+            .step(Action::Discrete([FORWARD, 0, 1][first as usize % 3]))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        first += 1;
+        if r.terminated || r.truncated {
+            break;
+        }
+    }
+    gym.reset(Seed::Fixed(12))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    for _ in 0..2 {
+        gym.step(Action::Discrete(FORWARD))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+    }
+
+    // The router dies: the next step fails with a typed error, no hang.
+    site.site.stop_router();
+    let lost = gym
+        .step(Action::Discrete(FORWARD))
+        .await
+        .expect_err("no router");
+    assert!(
+        matches!(
+            lost.code,
+            ErrorCode::Timeout | ErrorCode::Unavailable | ErrorCode::NotFound
+        ),
+        "{lost}"
+    );
+
+    // It comes back on the same endpoints; every client reconnects by
+    // itself and the trainer resumes its experiment.
+    site.site.start_router()?;
+    let mut resumed = open(&trainer, &site.env, "survives-restart", true).await;
+    let info = resumed.opened().experiment.clone();
+    // Nothing recorded is lost: the finished episode and the interrupted
+    // one (recorded as aborted) with all their steps.
+    assert_eq!(info.episodes, 2, "{info:?}");
+    assert_eq!(info.steps, first + 2, "{info:?}");
+    resumed
+        .reset(Seed::Fixed(13))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let r = resumed
+        .step(Action::Discrete(FORWARD))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(r.info.step, 1);
+    assert_eq!(r.info.episode_id, 2, "episode numbering continues");
+    let closed = resumed.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(closed.experiment.episodes, 3);
+    assert_eq!(closed.experiment.steps, first + 3);
+    Ok(())
+}
