@@ -167,6 +167,17 @@ impl SessionConfig {
                 self.multicast_scouting.to_string(),
             )?;
         }
+        // Zenoh drops a message after waiting 1 ms for a full queue; on a
+        // loaded 2-core host (or a TLS hop) a step's answer then vanishes.
+        // Wait up to 50 ms first. Blocking instead would close the whole
+        // session after 5 s of congestion, which is worse.
+        if self.config_file.is_none() {
+            set(
+                &mut config,
+                "transport/link/tx/queue/congestion_control/drop/wait_before_drop",
+                PATIENT_DROP_US.to_string(),
+            )?;
+        }
         for item in &self.overrides {
             let (key, value) = item.split_once(':').ok_or_else(|| {
                 ContractError::Config(format!(
@@ -185,6 +196,10 @@ impl SessionConfig {
             .map_err(ContractError::from)
     }
 }
+
+/// How long a publisher waits for room in a full queue before Zenoh drops
+/// the message, µs (Zenoh's default: 1000). Deployment files set the same.
+pub const PATIENT_DROP_US: u64 = 50_000;
 
 /// Session flags shared by every binary (flatten into a clap parser).
 #[derive(Debug, Clone, Default, clap::Args)]

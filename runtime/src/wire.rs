@@ -5,7 +5,6 @@ use std::time::{Duration, Instant};
 
 use serde::{de::DeserializeOwned, Serialize};
 use zenoh::bytes::{Encoding, ZBytes};
-use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, QueryTarget};
 use zenoh::Session;
 
@@ -54,25 +53,17 @@ impl RequestError {
     }
 }
 
-/// Congestion control of the contract's messages: commands, answers and
-/// events are never dropped on a congested link (Zenoh's default for puts
-/// is to drop); a full queue makes the publisher wait instead. Spectator
-/// streams (overhead cameras, free-running tracker poses) keep dropping.
-pub const RELIABLE: CongestionControl = CongestionControl::Block;
-
-/// Puts one message on `key` (labelled as CDR), never dropped ([`RELIABLE`]).
+/// Puts one message on `key` (labelled as CDR).
 pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<(), RequestError> {
     let bytes = codec::encode(msg)?;
     session
         .put(key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
-        .congestion_control(RELIABLE)
         .await
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
 
-/// Puts one message with a CDR-encoded attachment (e.g. a
-/// [`crate::msg::SeqTag`]), never dropped ([`RELIABLE`]).
+/// Puts one message with a CDR-encoded attachment (e.g. a [`crate::msg::SeqTag`]).
 pub async fn put_with_attachment<T: Serialize, A: Serialize>(
     session: &Session,
     key: &str,
@@ -85,7 +76,6 @@ pub async fn put_with_attachment<T: Serialize, A: Serialize>(
         .put(key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
         .attachment(attachment)
-        .congestion_control(RELIABLE)
         .await
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }

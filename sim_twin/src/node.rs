@@ -432,7 +432,6 @@ impl Worker {
             .session
             .put(&self.keys.obs, self.buffer.clone())
             .encoding(Encoding::APPLICATION_CDR)
-            .congestion_control(wire::RELIABLE)
             .wait();
         if let Err(e) = put {
             tracing::warn!("obs put failed: {e}");
@@ -458,10 +457,7 @@ impl Worker {
             .session
             .put(key, bytes)
             .encoding(Encoding::APPLICATION_CDR);
-        // Answers to a command are never dropped; the free-running tracker
-        // stream may be.
         if let Some(tag) = tag {
-            put = put.congestion_control(wire::RELIABLE);
             match codec::encode(&tag) {
                 Ok(a) => put = put.attachment(a),
                 Err(e) => tracing::error!("cannot encode tag: {e}"),

@@ -15,7 +15,7 @@ use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
-use offworld_tests::site::{Role, RouterSite};
+use offworld_tests::site::{Role, SimFarm};
 use offworld_tests::Process;
 
 fn seconds() -> f64 {
@@ -56,13 +56,16 @@ fn twin_args(env: &EnvId) -> Vec<String> {
     ]
 }
 
-async fn open_all(session: &Session, envs: &[EnvId]) -> anyhow::Result<VecEnvClient> {
-    let request = OpenRequest::anonymous(ObsOptions {
-        channels: Channels::DepthOnly,
-        height: 84,
-        width: 84,
-        depth_format: DepthFormat::Uint8,
-    });
+async fn open_all(session: &Session, envs: &[EnvId], token: &str) -> anyhow::Result<VecEnvClient> {
+    let request = OpenRequest {
+        token: token.to_owned(),
+        ..OpenRequest::anonymous(ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 84,
+            width: 84,
+            depth_format: DepthFormat::Uint8,
+        })
+    };
     let mut clients = Vec::new();
     for env in envs {
         let mut attempts = 0;
@@ -118,23 +121,12 @@ fn spawn(binary: &str, args: &[String]) -> anyhow::Result<Process> {
     Ok(Process::spawn_logged(binary, &refs, "warn")?)
 }
 
-async fn through_router(site: &RouterSite, n: usize) -> anyhow::Result<f64> {
-    let envs = envs(n, "router")?;
-    let db = site.dir.join(format!("router-{n}.db"));
-    let mut processes = Vec::new();
-    for env in &envs {
-        let mut args = twin_args(env);
-        args.extend(site.role_args(Role::SimTwin));
-        processes.push(spawn("sim_twin", &args)?);
-    }
-    let mut args = serve_args(&db.to_string_lossy(), &envs);
-    args.extend(site.role_args(Role::Controller));
-    processes.push(spawn("env_controller", &args)?);
-    let trainer = site.session(Role::Trainer).open().await?;
-    let mut vec = open_all(&trainer, &envs).await?;
-    let rate = measure(&mut vec).await;
-    drop(processes);
-    rate
+async fn through_router(n: usize) -> anyhow::Result<f64> {
+    let farm = SimFarm::start(&format!("router-{n}"), n, "MonolithDiscrete")?;
+    farm.ready(Duration::from_secs(60)).await?;
+    let trainer = farm.site.session(Role::Trainer).open().await?;
+    let mut vec = open_all(&trainer, &farm.envs, &farm.token).await?;
+    measure(&mut vec).await
 }
 
 async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
@@ -151,7 +143,7 @@ async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
         processes.push(spawn("sim_twin", &args)?);
     }
     let trainer = SessionConfig::connecting(&endpoint).open().await?;
-    let mut vec = open_all(&trainer, &envs).await?;
+    let mut vec = open_all(&trainer, &envs, "").await?;
     let rate = measure(&mut vec).await;
     drop(processes);
     rate
@@ -159,7 +151,9 @@ async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
-    let site = RouterSite::start("bench")?;
+    offworld_runtime::session::init_logging();
+    let scratch = std::env::temp_dir().join(format!("offworld-farm-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&scratch)?;
     println!(
         "sim farm throughput, 84x84 depth, lockstep twins, {} s per point, {} cores:",
         seconds(),
@@ -167,12 +161,22 @@ async fn main() -> anyhow::Result<()> {
     );
     println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
     for n in sizes() {
-        let routed = through_router(&site, n).await?;
-        let direct = peer_to_peer(&site.dir, n).await?;
+        let routed = through_router(n).await;
+        let direct = peer_to_peer(&scratch, n).await;
+        let show = |r: &anyhow::Result<f64>| match r {
+            Ok(rate) => format!("{rate:>10.0} steps/s"),
+            Err(e) => format!("failed: {e}"),
+        };
+        let ratio = match (&routed, &direct) {
+            (Ok(a), Ok(b)) => format!("{:.2}", a / b),
+            _ => "-".into(),
+        };
         println!(
-            "  {n:>5} | {routed:>17.0} steps/s | {direct:>12.0} steps/s | {:>9.2}",
-            routed / direct
+            "  {n:>5} | {:>24} | {:>18} | {ratio:>9}",
+            show(&routed),
+            show(&direct)
         );
     }
+    std::fs::remove_dir_all(&scratch).ok();
     Ok(())
 }

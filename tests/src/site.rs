@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use offworld_runtime::SessionConfig;
+use offworld_runtime::{EnvId, SessionConfig};
 
 use crate::Process;
 
@@ -166,7 +166,10 @@ impl RouterSite {
         }
         let child = Command::new(zenohd())
             .args(&args)
-            .env("RUST_LOG", "warn")
+            .env(
+                "RUST_LOG",
+                std::env::var("ZENOHD_LOG").unwrap_or_else(|_| "warn".into()),
+            )
             .stdout(Stdio::null())
             .stderr(Stdio::inherit())
             .spawn()
@@ -295,5 +298,98 @@ fn wait_listening(endpoint: &str, timeout: Duration) -> anyhow::Result<()> {
             "zenohd is not listening on {addr}"
         );
         std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// A sim farm behind the router: `twins` `sim_twin` processes (agent role,
+/// 84×84) under `sim/<name>-<i>` and one `env_controller` process
+/// (controller role) serving them all, with one registered user.
+pub struct SimFarm {
+    /// The router and the files (declared first: dropped last).
+    pub site: RouterSite,
+    /// The envs served.
+    pub envs: Vec<EnvId>,
+    /// Access token of the registered user `alice`.
+    pub token: String,
+    _processes: Vec<Process>,
+}
+
+impl SimFarm {
+    /// Starts the router, the twins and the controller (not waiting for
+    /// them to answer: see [`SimFarm::ready`]).
+    pub fn start(name: &str, twins: usize, task: &str) -> anyhow::Result<Self> {
+        let site = RouterSite::start(name)?;
+        let envs: Vec<EnvId> = (0..twins.max(1))
+            .map(|i| EnvId::sim(&format!("{name}-{i}")))
+            .collect::<Result<_, _>>()?;
+        let db = site.dir.join("gym.db").to_string_lossy().into_owned();
+        let added = Command::new(crate::binary_dir().join("env_controller"))
+            .args(["--db", &db, "users", "add", "alice"])
+            .stderr(Stdio::null())
+            .output()?;
+        anyhow::ensure!(added.status.success(), "env_controller users add failed");
+        let token = String::from_utf8(added.stdout)?.trim().to_owned();
+        let mut processes = Vec::new();
+        for env in &envs {
+            let env = env.to_string();
+            processes.push(site.spawn(
+                "sim_twin",
+                Role::SimTwin,
+                &[],
+                &["--env", &env, "--resolution", "84x84"],
+            )?);
+        }
+        let mut serve = vec!["--db".to_owned(), db, "serve".to_owned()];
+        for env in &envs {
+            serve.push("--env".into());
+            serve.push(format!("{env}={task}"));
+        }
+        let serve: Vec<&str> = serve.iter().map(String::as_str).collect();
+        processes.push(site.spawn("env_controller", Role::Controller, &serve, &[])?);
+        Ok(Self {
+            site,
+            envs,
+            token,
+            _processes: processes,
+        })
+    }
+
+    /// Waits until every env answers `spec` through the router as a trainer.
+    pub async fn ready(&self, timeout: Duration) -> anyhow::Result<()> {
+        let session = self.site.session(Role::Trainer).open().await?;
+        let deadline = Instant::now() + timeout;
+        for env in &self.envs {
+            while offworld_runtime::client::spec(&session, env, Duration::from_secs(2))
+                .await
+                .is_err()
+            {
+                anyhow::ensure!(Instant::now() < deadline, "{env} did not come up");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+        session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(())
+    }
+
+    /// What a trainer process needs in its environment to reach the farm:
+    /// `OFFWORLD_ZENOH_CONFIG` (the trainer role file), `OFFWORLD_ZENOH_CFG`
+    /// (certificate path and password), `OFFWORLD_GYM_CONNECT`,
+    /// `OFFWORLD_GYM_ACCESS_TOKEN`.
+    pub fn trainer_env(&self) -> Vec<(String, String)> {
+        vec![
+            (
+                offworld_runtime::session::ENV_CONFIG.to_owned(),
+                role_file(Role::Trainer).to_string_lossy().into_owned(),
+            ),
+            (
+                offworld_runtime::session::ENV_CFG.to_owned(),
+                self.site.overrides(Role::Trainer).join(";"),
+            ),
+            (
+                "OFFWORLD_GYM_CONNECT".to_owned(),
+                self.site.trainer_endpoint.clone(),
+            ),
+            ("OFFWORLD_GYM_ACCESS_TOKEN".to_owned(), self.token.clone()),
+        ]
     }
 }

@@ -18,8 +18,7 @@ use offworld_runtime::wire;
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ContractError, ErrorCode};
-use offworld_tests::site::{Role, RouterSite};
-use offworld_tests::Process;
+use offworld_tests::site::{Role, RouterSite, SimFarm};
 
 /// One site at a time: each runs a router and two component processes.
 static ONE_SITE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
@@ -28,49 +27,20 @@ const FORWARD: i64 = 2;
 
 /// A router, a sim twin (agent role) and a controller (controller role).
 struct SimSite {
-    site: RouterSite,
+    farm: SimFarm,
     env: EnvId,
-    _twin: Process,
-    _controller: Process,
 }
 
 impl SimSite {
     fn start(name: &str) -> anyhow::Result<Self> {
-        let site = RouterSite::start(name)?;
-        let env = EnvId::sim(&format!("{name}-0"))?;
-        let env_arg = env.to_string();
-        let twin = site.spawn(
-            "sim_twin",
-            Role::SimTwin,
-            &[],
-            &[
-                "--env",
-                &env_arg,
-                "--world",
-                "monolith",
-                "--resolution",
-                "84x84",
-            ],
-        )?;
-        let db = site.dir.join("gym.db");
-        let db = db.to_string_lossy();
-        let serve = format!("{env}=MonolithDiscrete");
-        let controller = site.spawn(
-            "env_controller",
-            Role::Controller,
-            &["--db", &db, "serve", "--env", &serve],
-            &[],
-        )?;
-        Ok(Self {
-            site,
-            env,
-            _twin: twin,
-            _controller: controller,
-        })
+        let farm = SimFarm::start(name, 1, "MonolithDiscrete")?;
+        let env = farm.envs[0].clone();
+        Ok(Self { farm, env })
     }
 
     async fn session(&self, role: Role) -> Session {
-        self.site
+        self.farm
+            .site
             .session(role)
             .open()
             .await
@@ -490,7 +460,7 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
     }
 
     // The router dies: the next step fails with a typed error, no hang.
-    site.site.stop_router();
+    site.farm.site.stop_router();
     let lost = gym
         .step(Action::Discrete(FORWARD))
         .await
@@ -505,7 +475,7 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
 
     // It comes back on the same endpoints; every client reconnects by
     // itself and the trainer resumes its experiment.
-    site.site.start_router()?;
+    site.farm.site.start_router()?;
     let mut resumed = open(&trainer, &site.env, "survives-restart", true).await;
     let info = resumed.opened().experiment.clone();
     // Nothing recorded is lost: the finished episode and the interrupted
