@@ -94,14 +94,18 @@ async fn open_all(session: &Session, envs: &[EnvId], token: &str) -> anyhow::Res
 async fn measure(vec: &mut VecEnvClient) -> anyhow::Result<f64> {
     let n = vec.len();
     let seeds: Vec<Seed> = (0..n as u64).map(Seed::Fixed).collect();
-    vec.reset(&seeds).await.map_err(|e| anyhow::anyhow!(e))?;
+    vec.reset(&seeds)
+        .await
+        .map_err(|e| anyhow::anyhow!("reset: {e}"))?;
     let actions = |i: usize| {
         (0..n)
             .map(|k| Action::Discrete(((i + k) % 4) as i64))
             .collect()
     };
     for i in 0..20 {
-        vec.step(actions(i)).await.map_err(|e| anyhow::anyhow!(e))?;
+        vec.step(actions(i))
+            .await
+            .map_err(|e| anyhow::anyhow!("warm-up step {i}: {e}"))?;
     }
     let start = Instant::now();
     let mut rounds = 0usize;

@@ -182,6 +182,18 @@ async fn a_full_episode_runs_through_the_router_over_tls_with_passwords() -> any
     let site = SimSite::start("episode")?;
     let trainer = site.session(Role::Trainer).await;
     let mut gym = open(&trainer, &site.env, "through-router", false).await;
+    // Discovery through the router: the env, its task, its components, leased.
+    let listed = offworld_runtime::client::discover(&trainer, Duration::from_secs(3))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(listed[0].env, site.env);
+    assert_eq!(listed[0].task, "MonolithDiscrete");
+    assert_eq!(listed[0].components, ["controller", "sim_twin"]);
+    assert!(
+        matches!(listed[0].state, EnvState::Leased { .. }),
+        "{listed:?}"
+    );
     let reset = gym
         .reset(Seed::Fixed(7))
         .await

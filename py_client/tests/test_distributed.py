@@ -1,0 +1,132 @@
+"""Through the real zenohd router with the repository's deployment files
+(TLS, passwords, ACL): a sim farm of two twin processes and a controller
+(`sim_farm`, tests/src/bin/sim_farm.rs). Discovery, vector envs across
+processes, bookings from Python and the CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+
+import offworld_gym
+from offworld_gym import errors
+
+
+def _binary(name: str) -> Path:
+    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
+    path = target / "release" / name
+    if not path.exists():
+        pytest.fail(f"{path} is missing: build it with `cargo build --release` (bash .ci/test does)")
+    return path
+
+
+@pytest.fixture(scope="module")
+def farm():
+    """Yields (environment for a trainer, env ids) of a running sim farm."""
+    proc = subprocess.Popen(
+        [str(_binary("sim_farm")), "--twins", "2"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    env: dict[str, str] = {}
+    assert proc.stdout is not None
+    deadline = time.monotonic() + 120
+    for line in proc.stdout:
+        line = line.strip()
+        if line == "ready":
+            break
+        key, _, value = line.partition("=")
+        env[key] = value
+        assert time.monotonic() < deadline, "sim_farm did not come up"
+    else:
+        pytest.fail(f"sim_farm exited: {proc.wait()}")
+    yield env, env["OFFWORLD_FARM_ENVS"].split(",")
+    assert proc.stdin is not None
+    proc.stdin.close()  # the farm stops when its stdin closes
+    proc.wait(timeout=60)
+
+
+@pytest.fixture()
+def trainer(farm, monkeypatch):
+    """The trainer's environment (role file, certificate, password, token)."""
+    env, envs = farm
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    return envs
+
+
+def test_list_envs_shows_each_env_with_task_state_and_components(trainer):
+    listed = offworld_gym.list_envs()
+    assert [e["env_id"] for e in listed] == trainer
+    for e in listed:
+        assert e["task"] == "MonolithDiscrete"
+        assert e["state"] == "free", e
+        assert e["components"] == ["controller", "sim_twin"]
+    # The same through the CLI, as JSON.
+    out = subprocess.run(
+        [sys.executable, "-m", "offworld_gym", "envs", "--json"], capture_output=True, text=True, check=True
+    )
+    assert [e["env_id"] for e in json.loads(out.stdout)] == trainer
+
+
+def test_make_vec_by_discovery_steps_twins_in_separate_processes(trainer):
+    envs = gymnasium.make_vec(
+        "OffWorldMonolithDiscreteSim-v0", num_envs=2, env_id="discover", resolution=(84, 84)
+    )
+    try:
+        obs, _ = envs.reset(seed=5)
+        assert obs.shape == (2, 84, 84, 1)
+        # Both leased now: discovery says so.
+        states = {e["env_id"]: e["state"] for e in offworld_gym.list_envs()}
+        assert states == {env_id: "leased" for env_id in trainer}
+        for _ in range(5):
+            obs, rewards, terminated, truncated, info = envs.step(np.array([2, 2]))
+        assert list(info["step"]) == [5, 5]
+    finally:
+        envs.close()
+    # By id list as well.
+    envs = gymnasium.make_vec(
+        "OffWorldMonolithDiscreteSim-v0", num_envs=2, env_id=list(reversed(trainer)), resolution=(84, 84)
+    )
+    envs.reset(seed=1)
+    envs.close()
+
+
+def test_discovery_refuses_more_envs_than_are_free(trainer):
+    with pytest.raises(errors.NotFound, match="3 free"):
+        gymnasium.make_vec("OffWorldMonolithDiscreteSim-v0", num_envs=3, env_id="discover")
+
+
+def test_bookings_from_python_and_the_cli(trainer):
+    env_id = trainer[0]
+    start = time.time() + 3600
+    made = offworld_gym.book(env_id, start, start + 1800)
+    assert made["env_id"] == env_id and made["user"] == "alice"
+    assert made["end_unix_ms"] - made["start_unix_ms"] == 1_800_000
+    with pytest.raises(errors.Busy, match="booked by alice"):
+        offworld_gym.book(env_id, start + 600, start + 900)
+    with pytest.raises(errors.BadRequest):
+        offworld_gym.book(env_id, start, start - 60)
+    listed = offworld_gym.bookings(env_id)
+    assert made in listed
+    cli = subprocess.run(
+        [sys.executable, "-m", "offworld_gym", "bookings", "--env", env_id, "--json"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert made in json.loads(cli.stdout)
+    remaining = offworld_gym.cancel_booking(env_id, made["id"])
+    assert made not in remaining
+    # Without a token: a clear error before anything is sent.
+    with pytest.raises(errors.ConfigurationError, match="token"):
+        offworld_gym.book(env_id, start, start + 60, token="")
