@@ -534,7 +534,13 @@ async fn a_motion_command_is_driven_then_answered_with_frames_captured_after_it(
 /// −2.5 rad/s, reached through a ramp within the acceleration limits.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn commands_beyond_the_limits_are_clamped_and_ramped() {
-    let mut rig = Rig::start("limits", AgentConfig::default()).await;
+    // A wide watchdog window: on a starved machine a late heartbeat would
+    // rightly brake mid-ramp, which is not what this test is about.
+    let config = AgentConfig {
+        watchdog_ms: 2_000,
+        ..AgentConfig::default()
+    };
+    let mut rig = Rig::start("limits", config).await;
     rig.cmd(8, 2.0, -9.0, 1.2).await;
     assert_eq!(rig.answer(8).await.seq, 8);
     let log: Vec<Velocity> = rig.robot.sent().iter().map(|s| s.velocity).collect();
@@ -679,7 +685,13 @@ async fn site_wide_and_malformed_estops_engage() {
 /// run their full duration again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn watchdog_brakes_when_heartbeats_stop_and_rearms_when_they_resume() {
-    let mut rig = Rig::start("watchdog", AgentConfig::default()).await;
+    // 500 ms (default 200): the behaviour is the same, and a heartbeat
+    // delayed by a starved CI machine does not cut the re-armed motion.
+    let config = AgentConfig {
+        watchdog_ms: 500,
+        ..AgentConfig::default()
+    };
+    let mut rig = Rig::start("watchdog", config).await;
     let cruise = v(CRUISE, 0.0);
 
     rig.cmd(40, CRUISE, 0.0, 5.0).await;
