@@ -35,7 +35,10 @@ impl Process {
         let path = binary_dir().join(binary);
         Command::new(&path)
             .args(args)
-            .env("RUST_LOG", log)
+            .env(
+                "RUST_LOG",
+                std::env::var("OFFWORLD_CHILD_LOG").unwrap_or_else(|_| log.to_owned()),
+            )
             .stdout(Stdio::null())
             .stderr(Stdio::inherit())
             .spawn()

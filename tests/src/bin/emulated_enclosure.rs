@@ -22,6 +22,9 @@ struct Args {
     /// Task served (MonolithDiscrete, MonolithContinuous, MonolithObstacleDiscrete, …).
     #[arg(long, default_value = "MonolithDiscrete")]
     task: String,
+    /// Robot agent watchdog window, ms (a real robot: 200).
+    #[arg(long, default_value_t = 200)]
+    watchdog_ms: u64,
     /// Command to run against the deployment (after `--`).
     #[arg(last = true)]
     command: Vec<String>,
@@ -30,7 +33,8 @@ struct Args {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let options = Options::new(&args.task)?;
+    let mut options = Options::new(&args.task)?;
+    options.watchdog_ms = args.watchdog_ms;
     let deployment = EmulatedEnclosure::start(&options).context("starting the deployment")?;
     deployment
         .ready(std::time::Duration::from_secs(60))
