@@ -1,9 +1,12 @@
-//! Sim-farm throughput: total steps/s a trainer gets from N sim twins
-//! (separate `sim_twin` processes, 84×84, lockstep) behind one
-//! `env_controller` process, stepped together with `VecEnvClient`
-//! (one concurrent fan-out per step), for N = 1, 2, 4 — through the
-//! `zenohd` router with the repository's deployment files (TLS, mTLS,
-//! passwords, ACL) against plain TCP peer to peer, in one run.
+//! Sim-farm throughput: total steps/s a trainer gets from N sim envs
+//! stepped together with `VecEnvClient` (one concurrent fan-out per step),
+//! for N = 1, 2, 4 — through the `zenohd` router with the repository's
+//! deployment files (TLS, mTLS, passwords, ACL) against plain TCP peer to
+//! peer, in one run, in two layouts:
+//! - "twin processes": N `sim_twin` processes (84×84, lockstep) behind one
+//!   `env_controller` process — camera frames cross the router;
+//! - "controller per twin": N `env_controller --embedded-twins` processes —
+//!   only the gym's queries and replies cross the router.
 //!
 //! `cargo bench -p offworld-tests --bench farm_throughput`
 //! (`FARM_SECONDS` per measurement, default 8; `FARM_SIZES`, default `1,2,4`).
@@ -15,7 +18,7 @@ use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
-use offworld_tests::site::{Role, SimFarm};
+use offworld_tests::site::{Role, RouterSite, SimFarm};
 use offworld_tests::Process;
 
 fn seconds() -> f64 {
@@ -153,6 +156,47 @@ async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
     rate
 }
 
+/// N `env_controller --embedded-twins` processes, one env each.
+async fn per_twin(
+    site: Option<&RouterSite>,
+    dir: &std::path::Path,
+    n: usize,
+) -> anyhow::Result<f64> {
+    let tag = if site.is_some() { "erouter" } else { "ep2p" };
+    let envs = envs(n, tag)?;
+    let mut processes = Vec::new();
+    let mut endpoints = Vec::new();
+    for (i, env) in envs.iter().enumerate() {
+        let db = dir.join(format!("{tag}-{n}-{i}.db"));
+        let mut args = serve_args(&db.to_string_lossy(), std::slice::from_ref(env));
+        args.push("--embedded-twins".into());
+        match site {
+            Some(site) => args.extend(site.role_args(Role::Controller)),
+            None => {
+                let endpoint = loopback_endpoint()?;
+                args.extend(["--listen".into(), endpoint.clone()]);
+                endpoints.push(endpoint);
+            }
+        }
+        processes.push(spawn("env_controller", &args)?);
+    }
+    let trainer = match site {
+        Some(site) => site.session(Role::Trainer).open().await?,
+        None => {
+            SessionConfig {
+                connect: endpoints,
+                ..SessionConfig::default()
+            }
+            .open()
+            .await?
+        }
+    };
+    let mut vec = open_all(&trainer, &envs, "").await?;
+    let rate = measure(&mut vec).await;
+    drop(processes);
+    rate
+}
+
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
@@ -163,10 +207,31 @@ async fn main() -> anyhow::Result<()> {
         seconds(),
         std::thread::available_parallelism().map_or(0, |n| n.get())
     );
+    println!("  twin processes behind one controller (84x84 render):");
     println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
     for n in sizes() {
         let routed = through_router(n).await;
         let direct = peer_to_peer(&scratch, n).await;
+        let show = |r: &anyhow::Result<f64>| match r {
+            Ok(rate) => format!("{rate:>10.0} steps/s"),
+            Err(e) => format!("failed: {e}"),
+        };
+        let ratio = match (&routed, &direct) {
+            (Ok(a), Ok(b)) => format!("{:.2}", a / b),
+            _ => "-".into(),
+        };
+        println!(
+            "  {n:>5} | {:>24} | {:>18} | {ratio:>9}",
+            show(&routed),
+            show(&direct)
+        );
+    }
+    println!("  controller per twin (embedded, 320x240 render, 84x84 obs):");
+    println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
+    let site = RouterSite::start("bench")?;
+    for n in sizes() {
+        let routed = per_twin(Some(&site), &scratch, n).await;
+        let direct = per_twin(None, &scratch, n).await;
         let show = |r: &anyhow::Result<f64>| match r {
             Ok(rate) => format!("{rate:>10.0} steps/s"),
             Err(e) => format!("failed: {e}"),
