@@ -11,22 +11,14 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
 
 import offworld_gym
+from conftest import _binary
 from offworld_gym import errors
-
-
-def _binary(name: str) -> Path:
-    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
-    path = target / "release" / name
-    if not path.exists():
-        pytest.fail(f"{path} is missing: build it with `cargo build --release` (bash .ci/test does)")
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -156,6 +156,27 @@ async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
     rate
 }
 
+fn print_header() {
+    println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
+}
+
+/// One table row; a failed measurement shows its error.
+fn print_row(n: usize, routed: &anyhow::Result<f64>, direct: &anyhow::Result<f64>) {
+    let show = |r: &anyhow::Result<f64>| match r {
+        Ok(rate) => format!("{rate:>10.0} steps/s"),
+        Err(e) => format!("failed: {e}"),
+    };
+    let ratio = match (routed, direct) {
+        (Ok(a), Ok(b)) => format!("{:.2}", a / b),
+        _ => "-".into(),
+    };
+    println!(
+        "  {n:>5} | {:>24} | {:>18} | {ratio:>9}",
+        show(routed),
+        show(direct)
+    );
+}
+
 /// N `env_controller --embedded-twins` processes, one env each.
 async fn per_twin(
     site: Option<&RouterSite>,
@@ -208,43 +229,19 @@ async fn main() -> anyhow::Result<()> {
         std::thread::available_parallelism().map_or(0, |n| n.get())
     );
     println!("  twin processes behind one controller (84x84 render):");
-    println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
+    print_header();
     for n in sizes() {
         let routed = through_router(n).await;
         let direct = peer_to_peer(&scratch, n).await;
-        let show = |r: &anyhow::Result<f64>| match r {
-            Ok(rate) => format!("{rate:>10.0} steps/s"),
-            Err(e) => format!("failed: {e}"),
-        };
-        let ratio = match (&routed, &direct) {
-            (Ok(a), Ok(b)) => format!("{:.2}", a / b),
-            _ => "-".into(),
-        };
-        println!(
-            "  {n:>5} | {:>24} | {:>18} | {ratio:>9}",
-            show(&routed),
-            show(&direct)
-        );
+        print_row(n, &routed, &direct);
     }
     println!("  controller per twin (embedded, 320x240 render, 84x84 obs):");
-    println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
+    print_header();
     let site = RouterSite::start("bench")?;
     for n in sizes() {
         let routed = per_twin(Some(&site), &scratch, n).await;
         let direct = per_twin(None, &scratch, n).await;
-        let show = |r: &anyhow::Result<f64>| match r {
-            Ok(rate) => format!("{rate:>10.0} steps/s"),
-            Err(e) => format!("failed: {e}"),
-        };
-        let ratio = match (&routed, &direct) {
-            (Ok(a), Ok(b)) => format!("{:.2}", a / b),
-            _ => "-".into(),
-        };
-        println!(
-            "  {n:>5} | {:>24} | {:>18} | {ratio:>9}",
-            show(&routed),
-            show(&direct)
-        );
+        print_row(n, &routed, &direct);
     }
     std::fs::remove_dir_all(&scratch).ok();
     Ok(())
