@@ -39,6 +39,16 @@ const DT: f64 = 0.02;
 /// Generous bound for anything that must happen "at once" or within the
 /// 200 ms watchdog window (the machine may be loaded).
 const PROMPTLY: Duration = Duration::from_secs(1);
+
+/// The agent's defaults with a 1 s watchdog window: nine rigs run at once
+/// on 2 cores, and a heartbeat delayed past the real 200 ms window would
+/// rightly brake tests that are not about the watchdog (which has its own).
+fn config() -> AgentConfig {
+    AgentConfig {
+        watchdog_ms: 1_000,
+        ..AgentConfig::default()
+    }
+}
 /// Bound for a command's answer.
 const ANSWER: Duration = Duration::from_secs(5);
 /// Cruise speed the stop tests drive at, m/s.
@@ -480,7 +490,7 @@ fn angle_diff(a: f64, b: f64) -> f64 {
 /// captured after the motion ended (no odometry needed).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_motion_command_is_driven_then_answered_with_frames_captured_after_it() {
-    let mut rig = Rig::start("motion", AgentConfig::default()).await;
+    let mut rig = Rig::start("motion", config()).await;
     let sent_at = Instant::now();
     rig.cmd(7, 0.2, -0.5, 0.5).await;
     let frame = rig.answer(7).await;
@@ -538,7 +548,7 @@ async fn commands_beyond_the_limits_are_clamped_and_ramped() {
     // rightly brake mid-ramp, which is not what this test is about.
     let config = AgentConfig {
         watchdog_ms: 2_000,
-        ..AgentConfig::default()
+        ..config()
     };
     let mut rig = Rig::start("limits", config).await;
     rig.cmd(8, 2.0, -9.0, 1.2).await;
@@ -575,7 +585,7 @@ async fn commands_beyond_the_limits_are_clamped_and_ramped() {
 /// `goto` is refused (InvalidState); a release lets the robot move again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
-    let mut rig = Rig::start("estop", AgentConfig::default()).await;
+    let mut rig = Rig::start("estop", config()).await;
     let estop_key = rig.env.key(Topic::EStop);
     let cruise = v(CRUISE, 0.0);
 
@@ -622,7 +632,7 @@ async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
 /// payload (on either key) engages rather than being ignored.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn site_wide_and_malformed_estops_engage() {
-    let mut rig = Rig::start("estop-site", AgentConfig::default()).await;
+    let mut rig = Rig::start("estop-site", config()).await;
     let cruise = v(CRUISE, 0.0);
 
     // Site-wide.
@@ -742,7 +752,7 @@ async fn watchdog_brakes_when_heartbeats_stop_and_rearms_when_they_resume() {
 /// motion until the token is back.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn losing_the_controller_token_brakes_and_refuses_motion() {
-    let mut rig = Rig::start("token", AgentConfig::default()).await;
+    let mut rig = Rig::start("token", config()).await;
     let cruise = v(CRUISE, 0.0);
 
     rig.cmd(50, CRUISE, 0.0, 5.0).await;
@@ -781,7 +791,7 @@ async fn losing_the_controller_token_brakes_and_refuses_motion() {
 /// answered); the agent keeps serving the valid commands that follow.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_and_invalid_commands_are_ignored() {
-    let mut rig = Rig::start("malformed", AgentConfig::default()).await;
+    let mut rig = Rig::start("malformed", config()).await;
     let key = rig.env.key(Topic::Cmd);
     let valid = codec::encode(&MotionCommand {
         seq: 60,
@@ -820,7 +830,7 @@ async fn malformed_and_invalid_commands_are_ignored() {
 async fn goto_failures_are_typed_errors() {
     let config = AgentConfig {
         world: "monolith_obstacle".into(),
-        ..AgentConfig::default()
+        ..config()
     };
     let mut rig = Rig::start("goto-errors", config).await;
     let timeout = Duration::from_secs(5);
@@ -888,7 +898,7 @@ async fn goto_failures_are_typed_errors() {
 async fn goto_drives_to_a_free_pose_on_tracker_poses() {
     let config = AgentConfig {
         world: "monolith_obstacle".into(),
-        ..AgentConfig::default()
+        ..config()
     };
     let mut rig = Rig::start("goto-drive", config).await;
     let live = rig.track(pose(-0.2, 0.2, 0.0), true);
