@@ -234,8 +234,11 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
     });
     let latency = stop_latency(&cmd_vel, || deployment.signal_controller("STOP")).await;
     eprintln!("controller frozen mid-motion: commanded velocity zero after {latency:?}");
+    // Within the 200 ms window after the last heartbeat (+ margin). No lower
+    // bound: on a starved machine the last beats before the freeze may
+    // already have been late, so the window can close sooner after it.
     assert!(
-        latency >= Duration::from_millis(100) && latency < Duration::from_millis(500),
+        latency < Duration::from_millis(500),
         "the heartbeat watchdog (200 ms) stopped the robot: {latency:?}"
     );
     deployment.signal_controller("CONT");
