@@ -94,17 +94,15 @@ async fn main() -> anyhow::Result<()> {
         depth_format: DepthFormat::Uint8,
     });
     // The controller's queryables take a moment to reach the client session.
-    let mut attempts = 0;
-    let mut gym = loop {
-        match EnvClient::open(&client, &env, request.clone(), ClientTimeouts::default()).await {
-            Ok(gym) => break gym,
-            Err(_) if attempts < 50 => {
-                attempts += 1;
-                tokio::time::sleep(Duration::from_millis(100)).await;
-            }
-            Err(e) => anyhow::bail!(e),
-        }
-    };
+    let mut gym = EnvClient::open_when_ready(
+        &client,
+        &env,
+        request,
+        ClientTimeouts::default(),
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!(e))?;
     gym.reset(Seed::Fixed(0))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;

@@ -86,6 +86,33 @@ impl EnvClient {
         })
     }
 
+    /// [`EnvClient::open`], retried every 100 ms for up to `wait` while the
+    /// deployment is still coming up (the typed "not yet" answers:
+    /// `Unavailable`, `NotFound`, `Timeout`). Any other error, or the last
+    /// one when `wait` is over, is returned.
+    pub async fn open_when_ready(
+        session: &Session,
+        env: &EnvId,
+        request: OpenRequest,
+        timeouts: ClientTimeouts,
+        wait: Duration,
+    ) -> Result<Self, WireError> {
+        let deadline = tokio::time::Instant::now() + wait;
+        loop {
+            match Self::open(session, env, request.clone(), timeouts).await {
+                Err(e)
+                    if matches!(
+                        e.code,
+                        ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
+                    ) && tokio::time::Instant::now() < deadline =>
+                {
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+                result => return result,
+            }
+        }
+    }
+
     /// The env's spec as returned by `open`.
     pub fn spec(&self) -> &EnvSpec {
         &self.reply.spec

@@ -17,7 +17,7 @@ use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::zenoh::Session;
-use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
+use offworld_runtime::{EnvId, SessionConfig};
 use offworld_tests::site::{Role, RouterSite, SimFarm};
 use offworld_tests::Process;
 
@@ -71,23 +71,15 @@ async fn open_all(session: &Session, envs: &[EnvId], token: &str) -> anyhow::Res
     };
     let mut clients = Vec::new();
     for env in envs {
-        let mut attempts = 0;
-        let client = loop {
-            match EnvClient::open(session, env, request.clone(), ClientTimeouts::default()).await {
-                Ok(c) => break c,
-                Err(e)
-                    if attempts < 300
-                        && matches!(
-                            e.code,
-                            ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
-                        ) =>
-                {
-                    attempts += 1;
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
-                Err(e) => anyhow::bail!("open {env}: {e}"),
-            }
-        };
+        let client = EnvClient::open_when_ready(
+            session,
+            env,
+            request.clone(),
+            ClientTimeouts::default(),
+            Duration::from_secs(30),
+        )
+        .await
+        .map_err(|e| anyhow::anyhow!("open {env}: {e}"))?;
         clients.push(client);
     }
     Ok(VecEnvClient::new(clients))

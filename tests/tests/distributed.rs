@@ -63,30 +63,15 @@ fn request(experiment: &str, resume: bool) -> OpenRequest {
 
 /// Opens the env once the controller and twin are up (bounded wait).
 async fn open(session: &Session, env: &EnvId, experiment: &str, resume: bool) -> EnvClient {
-    let mut last = None;
-    for _ in 0..300 {
-        match EnvClient::open(
-            session,
-            env,
-            request(experiment, resume),
-            ClientTimeouts::default(),
-        )
-        .await
-        {
-            Ok(client) => return client,
-            Err(e)
-                if matches!(
-                    e.code,
-                    ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
-                ) =>
-            {
-                last = Some(e);
-                tokio::time::sleep(Duration::from_millis(100)).await
-            }
-            Err(e) => panic!("open failed: {e}"),
-        }
-    }
-    panic!("the site did not come up within 30 s: {last:?}");
+    EnvClient::open_when_ready(
+        session,
+        env,
+        request(experiment, resume),
+        ClientTimeouts::default(),
+        Duration::from_secs(30),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("the site did not come up within 30 s: {e}"))
 }
 
 /// One received sample: key, seq attachment if any, payload.

@@ -46,30 +46,17 @@ async fn open(deployment: &EmulatedEnclosure, experiment: &str) -> (Session, Env
         .open()
         .await
         .expect("client session");
-    for _ in 0..300 {
-        let request = open_request(&deployment.token, experiment);
-        match EnvClient::open(
-            &session,
-            &deployment.env,
-            request,
-            ClientTimeouts::default(),
-        )
-        .await
-        {
-            Ok(client) => return (session, client),
-            // Controller, agents or tracker still starting.
-            Err(e)
-                if matches!(
-                    e.code,
-                    ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
-                ) =>
-            {
-                tokio::time::sleep(Duration::from_millis(100)).await
-            }
-            Err(e) => panic!("open failed: {e}"),
-        }
-    }
-    panic!("the emulated deployment did not come up within 30 s");
+    // Controller, agents or tracker may still be starting.
+    let client = EnvClient::open_when_ready(
+        &session,
+        &deployment.env,
+        open_request(&deployment.token, experiment),
+        ClientTimeouts::default(),
+        Duration::from_secs(30),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("the emulated deployment did not come up within 30 s: {e}"));
+    (session, client)
 }
 
 /// An observer on the robot computer's network (sees `cmd_vel`).
