@@ -7,9 +7,10 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus,
-    EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsArray, ObsOptions, OpenReply,
-    OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
+    AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState,
+    EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsArray, ObsOptions,
+    OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply,
+    StepRequest,
 };
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, WireError};
@@ -19,7 +20,9 @@ use tokio::sync::Mutex as AsyncMutex;
 use crate::episode::{judge, EndReason, SpawnSampler};
 use crate::link::{Answer, LinkTimeouts, RobotLink};
 use crate::observation::{assemble, validate_options};
-use crate::store::{now_ms, BookingRules, EpisodeRecord, Experiment, Store, User, ANONYMOUS};
+use crate::store::{
+    now_ms, BookingRules, EpisodeRecord, Experiment, SlotAt, Store, User, ANONYMOUS,
+};
 use crate::task::Task;
 
 /// Per-env policy.
@@ -94,6 +97,9 @@ pub struct EnvServer {
     link: RobotLink,
     store: Arc<Mutex<Store>>,
     state: AsyncMutex<State>,
+    /// The last booking answer, valid until its `until_ms`: a step never
+    /// queries the database. Cleared when this env's bookings change.
+    slots: Mutex<Option<SlotAt>>,
 }
 
 fn unix_ms_in(d: Duration) -> i64 {
@@ -122,6 +128,7 @@ impl EnvServer {
             session: session.clone(),
             link,
             store,
+            slots: Mutex::new(None),
             state: AsyncMutex::new(State {
                 lease: None,
                 maintenance: None,
@@ -166,6 +173,30 @@ impl EnvServer {
             .lock()
             .map_err(|_| WireError::internal("store lock poisoned"))?;
         f(&mut store).map_err(WireError::from)
+    }
+
+    /// The slot in progress at `now` (Unix ms) and its holder's user id.
+    fn slot_at(&self, now: i64) -> Result<Option<(Booking, i64)>, WireError> {
+        let mut cache = self
+            .slots
+            .lock()
+            .map_err(|_| WireError::internal("slot cache lock poisoned"))?;
+        match cache.as_ref() {
+            Some(known) if now < known.until_ms => Ok(known.slot.clone()),
+            _ => {
+                let env_id = self.env.to_string();
+                let fresh = self.store(|s| s.slot_at(&env_id, now))?;
+                let slot = fresh.slot.clone();
+                *cache = Some(fresh);
+                Ok(slot)
+            }
+        }
+    }
+
+    fn forget_slots(&self) {
+        if let Ok(mut cache) = self.slots.lock() {
+            *cache = None;
+        }
     }
 
     fn state_of(&self, state: &State) -> EnvState {
@@ -278,7 +309,7 @@ impl EnvServer {
         }
         let now = Instant::now();
         let env_id = self.env.to_string();
-        let slot = self.store(|s| s.booking_at(&env_id, now_ms()))?;
+        let slot = self.slot_at(now_ms())?;
         let booked_until_unix_ms = match &slot {
             Some((booking, holder)) if *holder != user.id => {
                 return Err(WireError::busy(format!(
@@ -420,12 +451,9 @@ impl EnvServer {
 
     fn observe(&self, answer: &Answer, obs: &ObsOptions) -> Result<ObsArray, WireError> {
         let mut observation = ObsArray::default();
-        assemble(
-            &answer.frame,
-            obs,
-            self.task.episode.depth_max_m,
-            &mut observation,
-        )?;
+        answer.frame.with_view(|frame| {
+            assemble(frame, obs, self.task.episode.depth_max_m, &mut observation)
+        })?;
         Ok(observation)
     }
 
@@ -551,19 +579,16 @@ impl EnvServer {
                 self.env,
                 format_unix_ms(end)
             )),
-            _ => {
-                let env_id = self.env.to_string();
-                match self.store(|s| s.booking_at(&env_id, now))? {
-                    Some((booking, holder)) if holder != lease.user.id => Some(format!(
-                        "{} is booked by {} from {} to {}; your lease ended",
-                        self.env,
-                        booking.user,
-                        format_unix_ms(booking.start_unix_ms),
-                        format_unix_ms(booking.end_unix_ms)
-                    )),
-                    _ => None,
-                }
-            }
+            _ => match self.slot_at(now)? {
+                Some((booking, holder)) if holder != lease.user.id => Some(format!(
+                    "{} is booked by {} from {} to {}; your lease ended",
+                    self.env,
+                    booking.user,
+                    format_unix_ms(booking.start_unix_ms),
+                    format_unix_ms(booking.end_unix_ms)
+                )),
+                _ => None,
+            },
         };
         let Some(reason) = reason else {
             return Ok(());
@@ -591,6 +616,7 @@ impl EnvServer {
                 let booking = self.store(|s| {
                     s.book(&user, &env_id, start_unix_ms, end_unix_ms, now_ms(), rules)
                 })?;
+                self.forget_slots();
                 tracing::info!(env = %self.env, user = %user.name, id = booking.id, "slot booked");
                 Ok(Bookings {
                     bookings: vec![booking],
@@ -602,6 +628,7 @@ impl EnvServer {
             BookingRequest::Cancel { token, id } => {
                 let user = self.authenticate(&token)?;
                 self.store(|s| s.cancel_booking(&user, &env_id, id))?;
+                self.forget_slots();
                 Ok(Bookings {
                     bookings: self.store(|s| s.bookings(&env_id, now_ms()))?,
                 })

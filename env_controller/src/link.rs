@@ -10,9 +10,11 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrame, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, TrackingStatus,
+    CameraFrameView, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag,
+    TrackingStatus,
 };
 use offworld_runtime::wire;
+use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
@@ -44,10 +46,42 @@ impl PoseSample {
     }
 }
 
+/// A received camera frame, kept as its (contiguous) payload: a frame is
+/// decoded in place, never copied out, on its way to the observation.
+pub struct Frame {
+    seq: u64,
+    payload: ZBytes,
+}
+
+impl Frame {
+    /// Checks that `payload` decodes as a frame and keeps it.
+    fn accept(payload: &ZBytes) -> Result<Self, offworld_runtime::DecodeError> {
+        let payload = codec::contiguous(payload);
+        let seq = codec::decode_borrowed::<CameraFrameView>(&payload.to_bytes())?.seq;
+        Ok(Self { seq, payload })
+    }
+
+    /// The command this frame answers.
+    pub fn seq(&self) -> u64 {
+        self.seq
+    }
+
+    /// Reads the frame in place.
+    pub fn with_view<R>(
+        &self,
+        read: impl FnOnce(&CameraFrameView) -> Result<R, WireError>,
+    ) -> Result<R, WireError> {
+        let bytes = self.payload.to_bytes();
+        let view = codec::decode_borrowed::<CameraFrameView>(&bytes)
+            .map_err(|e| WireError::internal(format!("robot sent a bad frame: {e}")))?;
+        read(&view)
+    }
+}
+
 /// What answered a command.
 pub struct Answer {
     /// The camera frames captured after the motion.
-    pub frame: Arc<CameraFrame>,
+    pub frame: Arc<Frame>,
     /// The robot's pose after the motion.
     pub pose: PoseSample,
 }
@@ -77,7 +111,7 @@ impl Default for LinkTimeouts {
 pub struct RobotLink {
     session: Session,
     env: EnvId,
-    frames: watch::Receiver<Option<Arc<CameraFrame>>>,
+    frames: watch::Receiver<Option<Arc<Frame>>>,
     poses: watch::Receiver<Option<PoseSample>>,
     tracking_lost: Arc<AtomicBool>,
     embodiment_alive: watch::Receiver<bool>,
@@ -97,14 +131,14 @@ impl RobotLink {
         let (frame_tx, frames) = watch::channel(None);
         let obs = session
             .declare_subscriber(env.key(Topic::Obs))
-            .callback(move |sample: Sample| {
-                match codec::decode_payload::<CameraFrame>(sample.payload()) {
+            .callback(
+                move |sample: Sample| match Frame::accept(sample.payload()) {
                     Ok(frame) => {
                         frame_tx.send_replace(Some(Arc::new(frame)));
                     }
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
-                }
-            })
+                },
+            )
             .await
             .map_err(zerr)?;
         let (pose_tx, poses) = watch::channel(None);
@@ -213,7 +247,7 @@ impl RobotLink {
                     return None;
                 }
                 let frame = frames.borrow_and_update().clone();
-                if let Some(frame) = frame.filter(|f| f.seq == seq) {
+                if let Some(frame) = frame.filter(|f| f.seq() == seq) {
                     return Some(frame);
                 }
             }

@@ -3,7 +3,7 @@
 //! blended across edges), and depth as uint8 or metres.
 
 use offworld_runtime::msg::{
-    CameraFrame, Channels, DType, DepthFormat, ObsArray, ObsOptions, PixelEncoding,
+    CameraFrameView, Channels, DType, DepthFormat, ObsArray, ObsOptions, PixelEncoding,
 };
 use offworld_runtime::WireError;
 
@@ -24,7 +24,7 @@ pub fn validate_options(opts: &ObsOptions) -> Result<(), WireError> {
 /// Assembles `out` from `frame` per `opts`. Invalid depth becomes 0 in
 /// both formats; uint8 depth is `clip(d / depth_max_m, 0, 1) · 255`.
 pub fn assemble(
-    frame: &CameraFrame,
+    frame: &CameraFrameView,
     opts: &ObsOptions,
     depth_max_m: f32,
     out: &mut ObsArray,
@@ -57,20 +57,17 @@ pub fn assemble(
     out.dtype = dtype;
     out.data.clear();
     out.data.resize(w * h * channels * dtype.size(), 0);
-    let rgb_order: [usize; 3] = if color_enc == PixelEncoding::Bgr8 {
-        [2, 1, 0]
-    } else {
-        [0, 1, 2]
-    };
     let rows = Rows {
         frame,
         src_x: (0..w)
             .map(|x| ((x * 2 + 1) * sw / (w * 2)).min(sw - 1))
             .collect(),
-        rgb_order,
+        bgr: color_enc == PixelEncoding::Bgr8,
         depth_enc,
         depth_scale: 255.0 / depth_max_m.max(1e-6),
-        depth_row: vec![0.0; w],
+        identity: w == sw,
+        metres: vec![0.0; w],
+        depth_u8: vec![0; w],
     };
     // One monomorphised loop per layout: no per-pixel branching.
     match (opts.channels, dtype) {
@@ -85,34 +82,59 @@ pub fn assemble(
 }
 
 /// Row-by-row resampling state.
-struct Rows<'a> {
-    frame: &'a CameraFrame,
+struct Rows<'f, 'a> {
+    frame: &'f CameraFrameView<'a>,
+    /// Source column of each output column.
     src_x: Vec<usize>,
-    rgb_order: [usize; 3],
+    bgr: bool,
     depth_enc: PixelEncoding,
     depth_scale: f32,
-    depth_row: Vec<f32>,
+    /// Native resolution: output column x is source column x.
+    identity: bool,
+    /// Metres of the current output row (invalid → 0).
+    metres: Vec<f32>,
+    /// The same as uint8.
+    depth_u8: Vec<u8>,
 }
 
-impl Rows<'_> {
-    /// Depth in metres of the sampled pixels of source row `sy` (invalid → 0).
-    fn load_depth(&mut self, sy: usize) {
+impl Rows<'_, '_> {
+    /// Converts the depth of output row `y` (source row `sy`) in tight
+    /// loops: the encoding is matched once per row, not per pixel.
+    fn load_depth<const F32: bool>(&mut self, sy: usize) {
         let depth = &self.frame.depth;
-        let row = &depth.data[sy * depth.step as usize..];
-        for (out, &sx) in self.depth_row.iter_mut().zip(&self.src_x) {
-            let d = match self.depth_enc {
-                PixelEncoding::Depth32FC1 => f32::from_le_bytes([
-                    row[sx * 4],
-                    row[sx * 4 + 1],
-                    row[sx * 4 + 2],
-                    row[sx * 4 + 3],
-                ]),
-                _ => match u16::from_le_bytes([row[sx * 2], row[sx * 2 + 1]]) {
-                    0 => f32::NAN,
-                    mm => f32::from(mm) * 1e-3,
-                },
-            };
-            *out = if d.is_finite() { d } else { 0.0 };
+        let bytes = &depth.data[sy * depth.step as usize..];
+        let metres = |d: f32| if d.is_finite() { d } else { 0.0 };
+        // 0 mm is "no return", which is 0 m already.
+        let millimetres = |b: &[u8]| f32::from(u16::from_le_bytes([b[0], b[1]])) * 1e-3;
+        match (self.depth_enc, self.identity) {
+            (PixelEncoding::Depth32FC1, true) => {
+                for (m, b) in self.metres.iter_mut().zip(bytes.chunks_exact(4)) {
+                    *m = metres(f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+                }
+            }
+            (PixelEncoding::Depth32FC1, false) => {
+                for (m, &sx) in self.metres.iter_mut().zip(&self.src_x) {
+                    let b = &bytes[sx * 4..sx * 4 + 4];
+                    *m = metres(f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+                }
+            }
+            (_, true) => {
+                for (m, b) in self.metres.iter_mut().zip(bytes.chunks_exact(2)) {
+                    *m = millimetres(b);
+                }
+            }
+            (_, false) => {
+                for (m, &sx) in self.metres.iter_mut().zip(&self.src_x) {
+                    *m = millimetres(&bytes[sx * 2..sx * 2 + 2]);
+                }
+            }
+        }
+        if !F32 {
+            let scale = self.depth_scale;
+            for (v, m) in self.depth_u8.iter_mut().zip(&self.metres) {
+                // Saturating cast: clips to 0..=255.
+                *v = (m * scale) as u8;
+            }
         }
     }
 
@@ -126,35 +148,38 @@ impl Rows<'_> {
         let pixel = channels * if F32 { 4 } else { 1 };
         let w = self.src_x.len();
         let color_step = self.frame.color.step as usize;
+        let (r, b) = if self.bgr { (2, 0) } else { (0, 2) };
+        let src_x = self.src_x.clone();
         for (y, out_row) in data.chunks_exact_mut(w * pixel).enumerate() {
             let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
             if DEPTH {
-                self.load_depth(sy);
+                self.load_depth::<F32>(sy);
             }
             let color_row = &self.frame.color.data[sy * color_step..];
-            for (x, px) in out_row.chunks_exact_mut(pixel).enumerate() {
-                let sx = self.src_x[x];
+            let write = |(x, px): (usize, &mut [u8])| {
+                let sx = src_x[x];
                 let mut c = 0;
                 if RGB {
-                    for k in self.rgb_order {
-                        let v = color_row[sx * 3 + k];
-                        if F32 {
-                            px[c * 4..c * 4 + 4].copy_from_slice(&f32::from(v).to_le_bytes());
-                        } else {
-                            px[c] = v;
+                    let s = &color_row[sx * 3..sx * 3 + 3];
+                    let rgb = [s[r], s[1], s[b]];
+                    if F32 {
+                        for (k, v) in rgb.into_iter().enumerate() {
+                            px[k * 4..k * 4 + 4].copy_from_slice(&f32::from(v).to_le_bytes());
                         }
-                        c += 1;
+                    } else {
+                        px[..3].copy_from_slice(&rgb);
                     }
+                    c = 3;
                 }
                 if DEPTH {
-                    let d = self.depth_row[x];
                     if F32 {
-                        px[c * 4..c * 4 + 4].copy_from_slice(&d.to_le_bytes());
+                        px[c * 4..c * 4 + 4].copy_from_slice(&self.metres[x].to_le_bytes());
                     } else {
-                        px[c] = (d * self.depth_scale).clamp(0.0, 255.0) as u8;
+                        px[c] = self.depth_u8[x];
                     }
                 }
-            }
+            };
+            out_row.chunks_exact_mut(pixel).enumerate().for_each(write);
         }
     }
 }
@@ -162,7 +187,7 @@ impl Rows<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use offworld_runtime::msg::{Header, Image};
+    use offworld_runtime::msg::{CameraFrame, Header, Image};
 
     fn frame() -> CameraFrame {
         // 4×2: colour = (x, y, 7); depth = 0.5·(x + 1) m except one NaN.
@@ -198,7 +223,7 @@ mod tests {
             depth_format,
         };
         assemble(
-            &f,
+            &f.view(),
             &opts(Channels::DepthOnly, 4, 2, DepthFormat::Uint8),
             2.0,
             &mut out,
@@ -211,7 +236,7 @@ mod tests {
         // 0.5 m of 2 m → 63; 2.0 m → 255; NaN → 0.
         assert_eq!(out.data, vec![63, 127, 191, 255, 63, 127, 191, 0]);
         assemble(
-            &f,
+            &f.view(),
             &opts(Channels::Rgbd, 2, 1, DepthFormat::Uint8),
             2.0,
             &mut out,
@@ -222,7 +247,7 @@ mod tests {
         assert_eq!(out.data, vec![1, 1, 7, 127, 3, 1, 7, 0]);
         assert!(out.is_consistent());
         assemble(
-            &f,
+            &f.view(),
             &opts(Channels::Rgbd, 4, 2, DepthFormat::Meters),
             2.0,
             &mut out,
@@ -237,7 +262,7 @@ mod tests {
         assert_eq!(&floats[..4], &[0.0, 0.0, 7.0, 0.5]);
         assert_eq!(floats[floats.len() - 1], 0.0, "invalid depth is 0 m");
         assemble(
-            &f,
+            &f.view(),
             &opts(Channels::RgbOnly, 4, 2, DepthFormat::Uint8),
             2.0,
             &mut out,
@@ -262,7 +287,7 @@ mod tests {
             height: 2,
             depth_format: DepthFormat::Meters,
         };
-        assemble(&f, &opts, 2.0, &mut out).expect("ok");
+        assemble(&f.view(), &opts, 2.0, &mut out).expect("ok");
         let floats: Vec<f32> = out
             .data
             .chunks(4)
@@ -281,10 +306,10 @@ mod tests {
         let mut f = frame();
         f.depth.data.pop();
         let mut out = ObsArray::default();
-        assert!(assemble(&f, &ObsOptions::default(), 5.0, &mut out).is_err());
+        assert!(assemble(&f.view(), &ObsOptions::default(), 5.0, &mut out).is_err());
         let mut f = frame();
         f.color.encoding = "mono8".into();
-        assert!(assemble(&f, &ObsOptions::default(), 5.0, &mut out).is_err());
+        assert!(assemble(&f.view(), &ObsOptions::default(), 5.0, &mut out).is_err());
         for (w, h) in [(0, 10), (10, 0), (2000, 10)] {
             let o = ObsOptions {
                 width: w,

@@ -446,6 +446,15 @@ fn format_ms(ms: i64) -> String {
     humantime::format_rfc3339_seconds(t).to_string()
 }
 
+/// The booking situation of an env at a time (see [`Store::slot_at`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SlotAt {
+    /// The slot in progress and its holder's user id.
+    pub slot: Option<(Booking, i64)>,
+    /// Unix ms until which `slot` stays the answer, barring new bookings.
+    pub until_ms: i64,
+}
+
 const BOOKING_COLUMNS: &str =
     "b.id, b.env_id, u.name, b.start_ms, b.end_ms, b.user_id FROM bookings b JOIN users u ON u.id = b.user_id";
 
@@ -573,6 +582,26 @@ impl Store {
             .map_err(db)
     }
 
+    /// The slot of `env_id` covering `at_ms` and until when that answer
+    /// holds (the slot's end, or the next slot's start), so callers can
+    /// skip the database until then.
+    pub fn slot_at(&self, env_id: &str, at_ms: i64) -> Result<SlotAt, ControllerError> {
+        let slot = self.booking_at(env_id, at_ms)?;
+        let until_ms = match &slot {
+            Some((booking, _)) => booking.end_unix_ms,
+            None => self
+                .conn
+                .query_row(
+                    "SELECT MIN(start_ms) FROM bookings WHERE env_id = ?1 AND start_ms > ?2",
+                    params![env_id, at_ms],
+                    |r| r.get::<_, Option<i64>>(0),
+                )
+                .map_err(db)?
+                .unwrap_or(i64::MAX),
+        };
+        Ok(SlotAt { slot, until_ms })
+    }
+
     /// Cancels a slot: its holder's, or any for an operator.
     pub fn cancel_booking(
         &self,
@@ -603,5 +632,53 @@ impl Store {
                 Ok(())
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slot_at_says_until_when_the_answer_holds() {
+        let mut store = Store::in_memory().expect("store");
+        let token = store.add_user("ada", false).expect("user");
+        let ada = store
+            .authenticate(&token)
+            .expect("db")
+            .expect("ada is known");
+        let (env, now) = ("sim/a", 1_000_000);
+        let free = store.slot_at(env, now).expect("query");
+        assert_eq!(
+            free,
+            SlotAt {
+                slot: None,
+                until_ms: i64::MAX
+            }
+        );
+        let rules = BookingRules::default();
+        let first = store
+            .book(&ada, env, now + 10_000, now + 20_000, now, rules)
+            .expect("first slot");
+        store
+            .book(&ada, env, now + 20_000, now + 30_000, now, rules)
+            .expect("adjacent slot");
+        // Before the first slot: free until it starts.
+        let before = store.slot_at(env, now).expect("query");
+        assert_eq!((before.slot, before.until_ms), (None, now + 10_000));
+        // In it: held until its end, where the adjacent one takes over.
+        let during = store.slot_at(env, now + 10_000).expect("query");
+        assert_eq!(during.until_ms, now + 20_000);
+        assert_eq!(
+            during.slot.map(|(b, holder)| (b.id, holder)),
+            Some((first.id, ada.id))
+        );
+        let next = store.slot_at(env, now + 20_000).expect("query");
+        assert_eq!(next.until_ms, now + 30_000);
+        // Another env's bookings never count.
+        assert_eq!(
+            store.slot_at("sim/b", now + 15_000).expect("query").slot,
+            None
+        );
     }
 }

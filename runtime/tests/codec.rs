@@ -5,7 +5,7 @@ mod common;
 
 use std::fmt::Debug;
 
-use offworld_runtime::codec::{decode, encode, encode_into, CDR_LE_HEADER};
+use offworld_runtime::codec::{decode, decode_borrowed, encode, encode_into, CDR_LE_HEADER};
 use offworld_runtime::msg::*;
 use offworld_runtime::DecodeError;
 use serde::{de::DeserializeOwned, Serialize};
@@ -51,6 +51,23 @@ fn encode_into_reuses_the_buffer() {
         capacity,
         "no reallocation for a fitting frame"
     );
+}
+
+#[test]
+fn frame_views_read_in_place_and_keep_the_wire_bytes() {
+    let frame = common::camera_frame();
+    let bytes = encode(&frame).expect("frame");
+    let view: CameraFrameView = decode_borrowed(&bytes).expect("view");
+    assert_eq!(view, frame.view());
+    // The pixels are the payload's own bytes, not a copy.
+    let range = bytes.as_ptr_range();
+    assert!(range.contains(&view.color.data.as_ptr()));
+    assert!(range.contains(&view.depth.data.as_ptr()));
+    assert_eq!(encode(&view).expect("view encodes"), bytes);
+    assert_eq!(view.color.validate(), frame.color.validate());
+    for len in [0, 3, 4, bytes.len() / 2, bytes.len() - 1] {
+        assert!(decode_borrowed::<CameraFrameView>(&bytes[..len]).is_err());
+    }
 }
 
 /// Every strict prefix is truncated; every byte flip either fails or decodes

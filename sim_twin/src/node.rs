@@ -207,7 +207,6 @@ struct Worker {
     estopped: bool,
     keys: Keys,
     frame_msg: CameraFrame,
-    buffer: Vec<u8>,
     rejected: u64,
     overhead: Option<OverheadStream>,
 }
@@ -238,7 +237,6 @@ impl Worker {
             estopped: false,
             keys,
             frame_msg: CameraFrame::default(),
-            buffer: Vec::new(),
             rejected: 0,
         })
     }
@@ -424,13 +422,17 @@ impl Worker {
         let reading = self.twin.tracker_reading();
         self.publish_pose(&reading, Some(tag));
         self.fill_frame(seq, stamp);
-        if let Err(e) = codec::encode_into(&self.frame_msg, &mut self.buffer) {
-            tracing::error!("cannot encode frame: {e}");
-            return;
-        }
+        let frame = match codec::encode(&self.frame_msg) {
+            Ok(bytes) => bytes,
+            Err(e) => {
+                tracing::error!("cannot encode frame: {e}");
+                return;
+            }
+        };
+        // Moved, not copied: a local controller reads these very bytes.
         let put = self
             .session
-            .put(&self.keys.obs, self.buffer.clone())
+            .put(&self.keys.obs, frame)
             .encoding(Encoding::APPLICATION_CDR)
             .wait();
         if let Err(e) = put {

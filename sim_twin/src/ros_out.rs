@@ -83,19 +83,26 @@ pub fn fill_depth(image: &mut Image, frame: &RgbdFrame, stamp: Time, encoding: P
         frame.height,
         encoding,
     );
+    let bytes = encoding.bytes_per_pixel() as usize;
     image.data.clear();
+    image.data.resize(frame.depth.len() * bytes, 0);
+    let pixels = image.data.chunks_exact_mut(bytes).zip(&frame.depth);
     match encoding {
-        PixelEncoding::Depth16UC1 => image.data.extend(frame.depth.iter().flat_map(|d| {
-            let mm = if d.is_finite() {
-                (d * 1000.0).round().clamp(0.0, f32::from(u16::MAX)) as u16
-            } else {
-                0
-            };
-            mm.to_le_bytes()
-        })),
-        _ => image
-            .data
-            .extend(frame.depth.iter().flat_map(|d| d.to_le_bytes())),
+        PixelEncoding::Depth16UC1 => {
+            for (out, d) in pixels {
+                let mm = if d.is_finite() {
+                    (d * 1000.0).round().clamp(0.0, f32::from(u16::MAX)) as u16
+                } else {
+                    0
+                };
+                out.copy_from_slice(&mm.to_le_bytes());
+            }
+        }
+        _ => {
+            for (out, d) in pixels {
+                out.copy_from_slice(&d.to_le_bytes());
+            }
+        }
     }
 }
 

@@ -12,9 +12,10 @@ use crate::error::{DecodeError, EncodeError};
 /// Encapsulation header of little-endian plain CDR.
 pub const CDR_LE_HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
 
-/// Encodes a message into a fresh buffer.
+/// Encodes a message into a fresh buffer of exactly the needed capacity
+/// (an image is copied once, never through a growing buffer).
 pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, EncodeError> {
-    let mut buf = Vec::new();
+    let mut buf = Vec::with_capacity(cdr::calc_serialized_size(msg) as usize);
     encode_into(msg, &mut buf)?;
     Ok(buf)
 }
@@ -53,6 +54,15 @@ pub fn decode_borrowed<'de, T: Deserialize<'de>>(bytes: &'de [u8]) -> Result<T, 
 /// Decodes an owned message (see [`decode_borrowed`]).
 pub fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, DecodeError> {
     decode_borrowed(bytes)
+}
+
+/// A payload in one slice, so borrowed decodes read it in place. Payloads
+/// reassembled from fragments are copied together once, here.
+pub fn contiguous(payload: &zenoh::bytes::ZBytes) -> zenoh::bytes::ZBytes {
+    match payload.to_bytes() {
+        std::borrow::Cow::Borrowed(_) => payload.clone(),
+        std::borrow::Cow::Owned(joined) => joined.into(),
+    }
 }
 
 /// Decodes a Zenoh payload; contiguous payloads are read in place.

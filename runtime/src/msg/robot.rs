@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::ros::{Image, Time};
+use super::ros::{Image, ImageView, Time};
 
 /// A motion: drive at (`linear_x`, `angular_z`) for `duration_s`, then stop.
 /// The robot answers with a [`CameraFrame`] carrying the same `seq`.
@@ -40,6 +40,30 @@ pub struct CameraFrame {
     pub color: Image,
     /// `32FC1` metres (NaN = no return) or `16UC1` millimetres (0 = no return).
     pub depth: Image,
+}
+
+impl CameraFrame {
+    /// The frame borrowed (see [`CameraFrameView`]).
+    pub fn view(&self) -> CameraFrameView<'_> {
+        CameraFrameView {
+            seq: self.seq,
+            color: self.color.view(),
+            depth: self.depth.view(),
+        }
+    }
+}
+
+/// A [`CameraFrame`] read in place from its payload (same wire bytes).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraFrameView<'a> {
+    /// The command this frame answers.
+    pub seq: u64,
+    /// `rgb8` or `bgr8`.
+    #[serde(borrow)]
+    pub color: ImageView<'a>,
+    /// `32FC1` metres or `16UC1` millimetres.
+    #[serde(borrow)]
+    pub depth: ImageView<'a>,
 }
 
 /// Tag attached (as the Zenoh attachment) to pose and odometry samples that

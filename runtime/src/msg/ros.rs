@@ -310,10 +310,51 @@ impl Image {
         }
     }
 
+    /// The image borrowed: same fields, same wire bytes.
+    pub fn view(&self) -> ImageView<'_> {
+        ImageView {
+            header: self.header.clone(),
+            height: self.height,
+            width: self.width,
+            encoding: &self.encoding,
+            is_bigendian: self.is_bigendian,
+            step: self.step,
+            data: &self.data,
+        }
+    }
+
     /// Checks encoding, endianness and geometry; returns the encoding.
     pub fn validate(&self) -> Result<PixelEncoding, ImageError> {
-        let encoding = PixelEncoding::parse(&self.encoding)
-            .ok_or_else(|| ImageError::UnsupportedEncoding(self.encoding.clone()))?;
+        self.view().validate()
+    }
+}
+
+/// `sensor_msgs/Image` borrowed from a received payload: decoding it copies
+/// no pixel, so a frame is read in place where it arrived.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ImageView<'a> {
+    /// Stamp and camera frame.
+    pub header: Header,
+    /// Rows.
+    pub height: u32,
+    /// Columns.
+    pub width: u32,
+    /// ROS encoding string, see [`PixelEncoding`].
+    pub encoding: &'a str,
+    /// 0 = little-endian pixels.
+    pub is_bigendian: u8,
+    /// Bytes per row.
+    pub step: u32,
+    /// Row-major pixel bytes.
+    #[serde(borrow, with = "serde_bytes")]
+    pub data: &'a [u8],
+}
+
+impl ImageView<'_> {
+    /// Checks encoding, endianness and geometry; returns the encoding.
+    pub fn validate(&self) -> Result<PixelEncoding, ImageError> {
+        let encoding = PixelEncoding::parse(self.encoding)
+            .ok_or_else(|| ImageError::UnsupportedEncoding(self.encoding.to_owned()))?;
         if self.is_bigendian != 0 {
             return Err(ImageError::BigEndian);
         }

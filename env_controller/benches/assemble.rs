@@ -1,0 +1,63 @@
+//! What building an observation from a camera frame costs, per layout.
+//! Run: `cargo bench -p offworld-env-controller --bench assemble`
+
+use std::time::Instant;
+
+use offworld_env_controller::observation::assemble;
+use offworld_runtime::msg::{
+    CameraFrame, Channels, DepthFormat, Header, Image, ObsArray, ObsOptions, PixelEncoding,
+};
+
+const ROUNDS: usize = 400;
+
+fn frame(w: u32, h: u32) -> CameraFrame {
+    let rgb = (0..w * h * 3).map(|i| (i % 251) as u8).collect();
+    let depth = (0..w * h)
+        .flat_map(|i| {
+            let d = if i % 97 == 0 {
+                f32::NAN
+            } else {
+                0.2 + (i % 500) as f32 * 0.01
+            };
+            d.to_le_bytes()
+        })
+        .collect();
+    CameraFrame {
+        seq: 1,
+        color: Image::packed(Header::default(), w, h, PixelEncoding::Rgb8, rgb),
+        depth: Image::packed(Header::default(), w, h, PixelEncoding::Depth32FC1, depth),
+    }
+}
+
+fn main() {
+    let native = frame(320, 240);
+    let view = native.view();
+    println!("assemble from a 320x240 rgb8 + 32FC1 frame, median of {ROUNDS}:");
+    for (channels, (w, h), depth_format) in [
+        (Channels::Rgbd, (320, 240), DepthFormat::Uint8),
+        (Channels::Rgbd, (320, 240), DepthFormat::Meters),
+        (Channels::DepthOnly, (320, 240), DepthFormat::Uint8),
+        (Channels::Rgbd, (84, 84), DepthFormat::Uint8),
+    ] {
+        let opts = ObsOptions {
+            channels,
+            width: w,
+            height: h,
+            depth_format,
+        };
+        let mut times = Vec::with_capacity(ROUNDS);
+        let mut out = ObsArray::default();
+        for _ in 0..ROUNDS {
+            let start = Instant::now();
+            assemble(&view, &opts, 5.0, &mut out).expect("assemble");
+            times.push(start.elapsed().as_secs_f64() * 1e6);
+        }
+        times.sort_by(f64::total_cmp);
+        println!(
+            "  {:?} {w}x{h} {:?}: {:7.1} µs",
+            channels,
+            depth_format,
+            times[ROUNDS / 2]
+        );
+    }
+}
