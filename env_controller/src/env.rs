@@ -665,6 +665,27 @@ impl EnvServer {
         self.publish_status(&mut state).await;
     }
 
+    /// The holder's client is back (its liveliness token reappeared, e.g.
+    /// after a network flap or a router restart) within the grace period:
+    /// the lease is theirs again. The interrupted episode stays aborted; the
+    /// client goes on with `reset()` without opening the env again.
+    pub async fn client_reconnected(&self, client_id: &str) {
+        let mut state = self.state.lock().await;
+        let now = Instant::now();
+        let Some(lease) = state
+            .lease
+            .as_mut()
+            .filter(|l| l.client_id == client_id && l.disconnected && l.expires > now)
+        else {
+            return;
+        };
+        tracing::info!(env = %self.env, client_id, "lease holder reconnected; lease restored");
+        lease.disconnected = false;
+        lease.expires = now + self.options.lease_idle;
+        lease.expires_unix_ms = unix_ms_in(self.options.lease_idle);
+        self.publish_status(&mut state).await;
+    }
+
     /// Records an unfinished episode as ended for `reason`.
     async fn abort_episode(&self, state: &mut State, reason: &str) {
         let running = state.episode.as_ref().is_some_and(|e| !e.over);

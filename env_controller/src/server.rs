@@ -109,7 +109,8 @@ impl Controller {
                 }
             }));
         }
-        // Client liveliness: a vanished lease holder stops the robot.
+        // Client liveliness: a vanished lease holder stops the robot; one
+        // back within the grace period gets its lease back.
         let clients = self
             .session
             .liveliness()
@@ -119,10 +120,12 @@ impl Controller {
         let watcher = server.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(sample) = clients.recv_async().await {
-                if sample.kind() == SampleKind::Delete {
-                    if let Some(client_id) = sample.key_expr().as_str().rsplit('/').next() {
-                        watcher.client_disconnected(client_id).await;
-                    }
+                let Some(client_id) = sample.key_expr().as_str().rsplit('/').next() else {
+                    continue;
+                };
+                match sample.kind() {
+                    SampleKind::Delete => watcher.client_disconnected(client_id).await,
+                    SampleKind::Put => watcher.client_reconnected(client_id).await,
                 }
             }
         }));

@@ -1,5 +1,5 @@
 """Through the real zenohd router with the repository's deployment files
-(TLS, passwords, ACL): a sim farm of two twin processes and a controller
+(QUIC with TLS 1.3, passwords, ACL): a sim farm of two twin processes and a controller
 (`sim_farm`, tests/src/bin/sim_farm.rs). Discovery, vector envs across
 processes, bookings from Python and the CLI."""
 
@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -71,42 +70,10 @@ def test_list_envs_shows_each_env_with_task_state_and_components(trainer):
     assert [e["env_id"] for e in json.loads(out.stdout)] == trainer
 
 
-@pytest.fixture()
-def twin_processes(tmp_path, monkeypatch):
-    """Two sim twins in their own processes and a controller in a third,
-    peer to peer on loopback (sustained stepping through the TLS router is
-    covered by the Rust tests; see the issue notes on zenoh's TLS link)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    endpoint = f"tcp/127.0.0.1:{port}"
-    ids = ["sim/procs-0", "sim/procs-1"]
-    serve = [str(_binary("env_controller")), "--db", str(tmp_path / "gym.db"), "serve", "--listen", endpoint]
-    for env_id in ids:
-        serve += ["--env", f"{env_id}=MonolithDiscrete"]
-    procs = [subprocess.Popen(serve)]
-    for env_id in ids:
-        procs.append(
-            subprocess.Popen(
-                [str(_binary("sim_twin")), "--env", env_id, "--resolution", "84x84", "--connect", endpoint]
-            )
-        )
-    for var in ("OFFWORLD_ZENOH_CONFIG", "OFFWORLD_ZENOH_CFG", "OFFWORLD_GYM_ACCESS_TOKEN"):
-        monkeypatch.delenv(var, raising=False)
-    monkeypatch.setenv("OFFWORLD_GYM_CONNECT", endpoint)
-    try:
-        deadline = time.monotonic() + 60
-        while len([e for e in offworld_gym.list_envs() if e["state"] == "free"]) < 2:
-            assert time.monotonic() < deadline, "the twins did not come up"
-            time.sleep(0.2)
-        yield ids
-    finally:
-        for proc in procs:
-            proc.kill()
-            proc.wait()
-
-
-def test_make_vec_by_discovery_steps_twins_in_separate_processes(twin_processes):
+def test_make_vec_by_discovery_steps_twins_in_separate_processes(trainer):
+    """Two twin processes stepped together through the router (QUIC, mTLS,
+    ACL), by discovery and by id list."""
+    twin_processes = trainer
     envs = gymnasium.make_vec(
         "OffWorldMonolithDiscreteSim-v0", num_envs=2, env_id="discover", resolution=(84, 84)
     )

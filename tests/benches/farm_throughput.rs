@@ -1,7 +1,7 @@
 //! Sim-farm throughput: total steps/s a trainer gets from N sim envs
 //! stepped together with `VecEnvClient` (one concurrent fan-out per step),
 //! for N = 1, 2, 4 — through the `zenohd` router with the repository's
-//! deployment files (TLS, mTLS, passwords, ACL) against plain TCP peer to
+//! deployment files (QUIC with TLS 1.3, mTLS, passwords, ACL) against plain TCP peer to
 //! peer, in one run, in two layouts:
 //! - "twin processes": N `sim_twin` processes (84×84, lockstep) behind one
 //!   `env_controller` process — camera frames cross the router;
@@ -149,7 +149,7 @@ async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
 }
 
 fn print_header() {
-    println!("  twins | through zenohd (TLS+ACL) | peer to peer (TCP) | router/p2p");
+    println!("  twins | through zenohd (QUIC+ACL) | peer to peer (TCP) | router/p2p");
 }
 
 /// One table row; a failed measurement shows its error.

@@ -80,9 +80,9 @@ fn json_string(s: &str) -> String {
 pub struct RouterSite {
     /// Certificates, users.txt, databases.
     pub dir: PathBuf,
-    /// Where trainers connect: `tls/127.0.0.2:<port>`.
+    /// Where trainers connect: `quic/127.0.0.2:<port>`.
     pub trainer_endpoint: String,
-    /// Where site components connect: `tls/127.0.0.3:<port>` (mutual TLS).
+    /// Where site components connect: `quic/127.0.0.3:<port>` (mutual TLS).
     pub site_endpoint: String,
     router: Option<Process>,
 }
@@ -113,13 +113,18 @@ impl RouterSite {
             .collect();
         std::fs::write(dir.join("users.txt"), users)?;
         let mut site = Self {
-            trainer_endpoint: format!("tls/127.0.0.2:{}", free_port("127.0.0.2")?),
-            site_endpoint: format!("tls/127.0.0.3:{}", free_port("127.0.0.3")?),
+            trainer_endpoint: format!("quic/127.0.0.2:{}", free_port("127.0.0.2")?),
+            site_endpoint: format!("quic/127.0.0.3:{}", free_port("127.0.0.3")?),
             dir,
             router: None,
         };
         site.start_router()?;
         Ok(site)
+    }
+
+    /// The TLS-over-TCP fallback of a QUIC endpoint (same port number).
+    pub fn over_tcp(endpoint: &str) -> String {
+        endpoint.replacen("quic/", "tls/", 1)
     }
 
     /// The test password of a user (users.txt).
@@ -132,10 +137,14 @@ impl RouterSite {
     pub fn start_router(&mut self) -> anyhow::Result<()> {
         self.stop_router();
         let file = |name: &str| json_string(&self.dir.join(name).to_string_lossy());
+        // QUIC, and the TLS-over-TCP fallback on the same port numbers.
+        let mtls = |endpoint: &str| format!("{endpoint}#enable_mtls=true");
         let listen = format!(
-            "[{},{}]",
+            "[{},{},{},{}]",
             json_string(&self.trainer_endpoint),
-            json_string(&format!("{}#enable_mtls=true", self.site_endpoint))
+            json_string(&mtls(&self.site_endpoint)),
+            json_string(&Self::over_tcp(&self.trainer_endpoint)),
+            json_string(&mtls(&Self::over_tcp(&self.site_endpoint)))
         );
         let overrides = [
             format!("transport/link/tls/root_ca_certificate:{}", file("ca.pem")),
@@ -175,8 +184,10 @@ impl RouterSite {
             .spawn()
             .map_err(|e| anyhow::anyhow!("zenohd (installed by .ci/setup): {e}"))?;
         self.router = Some(Process(child));
+        // zenohd opens its listeners together: the TCP ones answering
+        // means the QUIC ones are up too.
         for endpoint in [&self.trainer_endpoint, &self.site_endpoint] {
-            wait_listening(endpoint, Duration::from_secs(20))?;
+            wait_listening(&Self::over_tcp(endpoint), Duration::from_secs(20))?;
         }
         Ok(())
     }

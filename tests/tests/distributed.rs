@@ -163,6 +163,8 @@ async fn settle() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_episode_runs_through_the_router_over_tls_with_passwords() -> anyhow::Result<()> {
+    // Over QUIC (TLS 1.3, the deployment's default); the TLS-over-TCP
+    // fallback is checked at the end.
     let _one = ONE_SITE.lock().await;
     let site = SimSite::start("episode")?;
     let trainer = site.session(Role::Trainer).await;
@@ -210,6 +212,20 @@ async fn a_full_episode_runs_through_the_router_over_tls_with_passwords() -> any
     let closed = gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     assert_eq!(closed.experiment.episodes, 1);
     assert_eq!(closed.experiment.steps, u64::from(steps));
+    // The TLS-over-TCP fallback port reaches the same env.
+    let mut over_tcp = site.farm.site.session(Role::Trainer);
+    over_tcp.connect = vec![RouterSite::over_tcp(&site.farm.site.trainer_endpoint)];
+    let fallback = over_tcp.open().await?;
+    let mut gym = open(&fallback, &site.env, "over-tcp", false).await;
+    let reset = gym
+        .reset(Seed::Fixed(7))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(
+        reset.info.episode_id, 0,
+        "a new experiment starts at episode 0"
+    );
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     Ok(())
 }
 
@@ -246,12 +262,25 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
     refused(wrong).await?;
     // Plain TCP to the TLS port.
     let mut plain = site.session(Role::Trainer);
-    plain.connect = vec![site.trainer_endpoint.replace("tls/", "tcp/")];
+    plain.connect = vec![site.trainer_endpoint.replace("quic/", "tcp/")];
     refused(plain).await?;
-    // The site port needs a client certificate: a trainer's password is not enough.
-    let mut no_cert = site.session(Role::Trainer);
-    no_cert.connect = vec![site.site_endpoint.clone()];
-    refused(no_cert).await?;
+    // The site port needs a client certificate: a trainer's password is not
+    // enough, over QUIC or over TCP.
+    for endpoint in [
+        site.site_endpoint.clone(),
+        RouterSite::over_tcp(&site.site_endpoint),
+    ] {
+        let mut no_cert = site.session(Role::Trainer);
+        no_cert.connect = vec![endpoint];
+        refused(no_cert).await?;
+    }
+    // No credentials over the TCP fallback either.
+    let mut anonymous_tcp = site.session(Role::Trainer);
+    anonymous_tcp.connect = vec![RouterSite::over_tcp(&site.trainer_endpoint)];
+    anonymous_tcp
+        .overrides
+        .retain(|o| !o.starts_with("transport/auth"));
+    refused(anonymous_tcp).await?;
     // A certificate signed by another CA.
     let other_ca = site.dir.join("other-ca");
     let status = std::process::Command::new("bash")
@@ -471,26 +500,49 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
     );
 
     // It comes back on the same endpoints; every client reconnects by
-    // itself and the trainer resumes its experiment.
+    // itself. The trainer's session is back within the grace period, so its
+    // lease is restored: it goes on with reset() without opening again
+    // (until its liveliness token is back, the lease is "disconnected").
     site.farm.site.start_router()?;
-    let mut resumed = open(&trainer, &site.env, "survives-restart", true).await;
-    let info = resumed.opened().experiment.clone();
-    // Nothing recorded is lost: the finished episode and the interrupted
-    // one (recorded as aborted) with all their steps.
-    assert_eq!(info.episodes, 2, "{info:?}");
-    assert_eq!(info.steps, first + 2, "{info:?}");
-    resumed
-        .reset(Seed::Fixed(13))
-        .await
-        .map_err(|e| anyhow::anyhow!(e))?;
-    let r = resumed
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        match gym.reset(Seed::Fixed(13)).await {
+            Ok(_) => break,
+            Err(e) if std::time::Instant::now() < deadline => {
+                assert!(
+                    matches!(
+                        e.code,
+                        ErrorCode::Timeout
+                            | ErrorCode::Unavailable
+                            | ErrorCode::NotFound
+                            | ErrorCode::Unauthorized
+                    ),
+                    "{e}"
+                );
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(e) => anyhow::bail!("the lease was not restored within 30 s: {e}"),
+        }
+    }
+    let r = gym
         .step(Action::Discrete(FORWARD))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
     assert_eq!(r.info.step, 1);
     assert_eq!(r.info.episode_id, 2, "episode numbering continues");
-    let closed = resumed.close().await.map_err(|e| anyhow::anyhow!(e))?;
-    assert_eq!(closed.experiment.episodes, 3);
-    assert_eq!(closed.experiment.steps, first + 3);
+    // Nothing recorded is lost: the finished episode, the interrupted one
+    // (recorded as aborted) with all their steps, and the new one.
+    let closed = gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(closed.experiment.episodes, 3, "{:?}", closed.experiment);
+    assert_eq!(
+        closed.experiment.steps,
+        first + 3,
+        "{:?}",
+        closed.experiment
+    );
+    // A new session resumes the experiment where it stopped.
+    let resumed = open(&trainer, &site.env, "survives-restart", true).await;
+    let info = &resumed.opened().experiment;
+    assert_eq!((info.episodes, info.steps), (3, first + 3), "{info:?}");
     Ok(())
 }

@@ -1,6 +1,6 @@
 """``python -m offworld_gym``: what a deployment offers, from the command line.
 
-    python -m offworld_gym envs --connect tls/router.example:7447
+    python -m offworld_gym envs --connect quic/router.example:7447
     python -m offworld_gym bookings --env real/enclosure-a
     python -m offworld_gym book --env real/enclosure-a --start 2026-12-01T14:00 --minutes 60
     python -m offworld_gym cancel-booking --env real/enclosure-a --id 3
