@@ -4,6 +4,7 @@
 //! independent Python peers under `tests/python/` that other suites drive.
 
 pub mod emulated;
+pub mod netns;
 pub mod site;
 
 use std::path::PathBuf;
@@ -32,8 +33,27 @@ impl Process {
 
     /// Starts a workspace binary with arguments and a `RUST_LOG` filter.
     pub fn spawn_logged(binary: &str, args: &[&str], log: &str) -> std::io::Result<Self> {
+        Self::spawn_in(None, binary, args, log)
+    }
+
+    /// Like [`Process::spawn_logged`], inside network namespace `netns` if
+    /// given (`ip netns exec` execs the binary: the child is the binary).
+    pub fn spawn_in(
+        netns: Option<&str>,
+        binary: &str,
+        args: &[&str],
+        log: &str,
+    ) -> std::io::Result<Self> {
         let path = binary_dir().join(binary);
-        Command::new(&path)
+        let mut command = match netns {
+            Some(ns) => {
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", ns]).arg(&path);
+                c
+            }
+            None => Command::new(&path),
+        };
+        command
             .args(args)
             .env(
                 "RUST_LOG",

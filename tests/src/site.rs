@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::{EnvId, SessionConfig};
 
+use crate::netns::Namespaces;
 use crate::Process;
 
 /// The roles of `deploy/roles/` (and of the router's ACL subjects).
@@ -84,22 +85,52 @@ pub struct RouterSite {
     pub trainer_endpoint: String,
     /// Where site components connect: `quic/127.0.0.3:<port>` (mutual TLS).
     pub site_endpoint: String,
+    /// Where site components spawned by [`RouterSite::spawn`] connect (the
+    /// router's site-side address when the site has its own namespace).
+    site_endpoint_inside: String,
+    /// The router's listeners (QUIC; TLS over TCP added on the same ports).
+    listen: [String; 2],
     router: Option<Process>,
+    /// Declared last: removed after the router and the processes stopped.
+    netns: Option<Namespaces>,
 }
 
 impl RouterSite {
     /// Generates certificates and passwords, starts `zenohd` and waits until
     /// both listeners accept connections.
     pub fn start(name: &str) -> anyhow::Result<Self> {
+        Self::create(name, None)
+    }
+
+    /// Like [`RouterSite::start`], with the router and the site in network
+    /// namespaces of their own (see [`Namespaces`]): in-test sessions are
+    /// trainers and operators on the host, [`RouterSite::spawn`]ed
+    /// components live in the site namespace. Fails with the reason when
+    /// namespaces cannot be made (no `ip`, no CAP_NET_ADMIN).
+    pub fn start_in_namespaces(name: &str) -> anyhow::Result<Self> {
+        Self::create(name, Some(Namespaces::create()?))
+    }
+
+    /// The namespaces, if the site has them.
+    pub fn namespaces(&self) -> Option<&Namespaces> {
+        self.netns.as_ref()
+    }
+
+    fn create(name: &str, netns: Option<Namespaces>) -> anyhow::Result<Self> {
         let dir = std::env::temp_dir().join(format!(
             "offworld-site-{name}-{}-{}",
             std::process::id(),
             offworld_runtime::client::random_id()
         ));
         std::fs::create_dir_all(&dir)?;
-        let status = Command::new("bash")
+        let mut generate = Command::new("bash");
+        generate
             .arg(deploy_dir().join("certs/generate.sh"))
-            .arg(&dir)
+            .arg(&dir);
+        if let Some(ns) = &netns {
+            generate.arg(format!("IP:{},IP:{}", ns.router_host_ip, ns.router_site_ip));
+        }
+        let status = generate
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .status()?;
@@ -112,11 +143,30 @@ impl RouterSite {
             .map(|r| format!("{}:{}\n", r.name(), Self::password(r.name())))
             .collect();
         std::fs::write(dir.join("users.txt"), users)?;
-        let mut site = Self {
-            trainer_endpoint: format!("quic/127.0.0.2:{}", free_port("127.0.0.2")?),
-            site_endpoint: format!("quic/127.0.0.3:{}", free_port("127.0.0.3")?),
-            dir,
-            router: None,
+        let mut site = match &netns {
+            None => {
+                let trainer = format!("quic/127.0.0.2:{}", free_port("127.0.0.2")?);
+                let site = format!("quic/127.0.0.3:{}", free_port("127.0.0.3")?);
+                Self {
+                    listen: [trainer.clone(), site.clone()],
+                    trainer_endpoint: trainer,
+                    site_endpoint_inside: site.clone(),
+                    site_endpoint: site,
+                    dir,
+                    router: None,
+                    netns,
+                }
+            }
+            // A fresh namespace: the deployment's own ports are free.
+            Some(ns) => Self {
+                listen: ["quic/0.0.0.0:7447".into(), "quic/0.0.0.0:7448".into()],
+                trainer_endpoint: format!("quic/{}:7447", ns.router_host_ip),
+                site_endpoint: format!("quic/{}:7448", ns.router_host_ip),
+                site_endpoint_inside: format!("quic/{}:7448", ns.router_site_ip),
+                dir,
+                router: None,
+                netns,
+            },
         };
         site.start_router()?;
         Ok(site)
@@ -139,12 +189,13 @@ impl RouterSite {
         let file = |name: &str| json_string(&self.dir.join(name).to_string_lossy());
         // QUIC, and the TLS-over-TCP fallback on the same port numbers.
         let mtls = |endpoint: &str| format!("{endpoint}#enable_mtls=true");
+        let [trainers, site] = &self.listen;
         let listen = format!(
             "[{},{},{},{}]",
-            json_string(&self.trainer_endpoint),
-            json_string(&mtls(&self.site_endpoint)),
-            json_string(&Self::over_tcp(&self.trainer_endpoint)),
-            json_string(&mtls(&Self::over_tcp(&self.site_endpoint)))
+            json_string(trainers),
+            json_string(&mtls(site)),
+            json_string(&Self::over_tcp(trainers)),
+            json_string(&mtls(&Self::over_tcp(site)))
         );
         let overrides = [
             format!("transport/link/tls/root_ca_certificate:{}", file("ca.pem")),
@@ -173,7 +224,15 @@ impl RouterSite {
             args.push("--cfg".into());
             args.push(o);
         }
-        let child = Command::new(zenohd())
+        let mut command = match &self.netns {
+            Some(ns) => {
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", &ns.router]).arg(zenohd());
+                c
+            }
+            None => Command::new(zenohd()),
+        };
+        let child = command
             .args(&args)
             .env(
                 "RUST_LOG",
@@ -233,11 +292,15 @@ impl RouterSite {
     /// The Zenoh flags of a component process of `role`:
     /// `-c deploy/roles/<role>.json5 --connect <endpoint> --cfg …`.
     pub fn role_args(&self, role: Role) -> Vec<String> {
+        self.role_args_to(role, self.endpoint(role))
+    }
+
+    fn role_args_to(&self, role: Role, endpoint: &str) -> Vec<String> {
         let mut args = vec![
             "-c".to_owned(),
             role_file(role).to_string_lossy().into_owned(),
             "--connect".to_owned(),
-            self.endpoint(role).to_owned(),
+            endpoint.to_owned(),
         ];
         for o in self.overrides(role) {
             args.push("--cfg".into());
@@ -265,11 +328,16 @@ impl RouterSite {
         before: &[&str],
         after: &[&str],
     ) -> anyhow::Result<Process> {
+        // Site components live in the site namespace, if there is one.
+        let (netns, endpoint) = match &self.netns {
+            Some(ns) if role.is_site() => (Some(ns.site.as_str()), &self.site_endpoint_inside),
+            _ => (None, &self.endpoint(role).to_owned()),
+        };
         let mut args: Vec<String> = before.iter().map(|s| s.to_string()).collect();
-        args.extend(self.role_args(role));
+        args.extend(self.role_args_to(role, endpoint));
         args.extend(after.iter().map(|s| s.to_string()));
         let refs: Vec<&str> = args.iter().map(String::as_str).collect();
-        Ok(Process::spawn_logged(binary, &refs, "warn")?)
+        Ok(Process::spawn_in(netns, binary, &refs, "warn")?)
     }
 }
 
@@ -329,7 +397,16 @@ impl SimFarm {
     /// Starts the router, the twins and the controller (not waiting for
     /// them to answer: see [`SimFarm::ready`]).
     pub fn start(name: &str, twins: usize, task: &str) -> anyhow::Result<Self> {
-        let site = RouterSite::start(name)?;
+        Self::start_on(RouterSite::start(name)?, name, twins, task)
+    }
+
+    /// Like [`SimFarm::start`] behind an already started router.
+    pub fn start_on(
+        site: RouterSite,
+        name: &str,
+        twins: usize,
+        task: &str,
+    ) -> anyhow::Result<Self> {
         let envs: Vec<EnvId> = (0..twins.max(1))
             .map(|i| EnvId::sim(&format!("{name}-{i}")))
             .collect::<Result<_, _>>()?;

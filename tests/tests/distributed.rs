@@ -1,8 +1,9 @@
 //! Beyond one machine: a sim site behind the real `zenohd` router with the
-//! repository's deployment files (TLS, mutual TLS for site components,
-//! user/password for every connection, access control). Every component is
-//! a separate process on its own loopback address pair; see
-//! `offworld_tests::site`.
+//! repository's deployment files (QUIC with TLS 1.3, mutual TLS for site
+//! components, user/password for every connection, access control). Every
+//! component is a separate process on its own loopback address pair, and in
+//! the last test the router and the site live in network namespaces of
+//! their own; see `offworld_tests::site`.
 //!
 //! Every "denied" claim has a positive control: the same observer sees the
 //! allowed role do the same thing.
@@ -18,6 +19,7 @@ use offworld_runtime::wire;
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ContractError, ErrorCode};
+use offworld_tests::netns::Namespaces;
 use offworld_tests::site::{Role, RouterSite, SimFarm};
 
 /// One site at a time: each runs a router and two component processes.
@@ -544,5 +546,97 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
     let resumed = open(&trainer, &site.env, "survives-restart", true).await;
     let info = &resumed.opened().experiment;
     assert_eq!((info.episodes, info.steps), (3, first + 3), "{info:?}");
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn in_network_namespaces_trainers_reach_the_site_only_through_the_router(
+) -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = match RouterSite::start_in_namespaces("netns") {
+        Ok(site) => site,
+        Err(e) => {
+            // The same rules are proven on loopback addresses above.
+            eprintln!("SKIPPED: network namespaces are unavailable here: {e}");
+            return Ok(());
+        }
+    };
+    let ns = site.namespaces().expect("namespaces");
+    // The site has no route to the host: only the router's session links
+    // them (the router's namespace has a route to both).
+    assert!(!Namespaces::routes(&ns.site, &ns.host_ip));
+    assert!(Namespaces::routes(&ns.site, &ns.router_site_ip));
+    assert!(Namespaces::routes(&ns.router, &ns.host_ip));
+    let farm = SimFarm::start_on(site, "netns", 1, "MonolithDiscrete")?;
+    let env = farm.envs[0].clone();
+    let session = |role: Role| {
+        let config = farm.site.session(role);
+        async move { config.open().await }
+    };
+
+    // A client without credentials is refused.
+    let mut anonymous = farm.site.session(Role::Trainer);
+    anonymous
+        .overrides
+        .retain(|o| !o.starts_with("transport/auth"));
+    assert!(matches!(
+        anonymous.open().await,
+        Err(ContractError::Zenoh(_))
+    ));
+
+    // A full episode through the router.
+    let trainer = session(Role::Trainer).await?;
+    let mut gym = open(&trainer, &env, "netns", false).await;
+    gym.reset(Seed::Fixed(5))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let mut steps = 0u32;
+    loop {
+        let r = gym
+            .step(Action::Discrete([FORWARD, 0, 1][steps as usize % 3]))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        steps += 1;
+        assert_eq!(r.info.step, steps);
+        if r.terminated || r.truncated {
+            break;
+        }
+    }
+
+    // A trainer's `cmd` never reaches the robot: an operator (on the host,
+    // mutual TLS) sees neither the command nor an answer to it, while it
+    // does see the controller's commands and their answers.
+    let operator = session(Role::Operator).await?;
+    let (spy, _spy_sub) = Seen::watch(&operator, &format!("{}/**", env.prefix())).await;
+    settle().await;
+    gym.reset(Seed::Fixed(6))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let allowed = step(&mut gym, &spy).await;
+    assert!(
+        spy.wait_pose(allowed).await.is_some(),
+        "control: the controller's command is answered"
+    );
+    let forged = MotionCommand {
+        seq: 9_000_000,
+        linear_x: 0.2,
+        angular_z: 0.0,
+        duration_s: 1.0,
+    };
+    for _ in 0..5 {
+        wire::put(&trainer, &env.key(Topic::Cmd), &forged).await?;
+    }
+    settle().await;
+    assert!(
+        spy.cmds().iter().all(|c| c.seq != forged.seq),
+        "a trainer's command crossed the router"
+    );
+    assert_eq!(
+        spy.count("pose", Some(forged.seq)),
+        0,
+        "the robot answered a trainer"
+    );
+    assert_eq!(spy.count("obs", Some(forged.seq)), 0);
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     Ok(())
 }
