@@ -8,7 +8,7 @@ use offworld_runtime::msg::{
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyList};
 
 /// An observation as a numpy array of shape (height, width, channels).
 pub fn observation<'py>(py: Python<'py>, obs: ObsArray) -> PyResult<Bound<'py, PyAny>> {
@@ -152,6 +152,11 @@ pub fn listing<'py>(
     dict.set_item("until_unix_ms", until)?;
     dict.set_item("message", message)?;
     dict.set_item("components", &listing.components)?;
+    let bookings = PyList::empty(py);
+    for b in &listing.bookings {
+        bookings.append(booking(py, b)?)?;
+    }
+    dict.set_item("bookings", bookings)?;
     Ok(dict)
 }
 

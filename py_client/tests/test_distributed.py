@@ -120,8 +120,16 @@ def test_bookings_from_python_and_the_cli(trainer):
         check=True,
     )
     assert made in json.loads(cli.stdout)
+    # Discovery shows the slot on its env, and only there.
+    slots = {e["env_id"]: e["bookings"] for e in offworld_gym.list_envs()}
+    assert slots == {env_id: [made], trainer[1]: []}
+    table = subprocess.run(
+        [sys.executable, "-m", "offworld_gym", "envs"], capture_output=True, text=True, check=True
+    ).stdout
+    assert "booked by alice" in table
     remaining = offworld_gym.cancel_booking(env_id, made["id"])
     assert made not in remaining
+    assert all(e["bookings"] == [] for e in offworld_gym.list_envs())
     # Without a token: a clear error before anything is sent.
     with pytest.raises(errors.ConfigurationError, match="token"):
         offworld_gym.book(env_id, start, start + 60, token="")

@@ -252,13 +252,17 @@ pub struct EnvListing {
     /// Components alive under the env (`controller`, `sim_twin`,
     /// `robot_agent`, `tracker_agent`, `monitor`), sorted.
     pub components: Vec<String>,
+    /// Booked slots in progress or ahead, earliest first (empty when the
+    /// controller did not answer).
+    pub bookings: Vec<crate::msg::Booking>,
 }
 
 /// Lists the envs reachable through `session`: every env with a liveliness
 /// token (controller, twin or agents), with its task and availability from
 /// its controller's `spec` and `status`. Sorted by env id. Bounded by
 /// `timeout` per query; an env whose controller does not answer is listed
-/// `Offline`, never dropped.
+/// `Offline`, never dropped. Each listing carries the env's booked slots
+/// from now on, so a researcher sees when a real env is reserved.
 pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvListing>, WireError> {
     let replies = session
         .liveliness()
@@ -285,16 +289,27 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
     }
     let listings = components.into_iter().map(|(env, alive)| async move {
         let has_controller = alive.contains(Component::Controller.as_str());
-        let (task, state) = if has_controller {
-            let (spec, status) =
-                futures::join!(spec(session, &env, timeout), status(session, &env, timeout));
+        let (task, state, bookings) = if has_controller {
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap_or_default();
+            let upcoming = crate::msg::BookingRequest::List {
+                from_unix_ms: i64::try_from(now.as_millis()).unwrap_or(i64::MAX),
+            };
+            let (spec, status, booked) = futures::join!(
+                spec(session, &env, timeout),
+                status(session, &env, timeout),
+                book(session, &env, &upcoming, timeout)
+            );
+            let bookings = booked.map(|b| b.bookings).unwrap_or_default();
             match (spec, status) {
-                (Ok(spec), Ok(status)) => (spec.task, status.state),
+                (Ok(spec), Ok(status)) => (spec.task, status.state, bookings),
                 (_, Err(e)) | (Err(e), _) => (
                     String::new(),
                     EnvState::Offline {
                         reason: format!("the controller does not answer: {}", e.message),
                     },
+                    bookings,
                 ),
             }
         } else {
@@ -303,6 +318,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
                 EnvState::Offline {
                     reason: "no controller serves it".into(),
                 },
+                Vec::new(),
             )
         };
         EnvListing {
@@ -310,6 +326,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
             task,
             state,
             components: alive.into_iter().collect(),
+            bookings,
         }
     });
     Ok(futures::future::join_all(listings).await)

@@ -179,6 +179,7 @@ async fn a_full_episode_runs_through_the_router_over_tls_with_passwords() -> any
     assert_eq!(listed[0].env, site.env);
     assert_eq!(listed[0].task, "MonolithDiscrete");
     assert_eq!(listed[0].components, ["controller", "sim_twin"]);
+    assert_eq!(listed[0].bookings, [], "nothing booked");
     assert!(
         matches!(listed[0].state, EnvState::Leased { .. }),
         "{listed:?}"

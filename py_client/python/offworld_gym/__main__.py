@@ -64,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
         elif env["message"]:
             state += f" ({env['message']})"
         print(f"{env['env_id']:<28} {env['task'] or '-':<26} {state:<40} {','.join(env['components'])}")
+        for slot in env["bookings"]:
+            print(f"    booked by {slot['user']} {_when(slot['start_unix_ms'])} – {_when(slot['end_unix_ms'])}")
     if not listed:
         print("no envs found", file=sys.stderr)
     return 0

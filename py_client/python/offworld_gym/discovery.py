@@ -7,6 +7,7 @@ from typing import TypedDict
 
 from offworld_gym import _native
 from offworld_gym._config import CONNECT_ENV
+from offworld_gym.bookings import Booking
 
 
 class EnvInfo(TypedDict):
@@ -23,6 +24,8 @@ class EnvInfo(TypedDict):
     message: str
     #: Live components: ``controller``, ``sim_twin``, ``robot_agent``, …
     components: list[str]
+    #: Booked slots in progress or ahead, earliest first.
+    bookings: list[Booking]
 
 
 def list_envs(connect: str | None = None, timeout: float = 2.0) -> list[EnvInfo]:
