@@ -30,6 +30,8 @@ pub enum Role {
     SimTwin,
     /// The robot agent.
     RobotAgent,
+    /// The tracker agent.
+    TrackerAgent,
     /// An operator: e-stops, admin, watching everything.
     Operator,
 }
@@ -42,6 +44,7 @@ impl Role {
             Role::Controller => "env_controller",
             Role::SimTwin => "sim_twin",
             Role::RobotAgent => "robot_agent",
+            Role::TrackerAgent => "tracker_agent",
             Role::Operator => "operator",
         }
     }
@@ -51,11 +54,12 @@ impl Role {
         self != Role::Trainer
     }
 
-    const ALL: [Role; 5] = [
+    const ALL: [Role; 6] = [
         Role::Trainer,
         Role::Controller,
         Role::SimTwin,
         Role::RobotAgent,
+        Role::TrackerAgent,
         Role::Operator,
     ];
 }
@@ -91,6 +95,8 @@ pub struct RouterSite {
     /// The router's listeners (QUIC; TLS over TCP added on the same ports).
     listen: [String; 2],
     router: Option<Process>,
+    /// Extra `--cfg` of the router (see [`RouterSite::restart_router_with`]).
+    router_cfg: Vec<String>,
     /// Declared last: removed after the router and the processes stopped.
     netns: Option<Namespaces>,
 }
@@ -154,6 +160,7 @@ impl RouterSite {
                     site_endpoint: site,
                     dir,
                     router: None,
+                    router_cfg: Vec::new(),
                     netns,
                 }
             }
@@ -165,6 +172,7 @@ impl RouterSite {
                 site_endpoint_inside: format!("quic/{}:7448", ns.router_site_ip),
                 dir,
                 router: None,
+                router_cfg: Vec::new(),
                 netns,
             },
         };
@@ -220,9 +228,9 @@ impl RouterSite {
                 .to_string_lossy()
                 .into_owned(),
         ];
-        for o in overrides {
+        for o in overrides.iter().chain(&self.router_cfg) {
             args.push("--cfg".into());
-            args.push(o);
+            args.push(o.clone());
         }
         let mut command = match &self.netns {
             Some(ns) => {
@@ -249,6 +257,13 @@ impl RouterSite {
             wait_listening(&Self::over_tcp(endpoint), Duration::from_secs(20))?;
         }
         Ok(())
+    }
+
+    /// Restarts the router with extra `--cfg KEY:VALUE` settings on top of
+    /// the deployment's (e.g. `access_control/enabled:false`).
+    pub fn restart_router_with(&mut self, cfg: &[&str]) -> anyhow::Result<()> {
+        self.router_cfg = cfg.iter().map(|c| c.to_string()).collect();
+        self.start_router()
     }
 
     /// Kills the router (SIGKILL): every link drops at once.

@@ -641,3 +641,57 @@ async fn in_network_namespaces_trainers_reach_the_site_only_through_the_router(
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     Ok(())
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn agents_never_command_even_past_an_open_router() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let mut site = RouterSite::start("agent-acl")?;
+    // The router's ACL switched off: only the agents' own (role file) is left.
+    site.restart_router_with(&["access_control/enabled:false"])?;
+    let env = EnvId::sim("agent-acl")?;
+    let operator = site.session(Role::Operator).open().await?;
+    let (spy, _spy_sub) = Seen::watch(&operator, "offworld/@v1/**").await;
+    let motion = MotionCommand {
+        seq: 5,
+        linear_x: 0.2,
+        angular_z: 0.0,
+        duration_s: 1.0,
+    };
+    let engage = EStop {
+        engaged: true,
+        reason: "test".into(),
+    };
+    let pose = PoseStamped {
+        header: Header::new(Time::default(), "world"),
+        pose: Pose::default(),
+    };
+    let trainer = site.session(Role::Trainer).open().await?;
+    for role in [Role::SimTwin, Role::TrackerAgent] {
+        let agent = site.session(role).open().await?;
+        settle().await;
+        let before = (spy.count("pose", None), spy.count("cmd", None));
+        // Control: its sensor keys go out.
+        wire::put(&agent, &env.key(Topic::Pose), &pose).await?;
+        // Denied at the source: commands and e-stops.
+        wire::put(&agent, &env.key(Topic::Cmd), &motion).await?;
+        wire::put(&agent, &env.key(Topic::EStop), &engage).await?;
+        wire::put(&agent, &global_estop_key(), &engage).await?;
+        settle().await;
+        let name = role.name();
+        assert_eq!(spy.count("pose", None), before.0 + 1, "{name}'s pose");
+        assert_eq!(spy.count("cmd", None), before.1, "{name} sent a command");
+        assert_eq!(spy.count("estop", None), 0, "{name} pressed an e-stop");
+        agent.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    // Control: this open router does pass a trainer's command and e-stop.
+    wire::put(&trainer, &env.key(Topic::Cmd), &motion).await?;
+    wire::put(&trainer, &env.key(Topic::EStop), &engage).await?;
+    settle().await;
+    assert_eq!(spy.count("cmd", None), 1, "the open router passes commands");
+    assert_eq!(
+        spy.count("estop", None),
+        1,
+        "the open router passes e-stops"
+    );
+    Ok(())
+}
