@@ -345,8 +345,10 @@ impl RouterSite {
     ) -> anyhow::Result<Process> {
         // Site components live in the site namespace, if there is one.
         let (netns, endpoint) = match &self.netns {
-            Some(ns) if role.is_site() => (Some(ns.site.as_str()), &self.site_endpoint_inside),
-            _ => (None, &self.endpoint(role).to_owned()),
+            Some(ns) if role.is_site() => {
+                (Some(ns.site.as_str()), self.site_endpoint_inside.as_str())
+            }
+            _ => (None, self.endpoint(role)),
         };
         let mut args: Vec<String> = before.iter().map(|s| s.to_string()).collect();
         args.extend(self.role_args_to(role, endpoint));

@@ -452,6 +452,26 @@ async fn step(gym: &mut EnvClient, spy: &Seen) -> u64 {
     last_cmd_seq(spy)
 }
 
+/// Resets with `seed`, then steps (forward, left, right, …) until the
+/// episode ends, checking the step counter; returns the episode's length.
+async fn play_episode(gym: &mut EnvClient, seed: u64) -> anyhow::Result<u64> {
+    gym.reset(Seed::Fixed(seed))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let mut steps = 0u64;
+    loop {
+        let r = gym
+            .step(Action::Discrete([FORWARD, 0, 1][steps as usize % 3]))
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        steps += 1;
+        assert_eq!(u64::from(r.info.step), steps);
+        if r.terminated || r.truncated {
+            return Ok(steps);
+        }
+    }
+}
+
 /// The seq of the newest command the spy saw.
 fn last_cmd_seq(spy: &Seen) -> u64 {
     spy.cmds().last().map(|c| c.seq).expect("a command")
@@ -465,20 +485,7 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
     let trainer = site.session(Role::Trainer).await;
     let mut gym = open(&trainer, &site.env, "survives-restart", false).await;
     // One whole episode, then two steps into the next.
-    gym.reset(Seed::Fixed(11))
-        .await
-        .map_err(|e| anyhow::anyhow!(e))?;
-    let mut first = 0u64;
-    loop {
-        let r = gym
-            .step(Action::Discrete([FORWARD, 0, 1][first as usize % 3]))
-            .await
-            .map_err(|e| anyhow::anyhow!(e))?;
-        first += 1;
-        if r.terminated || r.truncated {
-            break;
-        }
-    }
+    let first = play_episode(&mut gym, 11).await?;
     gym.reset(Seed::Fixed(12))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
@@ -588,21 +595,7 @@ async fn in_network_namespaces_trainers_reach_the_site_only_through_the_router(
     // A full episode through the router.
     let trainer = session(Role::Trainer).await?;
     let mut gym = open(&trainer, &env, "netns", false).await;
-    gym.reset(Seed::Fixed(5))
-        .await
-        .map_err(|e| anyhow::anyhow!(e))?;
-    let mut steps = 0u32;
-    loop {
-        let r = gym
-            .step(Action::Discrete([FORWARD, 0, 1][steps as usize % 3]))
-            .await
-            .map_err(|e| anyhow::anyhow!(e))?;
-        steps += 1;
-        assert_eq!(r.info.step, steps);
-        if r.terminated || r.truncated {
-            break;
-        }
-    }
+    play_episode(&mut gym, 5).await?;
 
     // A trainer's `cmd` never reaches the robot: an operator (on the host,
     // mutual TLS) sees neither the command nor an answer to it, while it
