@@ -29,8 +29,24 @@ fn frame(w: u32, h: u32) -> CameraFrame {
     }
 }
 
+fn median_us(mut work: impl FnMut()) -> f64 {
+    let mut times = Vec::with_capacity(ROUNDS);
+    for _ in 0..ROUNDS {
+        let start = Instant::now();
+        work();
+        times.push(start.elapsed().as_secs_f64() * 1e6);
+    }
+    times.sort_by(f64::total_cmp);
+    times[ROUNDS / 2]
+}
+
 fn main() {
     let native = frame(320, 240);
+    // The machine's yardstick: copying an observation's worth of bytes.
+    let src = vec![3u8; 320 * 240 * 4];
+    let mut dst = vec![0u8; src.len()];
+    let copy = median_us(|| dst.copy_from_slice(std::hint::black_box(&src)));
+    println!("memcpy of 307200 B (the machine's yardstick): {copy:7.1} µs");
     let view = native.view();
     println!("assemble from a 320x240 rgb8 + 32FC1 frame, median of {ROUNDS}:");
     for (channels, (w, h), depth_format) in [

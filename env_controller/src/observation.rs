@@ -57,89 +57,48 @@ pub fn assemble(
     out.dtype = dtype;
     out.data.clear();
     out.data.resize(w * h * channels * dtype.size(), 0);
-    let rows = Rows {
+    let layout = Layout {
         frame,
         src_x: (0..w)
             .map(|x| ((x * 2 + 1) * sw / (w * 2)).min(sw - 1))
             .collect(),
-        bgr: color_enc == PixelEncoding::Bgr8,
+        identity: w == sw,
         depth_enc,
         depth_scale: 255.0 / depth_max_m.max(1e-6),
-        identity: w == sw,
-        metres: vec![0.0; w],
-        depth_u8: vec![0; w],
     };
     // One monomorphised loop per layout: no per-pixel branching.
+    let data = &mut out.data;
     match (opts.channels, dtype) {
-        (Channels::DepthOnly, DType::U8) => rows.fill::<false, true, false>(&mut out.data, sh, h),
-        (Channels::DepthOnly, DType::F32) => rows.fill::<false, true, true>(&mut out.data, sh, h),
-        (Channels::RgbOnly, DType::U8) => rows.fill::<true, false, false>(&mut out.data, sh, h),
-        (Channels::RgbOnly, DType::F32) => rows.fill::<true, false, true>(&mut out.data, sh, h),
-        (Channels::Rgbd, DType::U8) => rows.fill::<true, true, false>(&mut out.data, sh, h),
-        (Channels::Rgbd, DType::F32) => rows.fill::<true, true, true>(&mut out.data, sh, h),
+        (Channels::DepthOnly, DType::U8) => layout.fill::<false, true, false>(data, sh, h),
+        (Channels::DepthOnly, DType::F32) => layout.fill::<false, true, true>(data, sh, h),
+        (Channels::RgbOnly, DType::U8) => layout.fill::<true, false, false>(data, sh, h),
+        (Channels::RgbOnly, DType::F32) => layout.fill::<true, false, true>(data, sh, h),
+        (Channels::Rgbd, DType::U8) => layout.fill::<true, true, false>(data, sh, h),
+        (Channels::Rgbd, DType::F32) => layout.fill::<true, true, true>(data, sh, h),
+    }
+    if color_enc == PixelEncoding::Bgr8 && opts.channels != Channels::DepthOnly {
+        swap_red_blue(data, channels, dtype.size());
     }
     Ok(())
 }
 
-/// Row-by-row resampling state.
-struct Rows<'f, 'a> {
+/// Where each output pixel samples the source frame.
+struct Layout<'f, 'a> {
     frame: &'f CameraFrameView<'a>,
     /// Source column of each output column.
     src_x: Vec<usize>,
-    bgr: bool,
-    depth_enc: PixelEncoding,
-    depth_scale: f32,
     /// Native resolution: output column x is source column x.
     identity: bool,
-    /// Metres of the current output row (invalid → 0).
-    metres: Vec<f32>,
-    /// The same as uint8.
-    depth_u8: Vec<u8>,
+    depth_enc: PixelEncoding,
+    /// uint8 levels per metre.
+    depth_scale: f32,
 }
 
-impl Rows<'_, '_> {
-    /// Converts the depth of output row `y` (source row `sy`) in tight
-    /// loops: the encoding is matched once per row, not per pixel.
-    fn load_depth<const F32: bool>(&mut self, sy: usize) {
-        let depth = &self.frame.depth;
-        let bytes = &depth.data[sy * depth.step as usize..];
-        let metres = |d: f32| if d.is_finite() { d } else { 0.0 };
-        // 0 mm is "no return", which is 0 m already.
-        let millimetres = |b: &[u8]| f32::from(u16::from_le_bytes([b[0], b[1]])) * 1e-3;
-        match (self.depth_enc, self.identity) {
-            (PixelEncoding::Depth32FC1, true) => {
-                for (m, b) in self.metres.iter_mut().zip(bytes.chunks_exact(4)) {
-                    *m = metres(f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
-                }
-            }
-            (PixelEncoding::Depth32FC1, false) => {
-                for (m, &sx) in self.metres.iter_mut().zip(&self.src_x) {
-                    let b = &bytes[sx * 4..sx * 4 + 4];
-                    *m = metres(f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
-                }
-            }
-            (_, true) => {
-                for (m, b) in self.metres.iter_mut().zip(bytes.chunks_exact(2)) {
-                    *m = millimetres(b);
-                }
-            }
-            (_, false) => {
-                for (m, &sx) in self.metres.iter_mut().zip(&self.src_x) {
-                    *m = millimetres(&bytes[sx * 2..sx * 2 + 2]);
-                }
-            }
-        }
-        if !F32 {
-            let scale = self.depth_scale;
-            for (v, m) in self.depth_u8.iter_mut().zip(&self.metres) {
-                // Saturating cast: clips to 0..=255.
-                *v = (m * scale) as u8;
-            }
-        }
-    }
-
+impl Layout<'_, '_> {
+    /// Fills `data` a row at a time: depth is converted for the whole row
+    /// first (a tight loop), then the row is interleaved.
     fn fill<const RGB: bool, const DEPTH: bool, const F32: bool>(
-        mut self,
+        &self,
         data: &mut [u8],
         sh: usize,
         h: usize,
@@ -147,39 +106,164 @@ impl Rows<'_, '_> {
         let channels = usize::from(RGB) * 3 + usize::from(DEPTH);
         let pixel = channels * if F32 { 4 } else { 1 };
         let w = self.src_x.len();
-        let color_step = self.frame.color.step as usize;
-        let (r, b) = if self.bgr { (2, 0) } else { (0, 2) };
-        let src_x = self.src_x.clone();
+        let color = &self.frame.color;
+        let color_row_len = color.width as usize * 3;
+        let mut metres = vec![0.0f32; if DEPTH && F32 { w } else { 0 }];
+        let mut levels = vec![0u8; if DEPTH && !F32 { w } else { 0 }];
+        let scale = self.depth_scale;
         for (y, out_row) in data.chunks_exact_mut(w * pixel).enumerate() {
             let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
-            if DEPTH {
-                self.load_depth::<F32>(sy);
+            if DEPTH && F32 {
+                self.depth_row(sy, &mut metres, |m| m);
+            } else if DEPTH {
+                self.depth_row(sy, &mut levels, |m| depth_level(m, scale));
             }
-            let color_row = &self.frame.color.data[sy * color_step..];
-            let write = |(x, px): (usize, &mut [u8])| {
-                let sx = src_x[x];
-                let mut c = 0;
-                if RGB {
-                    let s = &color_row[sx * 3..sx * 3 + 3];
-                    let rgb = [s[r], s[1], s[b]];
-                    if F32 {
-                        for (k, v) in rgb.into_iter().enumerate() {
-                            px[k * 4..k * 4 + 4].copy_from_slice(&f32::from(v).to_le_bytes());
-                        }
-                    } else {
-                        px[..3].copy_from_slice(&rgb);
-                    }
-                    c = 3;
-                }
+            // In bounds: the frame was validated (step · height = length).
+            let color_row = &color.data[sy * color.step as usize..][..color_row_len];
+            if self.identity && RGB && !F32 {
+                // The common layouts (native RGBD / RGB uint8) in 4-pixel blocks.
                 if DEPTH {
-                    if F32 {
-                        px[c * 4..c * 4 + 4].copy_from_slice(&self.metres[x].to_le_bytes());
-                    } else {
-                        px[c] = self.depth_u8[x];
-                    }
+                    interleave_rgbd8(out_row, color_row, &levels);
+                } else {
+                    out_row.copy_from_slice(color_row);
                 }
-            };
-            out_row.chunks_exact_mut(pixel).enumerate().for_each(write);
+            } else if self.identity {
+                write_row::<RGB, DEPTH, F32>(out_row, color_row.chunks_exact(3), &metres, &levels);
+            } else {
+                let colors = self.src_x.iter().map(|&sx| &color_row[sx * 3..sx * 3 + 3]);
+                write_row::<RGB, DEPTH, F32>(out_row, colors, &metres, &levels);
+            }
+        }
+    }
+
+    /// Converts source row `sy`'s depth at every output column into `out`;
+    /// no return (NaN, ±inf, 0 mm) is 0 m.
+    fn depth_row<T>(&self, sy: usize, out: &mut [T], convert: impl Fn(f32) -> T) {
+        let depth = &self.frame.depth;
+        let row = &depth.data[sy * depth.step as usize..];
+        let metres = |b: &[u8]| {
+            let d = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            if d.is_finite() {
+                d
+            } else {
+                0.0
+            }
+        };
+        let millimetres = |b: &[u8]| f32::from(u16::from_le_bytes([b[0], b[1]])) * 1e-3;
+        let sw = depth.width as usize;
+        match (self.depth_enc, self.identity) {
+            (PixelEncoding::Depth32FC1, true) => {
+                store(out, row[..sw * 4].chunks_exact(4).map(metres), convert);
+            }
+            (PixelEncoding::Depth32FC1, false) => {
+                let src = self
+                    .src_x
+                    .iter()
+                    .map(|&sx| metres(&row[sx * 4..sx * 4 + 4]));
+                store(out, src, convert);
+            }
+            (_, true) => store(out, row[..sw * 2].chunks_exact(2).map(millimetres), convert),
+            (_, false) => {
+                let src = self
+                    .src_x
+                    .iter()
+                    .map(|&sx| millimetres(&row[sx * 2..sx * 2 + 2]));
+                store(out, src, convert);
+            }
+        }
+    }
+}
+
+/// `clip(m · scale, 0, 255)` truncated, exactly as the saturating cast
+/// `(m * scale) as u8` for finite `m`, in float operations only, so the
+/// row loop vectorises (a float-to-int cast does not, on baseline x86-64).
+#[inline(always)]
+fn depth_level(m: f32, scale: f32) -> u8 {
+    // Adding 2^23 rounds to the nearest integer, which lands in the low
+    // mantissa bits; one down if that rounded up.
+    const ROUND: f32 = 8_388_608.0;
+    let v = (m * scale).clamp(0.0, 255.0);
+    let t = v + ROUND;
+    let nearest = (t.to_bits() & 0xff) as u8;
+    nearest - u8::from(t - ROUND > v)
+}
+
+/// Native-resolution RGBD uint8: `rgb` (3 bytes a pixel) and `levels` (1)
+/// into `out` (4), four pixels per store.
+fn interleave_rgbd8(out: &mut [u8], rgb: &[u8], levels: &[u8]) {
+    let mut out_blocks = out.chunks_exact_mut(16);
+    let mut rgb_blocks = rgb.chunks_exact(12);
+    let mut level_blocks = levels.chunks_exact(4);
+    for ((o, c), d) in (&mut out_blocks)
+        .zip(&mut rgb_blocks)
+        .zip(&mut level_blocks)
+    {
+        o.copy_from_slice(&[
+            c[0], c[1], c[2], d[0], c[3], c[4], c[5], d[1], c[6], c[7], c[8], d[2], c[9], c[10],
+            c[11], d[3],
+        ]);
+    }
+    let rest = out_blocks.into_remainder().chunks_exact_mut(4);
+    let rest = rest.zip(rgb_blocks.remainder().chunks_exact(3));
+    for ((o, c), &d) in rest.zip(level_blocks.remainder()) {
+        o.copy_from_slice(&[c[0], c[1], c[2], d]);
+    }
+}
+
+fn store<T>(out: &mut [T], metres: impl Iterator<Item = f32>, convert: impl Fn(f32) -> T) {
+    for (o, m) in out.iter_mut().zip(metres) {
+        *o = convert(m);
+    }
+}
+
+/// Interleaves one output row from its source colours and converted depth.
+fn write_row<'c, const RGB: bool, const DEPTH: bool, const F32: bool>(
+    out: &mut [u8],
+    colors: impl Iterator<Item = &'c [u8]>,
+    metres: &[f32],
+    levels: &[u8],
+) {
+    let f = |v: u8| f32::from(v).to_le_bytes();
+    match (RGB, DEPTH, F32) {
+        (true, true, false) => {
+            for ((px, c), &d) in out.chunks_exact_mut(4).zip(colors).zip(levels) {
+                px.copy_from_slice(&[c[0], c[1], c[2], d]);
+            }
+        }
+        (true, false, false) => {
+            for (px, c) in out.chunks_exact_mut(3).zip(colors) {
+                px.copy_from_slice(&[c[0], c[1], c[2]]);
+            }
+        }
+        (false, _, false) => out.copy_from_slice(levels),
+        (true, true, true) => {
+            for ((px, c), &d) in out.chunks_exact_mut(16).zip(colors).zip(metres) {
+                px[..4].copy_from_slice(&f(c[0]));
+                px[4..8].copy_from_slice(&f(c[1]));
+                px[8..12].copy_from_slice(&f(c[2]));
+                px[12..].copy_from_slice(&d.to_le_bytes());
+            }
+        }
+        (true, false, true) => {
+            for (px, c) in out.chunks_exact_mut(12).zip(colors) {
+                px[..4].copy_from_slice(&f(c[0]));
+                px[4..8].copy_from_slice(&f(c[1]));
+                px[8..].copy_from_slice(&f(c[2]));
+            }
+        }
+        (false, _, true) => {
+            for (px, d) in out.chunks_exact_mut(4).zip(metres) {
+                px.copy_from_slice(&d.to_le_bytes());
+            }
+        }
+    }
+}
+
+/// `bgr8` sources: swaps the first and third channel of every pixel.
+fn swap_red_blue(data: &mut [u8], channels: usize, component: usize) {
+    for px in data.chunks_exact_mut(channels * component) {
+        for k in 0..component {
+            px.swap(k, 2 * component + k);
         }
     }
 }
@@ -269,6 +353,101 @@ mod tests {
         )
         .expect("ok");
         assert_eq!(out.data.len(), 4 * 2 * 3);
+    }
+
+    #[test]
+    fn depth_levels_equal_the_saturating_cast() {
+        let scale = 255.0 / 5.0;
+        let samples = (0..400_000).map(|i| i as f32 * 2e-5 - 1.0);
+        let edges = [
+            0.0,
+            5.0,
+            4.999_999_5,
+            1e30,
+            -1e30,
+            f32::MAX,
+            f32::MIN_POSITIVE,
+        ];
+        for m in samples.chain(edges) {
+            assert_eq!(depth_level(m, scale), (m * scale) as u8, "m = {m}");
+        }
+        for k in 0..=255u8 {
+            let m = f32::from(k) / scale;
+            assert_eq!(depth_level(m, scale), (m * scale) as u8, "level {k}");
+        }
+    }
+
+    /// The fast paths against a per-pixel reference, at a width that is not
+    /// a multiple of the 4-pixel block.
+    #[test]
+    fn every_layout_matches_a_per_pixel_reference() {
+        let (sw, sh) = (23u32, 7u32);
+        let px = |x: u32, y: u32| {
+            [
+                (x * 11 % 256) as u8,
+                (y * 37 % 256) as u8,
+                ((x + y) % 256) as u8,
+            ]
+        };
+        let depth_at = |x: u32, y: u32| match (x + 3 * y) % 9 {
+            0 => f32::NAN,
+            1 => f32::INFINITY,
+            k => k as f32 * 0.7,
+        };
+        let rgb = (0..sh)
+            .flat_map(|y| (0..sw).flat_map(move |x| px(x, y)))
+            .collect();
+        let depth = (0..sh)
+            .flat_map(|y| (0..sw).flat_map(move |x| depth_at(x, y).to_le_bytes()))
+            .collect();
+        let f = CameraFrame {
+            seq: 1,
+            color: Image::packed(Header::default(), sw, sh, PixelEncoding::Rgb8, rgb),
+            depth: Image::packed(Header::default(), sw, sh, PixelEncoding::Depth32FC1, depth),
+        };
+        let depth_max = 4.0;
+        for (w, h) in [(sw, sh), (9, 5), (30, 10)] {
+            for channels in [Channels::Rgbd, Channels::RgbOnly, Channels::DepthOnly] {
+                for depth_format in [DepthFormat::Uint8, DepthFormat::Meters] {
+                    let opts = ObsOptions {
+                        channels,
+                        width: w,
+                        height: h,
+                        depth_format,
+                    };
+                    let mut out = ObsArray::default();
+                    assemble(&f.view(), &opts, depth_max, &mut out).expect("assembles");
+                    let mut expected = Vec::new();
+                    for y in 0..h {
+                        for x in 0..w {
+                            let sx = ((x * 2 + 1) * sw / (w * 2)).min(sw - 1);
+                            let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
+                            let d = depth_at(sx, sy);
+                            let m = if d.is_finite() { d } else { 0.0 };
+                            let mut values: Vec<f32> = Vec::new();
+                            if channels != Channels::DepthOnly {
+                                values.extend(px(sx, sy).map(f32::from));
+                            }
+                            if channels != Channels::RgbOnly {
+                                values.push(m);
+                            }
+                            let last = values.len() - 1;
+                            for (i, v) in values.into_iter().enumerate() {
+                                let is_depth = channels != Channels::RgbOnly && i == last;
+                                match depth_format {
+                                    DepthFormat::Meters => expected.extend(v.to_le_bytes()),
+                                    DepthFormat::Uint8 if is_depth => {
+                                        expected.push((v * 255.0 / depth_max) as u8)
+                                    }
+                                    DepthFormat::Uint8 => expected.push(v as u8),
+                                }
+                            }
+                        }
+                    }
+                    assert_eq!(out.data, expected, "{channels:?} {w}x{h} {depth_format:?}");
+                }
+            }
+        }
     }
 
     #[test]

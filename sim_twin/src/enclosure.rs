@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Quaternion as NaQuaternion, Translation3, UnitQuaternion};
 use offworld_runtime::codec;
-use offworld_runtime::msg::{Image, PixelEncoding, Time, Twist};
+use offworld_runtime::msg::{PixelEncoding, Time, Twist};
 use offworld_runtime::ros2::{RmwPublisherId, RobotTopics, RosGraph, RosType};
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::pubsub::Subscriber;
@@ -172,17 +172,18 @@ impl EmulatedEnclosure {
             .map(|key| OverheadStream::new(twin.scene(), key, OverheadStream::DEFAULT_HZ));
         let hardware = Hardware {
             overhead,
-            session: session.clone(),
             twin,
             keys,
             config,
             clients,
-            color: Image::default(),
-            depth: Image::default(),
-            color_id: RmwPublisherId::random(),
-            depth_id: RmwPublisherId::random(),
-            odom_id: RmwPublisherId::random(),
-            buffer: Vec::new(),
+            depth_scratch: Vec::new(),
+            out: RosOut {
+                session: session.clone(),
+                color_id: RmwPublisherId::random(),
+                depth_id: RmwPublisherId::random(),
+                odom_id: RmwPublisherId::random(),
+                buffer: Vec::new(),
+            },
         };
         let thread = std::thread::Builder::new()
             .name("enclosure/hardware".into())
@@ -249,18 +250,24 @@ struct RosKeys {
 
 /// The emulation thread's state.
 struct Hardware {
-    session: Session,
     twin: SimTwin,
     keys: RosKeys,
     config: EnclosureConfig,
     clients: Arc<Mutex<Vec<TcpStream>>>,
-    color: Image,
-    depth: Image,
+    /// Depth bytes converted from the render's metres (reused).
+    depth_scratch: Vec<u8>,
+    out: RosOut,
+    overhead: Option<OverheadStream>,
+}
+
+/// The emulated drivers' ROS publishers.
+struct RosOut {
+    session: Session,
     color_id: RmwPublisherId,
     depth_id: RmwPublisherId,
     odom_id: RmwPublisherId,
+    /// Encoded message (reused).
     buffer: Vec<u8>,
-    overhead: Option<OverheadStream>,
 }
 
 /// A periodic deadline that never bursts to catch up.
@@ -314,15 +321,14 @@ impl Hardware {
             }
             if odom.due(now) {
                 let msg = ros_out::odometry(&self.twin, Time::now());
-                let key = self.keys.odom.clone();
-                self.publish(&key, &msg, Publisher::Odom);
+                self.out.publish(&self.keys.odom, &msg, Publisher::Odom);
             }
             if tracker.due(now) {
                 self.stream_tracker(now);
             }
             if let Some(stream) = &mut self.overhead {
                 let pose = self.twin.ground_truth();
-                stream.maybe_publish(&self.session, self.twin.scene(), &pose);
+                stream.maybe_publish(&self.out.session, self.twin.scene(), &pose);
             }
         }
     }
@@ -330,36 +336,14 @@ impl Hardware {
     fn publish_camera(&mut self) {
         let stamp = Time::now();
         let frame = self.twin.render();
-        ros_out::fill_color(&mut self.color, frame, stamp);
-        ros_out::fill_depth(&mut self.depth, frame, stamp, self.config.depth_encoding);
-        let color = std::mem::take(&mut self.color);
-        let depth = std::mem::take(&mut self.depth);
-        let (color_key, depth_key) = (self.keys.color.clone(), self.keys.depth.clone());
-        self.publish(&color_key, &color, Publisher::Color);
-        self.publish(&depth_key, &depth, Publisher::Depth);
-        self.color = color;
-        self.depth = depth;
-    }
-
-    fn publish<T: serde::Serialize>(&mut self, key: &str, msg: &T, publisher: Publisher) {
-        if let Err(e) = codec::encode_into(msg, &mut self.buffer) {
-            tracing::error!("cannot encode for {key}: {e}");
-            return;
-        }
-        let id = match publisher {
-            Publisher::Color => &self.color_id,
-            Publisher::Depth => &self.depth_id,
-            Publisher::Odom => &self.odom_id,
-        };
-        let put = self
-            .session
-            .put(key, self.buffer.clone())
-            .encoding(Encoding::APPLICATION_CDR)
-            .attachment(id.next_attachment().to_bytes().to_vec())
-            .wait();
-        if let Err(e) = put {
-            tracing::warn!("put on {key} failed: {e}");
-        }
+        let (color, depth) = ros_out::frame_images(
+            frame,
+            stamp,
+            self.config.depth_encoding,
+            &mut self.depth_scratch,
+        );
+        self.out.publish(&self.keys.color, &color, Publisher::Color);
+        self.out.publish(&self.keys.depth, &depth, Publisher::Depth);
     }
 
     /// One raw tracker line: the device's pose in the tracking frame.
@@ -384,6 +368,29 @@ impl Hardware {
             return;
         };
         clients.retain_mut(|c| c.write_all(line.as_bytes()).is_ok());
+    }
+}
+
+impl RosOut {
+    fn publish<T: serde::Serialize>(&mut self, key: &str, msg: &T, publisher: Publisher) {
+        if let Err(e) = codec::encode_into(msg, &mut self.buffer) {
+            tracing::error!("cannot encode for {key}: {e}");
+            return;
+        }
+        let id = match publisher {
+            Publisher::Color => &self.color_id,
+            Publisher::Depth => &self.depth_id,
+            Publisher::Odom => &self.odom_id,
+        };
+        let put = self
+            .session
+            .put(key, self.buffer.clone())
+            .encoding(Encoding::APPLICATION_CDR)
+            .attachment(id.next_attachment().to_bytes().to_vec())
+            .wait();
+        if let Err(e) = put {
+            tracing::warn!("put on {key} failed: {e}");
+        }
     }
 }
 

@@ -21,7 +21,8 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, PixelEncoding, Pose2D, SeqTag, Time,
+    CameraFrameView, EStop, GotoReply, GotoRequest, MotionCommand, PixelEncoding, Pose2D, SeqTag,
+    Time,
 };
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::bytes::Encoding;
@@ -206,7 +207,8 @@ struct Worker {
     clock: Clock,
     estopped: bool,
     keys: Keys,
-    frame_msg: CameraFrame,
+    /// Depth bytes when the render's need converting (reused).
+    depth_scratch: Vec<u8>,
     rejected: u64,
     overhead: Option<OverheadStream>,
 }
@@ -236,7 +238,7 @@ impl Worker {
             clock,
             estopped: false,
             keys,
-            frame_msg: CameraFrame::default(),
+            depth_scratch: Vec::new(),
             rejected: 0,
         })
     }
@@ -421,8 +423,14 @@ impl Worker {
         self.put(&self.keys.odom.clone(), &odom, Some(tag));
         let reading = self.twin.tracker_reading();
         self.publish_pose(&reading, Some(tag));
-        self.fill_frame(seq, stamp);
-        let frame = match codec::encode(&self.frame_msg) {
+        let frame = self.twin.render();
+        let (color, depth) = ros_out::frame_images(
+            frame,
+            stamp,
+            PixelEncoding::Depth32FC1,
+            &mut self.depth_scratch,
+        );
+        let frame = match codec::encode(&CameraFrameView { seq, color, depth }) {
             Ok(bytes) => bytes,
             Err(e) => {
                 tracing::error!("cannot encode frame: {e}");
@@ -468,18 +476,5 @@ impl Worker {
         if let Err(e) = put.wait() {
             tracing::warn!("put on {key} failed: {e}");
         }
-    }
-
-    /// Renders into the reused frame message (no allocation after the first).
-    fn fill_frame(&mut self, seq: u64, stamp: Time) {
-        let frame = self.twin.render();
-        self.frame_msg.seq = seq;
-        ros_out::fill_color(&mut self.frame_msg.color, frame, stamp);
-        ros_out::fill_depth(
-            &mut self.frame_msg.depth,
-            frame,
-            stamp,
-            PixelEncoding::Depth32FC1,
-        );
     }
 }

@@ -2,7 +2,7 @@
 //! one place for both the twin node and the emulated enclosure.
 
 use offworld_runtime::msg::{
-    Header, Image, Odometry, PixelEncoding, Point, Pose, PoseStamped, PoseWithCovariance,
+    Header, ImageView, Odometry, PixelEncoding, Point, Pose, PoseStamped, PoseWithCovariance,
     Quaternion, Time, Twist, TwistWithCovariance,
 };
 
@@ -58,71 +58,68 @@ pub fn world_pose(reading: &BodyPose, stamp: Time) -> PoseStamped {
     }
 }
 
-/// Writes the colour image of `frame` into `image` (reusing its buffers).
-pub fn fill_color(image: &mut Image, frame: &RgbdFrame, stamp: Time) {
-    set_header(
-        image,
-        stamp,
-        COLOR_FRAME,
-        frame.width,
-        frame.height,
-        PixelEncoding::Rgb8,
-    );
-    image.data.clear();
-    image.data.extend_from_slice(&frame.rgb);
+/// The colour (`rgb8`) and depth images of `frame` as a ROS camera driver
+/// publishes them, borrowed from the render buffers: encoding them copies
+/// each pixel once, straight into the message. Depth is `32FC1` metres (NaN
+/// = no return) or `16UC1` millimetres (0 = no return, like an Astra
+/// driver); `scratch` holds the depth bytes when they need converting.
+pub fn frame_images<'a>(
+    frame: &'a RgbdFrame,
+    stamp: Time,
+    depth_encoding: PixelEncoding,
+    scratch: &'a mut Vec<u8>,
+) -> (ImageView<'a>, ImageView<'a>) {
+    let color = image_view(stamp, COLOR_FRAME, frame, PixelEncoding::Rgb8, &frame.rgb);
+    let depth_bytes = depth_bytes(frame, depth_encoding, scratch);
+    let depth = image_view(stamp, DEPTH_FRAME, frame, depth_encoding, depth_bytes);
+    (color, depth)
 }
 
-/// Writes the depth image of `frame` into `image` as `32FC1` metres (NaN =
-/// no return) or `16UC1` millimetres (0 = no return, like an Astra driver).
-pub fn fill_depth(image: &mut Image, frame: &RgbdFrame, stamp: Time, encoding: PixelEncoding) {
-    set_header(
-        image,
-        stamp,
-        DEPTH_FRAME,
-        frame.width,
-        frame.height,
-        encoding,
-    );
-    let bytes = encoding.bytes_per_pixel() as usize;
-    image.data.clear();
-    image.data.resize(frame.depth.len() * bytes, 0);
-    let pixels = image.data.chunks_exact_mut(bytes).zip(&frame.depth);
+fn depth_bytes<'a>(
+    frame: &'a RgbdFrame,
+    encoding: PixelEncoding,
+    scratch: &'a mut Vec<u8>,
+) -> &'a [u8] {
+    scratch.clear();
     match encoding {
         PixelEncoding::Depth16UC1 => {
-            for (out, d) in pixels {
+            scratch.reserve(frame.depth.len() * 2);
+            for d in &frame.depth {
                 let mm = if d.is_finite() {
                     (d * 1000.0).round().clamp(0.0, f32::from(u16::MAX)) as u16
                 } else {
                     0
                 };
-                out.copy_from_slice(&mm.to_le_bytes());
+                scratch.extend_from_slice(&mm.to_le_bytes());
             }
+            scratch
         }
+        // The render buffer already is little-endian `32FC1`.
+        _ if cfg!(target_endian = "little") => bytemuck::cast_slice(&frame.depth),
         _ => {
-            for (out, d) in pixels {
-                out.copy_from_slice(&d.to_le_bytes());
+            scratch.reserve(frame.depth.len() * 4);
+            for d in &frame.depth {
+                scratch.extend_from_slice(&d.to_le_bytes());
             }
+            scratch
         }
     }
 }
 
-fn set_header(
-    image: &mut Image,
+fn image_view<'a>(
     stamp: Time,
     frame_id: &str,
-    w: u32,
-    h: u32,
+    frame: &RgbdFrame,
     encoding: PixelEncoding,
-) {
-    image.header.stamp = stamp;
-    if image.header.frame_id != frame_id {
-        image.header.frame_id = frame_id.to_owned();
+    data: &'a [u8],
+) -> ImageView<'a> {
+    ImageView {
+        header: Header::new(stamp, frame_id),
+        height: frame.height,
+        width: frame.width,
+        encoding: encoding.as_str(),
+        is_bigendian: 0,
+        step: frame.width * encoding.bytes_per_pixel(),
+        data,
     }
-    image.width = w;
-    image.height = h;
-    if image.encoding != encoding.as_str() {
-        image.encoding = encoding.as_str().to_owned();
-    }
-    image.is_bigendian = 0;
-    image.step = w * encoding.bytes_per_pixel();
 }
