@@ -12,6 +12,7 @@ use offworld_runtime::msg::{
     OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply,
     StepRequest,
 };
+use offworld_runtime::zenoh::pubsub::Publisher;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, WireError};
 use rand::Rng;
@@ -94,6 +95,8 @@ pub struct EnvServer {
     task: Task,
     options: EnvOptions,
     session: Session,
+    /// Episode events for spectators, published on every step.
+    events: Publisher<'static>,
     link: RobotLink,
     store: Arc<Mutex<Store>>,
     state: AsyncMutex<State>,
@@ -121,10 +124,14 @@ impl EnvServer {
         store: Arc<Mutex<Store>>,
     ) -> Result<Self, crate::ControllerError> {
         let link = RobotLink::connect(session, &env, options.timeouts).await?;
+        let events = wire::declare_publisher(session, env.key(Topic::Reward))
+            .await
+            .map_err(|e| crate::ControllerError::Zenoh(e.to_string()))?;
         Ok(Self {
             env,
             task,
             options,
+            events,
             session: session.clone(),
             link,
             store,
@@ -751,7 +758,7 @@ impl EnvServer {
             success: end == Some(&EndReason::Success),
             end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
         };
-        if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Reward), &event).await {
+        if let Err(e) = wire::publish(&self.events, &event).await {
             tracing::warn!("reward publish failed: {e}");
         }
     }

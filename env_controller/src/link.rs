@@ -15,7 +15,7 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
@@ -111,6 +111,7 @@ impl Default for LinkTimeouts {
 pub struct RobotLink {
     session: Session,
     env: EnvId,
+    cmd: Publisher<'static>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
     poses: watch::Receiver<Option<PoseSample>>,
     tracking_lost: Arc<AtomicBool>,
@@ -201,9 +202,13 @@ impl RobotLink {
             })
             .await
             .map_err(zerr)?;
+        let cmd = wire::declare_publisher(session, env.key(Topic::Cmd))
+            .await
+            .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
         Ok(Self {
             session: session.clone(),
             env: env.clone(),
+            cmd,
             frames,
             poses,
             tracking_lost,
@@ -236,7 +241,7 @@ impl RobotLink {
         }
         let mut frames = self.frames.clone();
         frames.mark_unchanged();
-        wire::put(&self.session, &self.env.key(Topic::Cmd), cmd)
+        wire::publish(&self.cmd, cmd)
             .await
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
@@ -318,7 +323,7 @@ impl RobotLink {
             angular_z: 0.0,
             duration_s: 0.0,
         };
-        if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Cmd), &halt).await {
+        if let Err(e) = wire::publish(&self.cmd, &halt).await {
             tracing::error!(env = %self.env, "cannot send stop: {e}");
         }
     }

@@ -5,6 +5,7 @@ use std::time::{Duration, Instant};
 
 use serde::{de::DeserializeOwned, Serialize};
 use zenoh::bytes::{Encoding, ZBytes};
+use zenoh::pubsub::Publisher;
 use zenoh::query::{Query, QueryTarget};
 use zenoh::Session;
 
@@ -59,6 +60,28 @@ pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<
     session
         .put(key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// Declares a publisher of CDR messages on `key`: for keys put on every
+/// step, it resolves the key once instead of at each put.
+pub async fn declare_publisher(
+    session: &Session,
+    key: String,
+) -> Result<Publisher<'static>, RequestError> {
+    session
+        .declare_publisher(key)
+        .encoding(Encoding::APPLICATION_CDR)
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// Publishes one message through a publisher from [`declare_publisher`].
+pub async fn publish<T: Serialize>(publisher: &Publisher<'_>, msg: &T) -> Result<(), RequestError> {
+    let bytes = codec::encode(msg)?;
+    publisher
+        .put(bytes)
         .await
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }

@@ -27,7 +27,7 @@ use offworld_runtime::msg::{
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
 use offworld_runtime::zenoh::query::{Query, Queryable};
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::{Session, Wait};
@@ -206,25 +206,33 @@ struct Worker {
     twin: SimTwin,
     clock: Clock,
     estopped: bool,
-    keys: Keys,
+    publishers: Publishers,
     /// Depth bytes when the render's need converting (reused).
     depth_scratch: Vec<u8>,
     rejected: u64,
     overhead: Option<OverheadStream>,
 }
 
-struct Keys {
-    obs: String,
-    odom: String,
-    pose: String,
+/// Declared once: a declared publisher skips the per-put key resolution.
+struct Publishers {
+    obs: Publisher<'static>,
+    odom: Publisher<'static>,
+    pose: Publisher<'static>,
 }
 
 impl Worker {
     fn new(session: Session, env: EnvId, twin: SimTwin, clock: Clock) -> Result<Self, SimError> {
-        let keys = Keys {
-            obs: env.key(Topic::Obs),
-            odom: env.key(Topic::Odom),
-            pose: env.key(Topic::Pose),
+        let declare = |topic: Topic| {
+            session
+                .declare_publisher(env.key(topic))
+                .encoding(Encoding::APPLICATION_CDR)
+                .wait()
+                .map_err(|e| SimError::Zenoh(e.to_string()))
+        };
+        let publishers = Publishers {
+            obs: declare(Topic::Obs)?,
+            odom: declare(Topic::Odom)?,
+            pose: declare(Topic::Pose)?,
         };
         let overhead = env
             .overhead_key(OVERHEAD_CAMERA)
@@ -237,7 +245,7 @@ impl Worker {
             twin,
             clock,
             estopped: false,
-            keys,
+            publishers,
             depth_scratch: Vec::new(),
             rejected: 0,
         })
@@ -407,7 +415,6 @@ impl Worker {
         reply_blocking(query, result.as_ref().map_err(Clone::clone));
     }
 
-    /// Publishes odometry, pose and camera frames answering `seq`.
     /// The overhead view, rate-limited (spectators only).
     fn publish_overhead(&mut self) {
         if let Some(stream) = &mut self.overhead {
@@ -416,13 +423,13 @@ impl Worker {
         }
     }
 
+    /// Publishes the pose and the camera frames answering `seq`, then the
+    /// odometry (the controller waits for the first two only).
     fn answer(&mut self, seq: u64) {
         let stamp = Time::now();
-        let tag = SeqTag { seq };
-        let odom = ros_out::odometry(&self.twin, stamp);
-        self.put(&self.keys.odom.clone(), &odom, Some(tag));
+        let tag = Some(SeqTag { seq });
         let reading = self.twin.tracker_reading();
-        self.publish_pose(&reading, Some(tag));
+        self.publish_pose(&reading, tag);
         let frame = self.twin.render();
         let (color, depth) = ros_out::frame_images(
             frame,
@@ -430,51 +437,44 @@ impl Worker {
             PixelEncoding::Depth32FC1,
             &mut self.depth_scratch,
         );
-        let frame = match codec::encode(&CameraFrameView { seq, color, depth }) {
-            Ok(bytes) => bytes,
-            Err(e) => {
-                tracing::error!("cannot encode frame: {e}");
-                return;
+        match codec::encode(&CameraFrameView { seq, color, depth }) {
+            // Moved, not copied: a local controller reads these very bytes.
+            Ok(bytes) => {
+                if let Err(e) = self.publishers.obs.put(bytes).wait() {
+                    tracing::warn!("obs put failed: {e}");
+                }
             }
-        };
-        // Moved, not copied: a local controller reads these very bytes.
-        let put = self
-            .session
-            .put(&self.keys.obs, frame)
-            .encoding(Encoding::APPLICATION_CDR)
-            .wait();
-        if let Err(e) = put {
-            tracing::warn!("obs put failed: {e}");
+            Err(e) => tracing::error!("cannot encode frame: {e}"),
         }
+        let odom = ros_out::odometry(&self.twin, stamp);
+        publish(&self.publishers.odom, &odom, tag);
         // After the answer: the step never waits for the spectators' view.
         self.publish_overhead();
     }
 
     fn publish_pose(&mut self, reading: &BodyPose, tag: Option<SeqTag>) {
         let msg = ros_out::world_pose(reading, Time::now());
-        self.put(&self.keys.pose.clone(), &msg, tag);
+        publish(&self.publishers.pose, &msg, tag);
     }
+}
 
-    fn put<T: serde::Serialize>(&self, key: &str, msg: &T, tag: Option<SeqTag>) {
-        let bytes = match codec::encode(msg) {
-            Ok(b) => b,
-            Err(e) => {
-                tracing::error!("cannot encode for {key}: {e}");
-                return;
-            }
-        };
-        let mut put = self
-            .session
-            .put(key, bytes)
-            .encoding(Encoding::APPLICATION_CDR);
-        if let Some(tag) = tag {
-            match codec::encode(&tag) {
-                Ok(a) => put = put.attachment(a),
-                Err(e) => tracing::error!("cannot encode tag: {e}"),
-            }
+/// Publishes `msg`, with `tag` as its attachment.
+fn publish<T: serde::Serialize>(publisher: &Publisher<'_>, msg: &T, tag: Option<SeqTag>) {
+    let bytes = match codec::encode(msg) {
+        Ok(b) => b,
+        Err(e) => {
+            tracing::error!("cannot encode for {}: {e}", publisher.key_expr());
+            return;
         }
-        if let Err(e) = put.wait() {
-            tracing::warn!("put on {key} failed: {e}");
+    };
+    let mut put = publisher.put(bytes);
+    if let Some(tag) = tag {
+        match codec::encode(&tag) {
+            Ok(a) => put = put.attachment(a),
+            Err(e) => tracing::error!("cannot encode tag: {e}"),
         }
+    }
+    if let Err(e) = put.wait() {
+        tracing::warn!("put on {} failed: {e}", publisher.key_expr());
     }
 }

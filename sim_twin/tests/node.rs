@@ -63,17 +63,11 @@ impl Client {
                 break frame;
             }
         };
-        let tagged = |sub: &Subscriber<FifoChannelHandler<Sample>>| -> Option<Sample> {
-            let mut found = None;
-            while let Ok(Some(s)) = sub.try_recv() {
-                if wire::decode_attachment::<SeqTag>(&s) == Some(SeqTag { seq }) {
-                    found = Some(s);
-                }
-            }
-            found
-        };
-        let pose = codec::decode_payload(tagged(&self.pose)?.payload()).expect("pose");
-        let odom = codec::decode_payload(tagged(&self.odom)?.payload()).expect("odom");
+        // Pose and odometry carry the same seq; odometry may follow the frame.
+        let pose = tagged(&self.pose, seq, deadline).await?;
+        let odom = tagged(&self.odom, seq, deadline).await?;
+        let pose = codec::decode_payload(pose.payload()).expect("pose");
+        let odom = codec::decode_payload(odom.payload()).expect("odom");
         Some((frame, pose, odom))
     }
 
@@ -89,6 +83,23 @@ impl Client {
             }
         }
         panic!("twin never answered");
+    }
+}
+
+/// The next sample on `sub` tagged with `seq`, by `deadline`.
+async fn tagged(
+    sub: &Subscriber<FifoChannelHandler<Sample>>,
+    seq: u64,
+    deadline: tokio::time::Instant,
+) -> Option<Sample> {
+    loop {
+        let s = tokio::time::timeout_at(deadline, sub.recv_async())
+            .await
+            .ok()?
+            .ok()?;
+        if wire::decode_attachment::<SeqTag>(&s) == Some(SeqTag { seq }) {
+            return Some(s);
+        }
     }
 }
 
