@@ -5,12 +5,12 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use offworld_runtime::codec::{self, Encoded};
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
     AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState,
-    EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsArray, ObsOptions,
-    OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply,
-    StepRequest,
+    EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsOptions, OpenReply,
+    OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
 };
 use offworld_runtime::zenoh::pubsub::Publisher;
 use offworld_runtime::zenoh::Session;
@@ -20,7 +20,7 @@ use tokio::sync::Mutex as AsyncMutex;
 
 use crate::episode::{judge, EndReason, SpawnSampler};
 use crate::link::{Answer, LinkTimeouts, RobotLink};
-use crate::observation::{assemble, validate_options};
+use crate::observation::{assemble_into, shape, validate_options};
 use crate::store::{
     now_ms, BookingRules, EpisodeRecord, Experiment, SlotAt, Store, User, ANONYMOUS,
 };
@@ -399,7 +399,7 @@ impl EnvServer {
     }
 
     /// `reset`: spawn (seeded), move the robot there, observe.
-    pub async fn reset(&self, req: ResetRequest) -> Result<ResetReply, WireError> {
+    pub async fn reset(&self, req: ResetRequest) -> Result<Encoded<ResetReply>, WireError> {
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
         self.holder(&mut state, &req.session_id)?;
@@ -444,28 +444,38 @@ impl EnvServer {
             achieved,
             started_ms: now_ms(),
         });
-        let observation = self.observe(&answer, &obs)?;
-        self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
-            .await;
-        Ok(ResetReply {
-            observation,
+        let reply = ResetReply {
             info: StepInfo {
                 episode_id: index,
                 step: 0,
             },
+            observation: shape(&obs),
+        };
+        let reply = self.observe(&reply, &answer, &obs)?;
+        self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
+            .await;
+        Ok(reply)
+    }
+
+    /// Encodes `reply`, assembling its observation (last, empty) from the
+    /// answer's frame straight into the payload.
+    fn observe<T: serde::Serialize>(
+        &self,
+        reply: &T,
+        answer: &Answer,
+        obs: &ObsOptions,
+    ) -> Result<Encoded<T>, WireError> {
+        let len = shape(obs).shape_len() as usize;
+        let depth_max_m = self.task.episode.depth_max_m;
+        codec::encode_with_tail(reply, len, |data| {
+            answer
+                .frame
+                .with_view(|frame| assemble_into(frame, obs, depth_max_m, data))
         })
     }
 
-    fn observe(&self, answer: &Answer, obs: &ObsOptions) -> Result<ObsArray, WireError> {
-        let mut observation = ObsArray::default();
-        answer.frame.with_view(|frame| {
-            assemble(frame, obs, self.task.episode.depth_max_m, &mut observation)
-        })?;
-        Ok(observation)
-    }
-
     /// `step`: act, observe, judge.
-    pub async fn step(&self, req: StepRequest) -> Result<StepReply, WireError> {
+    pub async fn step(&self, req: StepRequest) -> Result<Encoded<StepReply>, WireError> {
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
         let lease = self.holder(&mut state, &req.session_id)?;
@@ -501,7 +511,18 @@ impl EnvServer {
         let outcome = judge(&self.task, pose.x, pose.y, episode.steps);
         episode.episode_return += outcome.reward;
         let (index, steps, ret) = (episode.index, episode.steps, episode.episode_return);
-        let observation = self.observe(&answer, &obs)?;
+        let reply = StepReply {
+            seq: req.seq,
+            reward: outcome.reward,
+            terminated: outcome.terminated,
+            truncated: outcome.truncated,
+            info: StepInfo {
+                episode_id: index,
+                step: steps,
+            },
+            observation: shape(&obs),
+        };
+        let reply = self.observe(&reply, &answer, &obs)?;
         self.publish_event(
             &experiment,
             index,
@@ -516,17 +537,7 @@ impl EnvServer {
         if let Some(end) = &outcome.end {
             self.finish_episode(&mut state, end)?;
         }
-        Ok(StepReply {
-            seq: req.seq,
-            observation,
-            reward: outcome.reward,
-            terminated: outcome.terminated,
-            truncated: outcome.truncated,
-            info: StepInfo {
-                episode_id: index,
-                step: steps,
-            },
-        })
+        Ok(reply)
     }
 
     /// `close`: record, release the lease.

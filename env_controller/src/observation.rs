@@ -21,13 +21,44 @@ pub fn validate_options(opts: &ObsOptions) -> Result<(), WireError> {
     Ok(())
 }
 
-/// Assembles `out` from `frame` per `opts`. Invalid depth becomes 0 in
-/// both formats; uint8 depth is `clip(d / depth_max_m, 0, 1) · 255`.
+/// The observation `opts` asks for, without its data: shape and type.
+pub fn shape(opts: &ObsOptions) -> ObsArray {
+    ObsArray {
+        height: opts.height,
+        width: opts.width,
+        channels: opts.channels.count(),
+        dtype: match opts.depth_format {
+            DepthFormat::Uint8 => DType::U8,
+            DepthFormat::Meters => DType::F32,
+        },
+        data: Vec::new(),
+    }
+}
+
+/// Assembles `out` from `frame` per `opts` (see [`assemble_into`]).
 pub fn assemble(
     frame: &CameraFrameView,
     opts: &ObsOptions,
     depth_max_m: f32,
     out: &mut ObsArray,
+) -> Result<(), WireError> {
+    let mut data = std::mem::take(&mut out.data);
+    *out = shape(opts);
+    data.clear();
+    data.resize(out.shape_len() as usize, 0);
+    assemble_into(frame, opts, depth_max_m, &mut data)?;
+    out.data = data;
+    Ok(())
+}
+
+/// Writes the data of the observation [`shape`]`(opts)` from `frame` into
+/// `data`. Invalid depth becomes 0 in both formats; uint8 depth is
+/// `clip(d / depth_max_m, 0, 1) · 255`.
+pub fn assemble_into(
+    frame: &CameraFrameView,
+    opts: &ObsOptions,
+    depth_max_m: f32,
+    data: &mut [u8],
 ) -> Result<(), WireError> {
     let bad = |what: String| WireError::internal(format!("robot sent a bad frame: {what}"));
     let color_enc = frame.color.validate().map_err(|e| bad(e.to_string()))?;
@@ -46,17 +77,15 @@ pub fn assemble(
         return Err(bad("colour and depth sizes differ".into()));
     }
     let (w, h) = (opts.width as usize, opts.height as usize);
-    let channels = opts.channels.count() as usize;
-    let dtype = match opts.depth_format {
-        DepthFormat::Uint8 => DType::U8,
-        DepthFormat::Meters => DType::F32,
-    };
-    out.height = opts.height;
-    out.width = opts.width;
-    out.channels = channels as u32;
-    out.dtype = dtype;
-    out.data.clear();
-    out.data.resize(w * h * channels * dtype.size(), 0);
+    let obs = shape(opts);
+    let (channels, dtype) = (obs.channels as usize, obs.dtype);
+    if obs.shape_len() != data.len() as u64 {
+        return Err(WireError::internal(format!(
+            "{} bytes for an observation of {}",
+            data.len(),
+            obs.shape_len()
+        )));
+    }
     let layout = Layout {
         frame,
         src_x: (0..w)
@@ -67,7 +96,6 @@ pub fn assemble(
         depth_scale: 255.0 / depth_max_m.max(1e-6),
     };
     // One monomorphised loop per layout: no per-pixel branching.
-    let data = &mut out.data;
     match (opts.channels, dtype) {
         (Channels::DepthOnly, DType::U8) => layout.fill::<false, true, false>(data, sh, h),
         (Channels::DepthOnly, DType::F32) => layout.fill::<false, true, true>(data, sh, h),

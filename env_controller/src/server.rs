@@ -6,6 +6,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use offworld_runtime::codec::Encoded;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
     AdminRequest, BookingRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest,
@@ -182,7 +183,7 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
         }
         Topic::Spec => respond(query, async { Ok(server.spec()) }).await,
         Topic::Reset => {
-            respond(query, async {
+            respond_encoded(query, async {
                 server
                     .reset(wire::decode_query::<ResetRequest>(query)?)
                     .await
@@ -190,7 +191,7 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
             .await
         }
         Topic::Step => {
-            respond(query, async {
+            respond_encoded(query, async {
                 server.step(wire::decode_query::<StepRequest>(query)?).await
             })
             .await
@@ -238,4 +239,16 @@ async fn respond<T: serde::Serialize>(
         tracing::debug!(key = %query.key_expr(), "request refused: {e}");
     }
     wire::reply(query, result.as_ref().map_err(Clone::clone)).await
+}
+
+/// Like [`respond`] for replies encoded by the handler.
+async fn respond_encoded<T>(
+    query: &Query,
+    work: impl std::future::Future<Output = Result<Encoded<T>, WireError>>,
+) -> Result<(), offworld_runtime::RequestError> {
+    let result = work.await;
+    if let Err(e) = &result {
+        tracing::debug!(key = %query.key_expr(), "request refused: {e}");
+    }
+    wire::reply_encoded(query, result).await
 }

@@ -154,6 +154,12 @@ pub enum DecodeError {
 #[error("CDR encoding failed: {0}")]
 pub struct EncodeError(pub String);
 
+impl From<EncodeError> for WireError {
+    fn from(e: EncodeError) -> Self {
+        WireError::internal(e.to_string())
+    }
+}
+
 /// Errors of the contract's local helpers (ids, config, sessions).
 #[derive(Debug, thiserror::Error)]
 pub enum ContractError {

@@ -172,18 +172,31 @@ pub async fn reply<T: Serialize>(
     query: &Query,
     result: Result<&T, WireError>,
 ) -> Result<(), RequestError> {
-    let key = query.key_expr().clone();
-    let outcome = match result.map(codec::encode) {
-        Ok(Ok(bytes)) => {
+    let encoded = match result.map(codec::encode) {
+        Ok(Ok(bytes)) => Ok(bytes),
+        Ok(Err(e)) => Err(WireError::internal(e.to_string())),
+        Err(err) => Err(err),
+    };
+    reply_bytes(query, encoded).await
+}
+
+/// Like [`reply`] with a message already encoded (see
+/// [`codec::encode_with_tail`]).
+pub async fn reply_encoded<T>(
+    query: &Query,
+    result: Result<codec::Encoded<T>, WireError>,
+) -> Result<(), RequestError> {
+    reply_bytes(query, result.map(codec::Encoded::into_bytes)).await
+}
+
+async fn reply_bytes(
+    query: &Query,
+    result: Result<Vec<u8>, WireError>,
+) -> Result<(), RequestError> {
+    let outcome = match result {
+        Ok(bytes) => {
             query
-                .reply(key, bytes)
-                .encoding(Encoding::APPLICATION_CDR)
-                .await
-        }
-        Ok(Err(e)) => {
-            let err = WireError::internal(e.to_string());
-            query
-                .reply_err(codec::encode(&err)?)
+                .reply(query.key_expr().clone(), bytes)
                 .encoding(Encoding::APPLICATION_CDR)
                 .await
         }

@@ -217,3 +217,59 @@ fn image_geometry_is_validated() {
         Err(ImageError::UnsupportedEncoding("yuv422".into()))
     );
 }
+
+/// `encode_with_tail` writes the observation in place; the payload must be
+/// exactly the plain encoding, for every data length (padding differs).
+#[test]
+fn observations_written_in_place_equal_the_plain_encoding() {
+    use offworld_runtime::codec::encode_with_tail;
+    use offworld_runtime::EncodeError;
+    for len in 0..9usize {
+        let data: Vec<u8> = (0..len as u8).map(|i| i * 7 + 1).collect();
+        let obs = ObsArray {
+            height: 1,
+            width: len as u32,
+            channels: 1,
+            dtype: DType::U8,
+            data: data.clone(),
+        };
+        let step = StepReply {
+            observation: obs.clone(),
+            ..common::step_reply()
+        };
+        let reset = ResetReply {
+            observation: obs,
+            ..common::reset_reply()
+        };
+        let fill = |out: &mut [u8]| {
+            out.copy_from_slice(&data);
+            Ok::<(), EncodeError>(())
+        };
+        let mut head = step.clone();
+        head.observation.data.clear();
+        let in_place = encode_with_tail(&head, len, fill).expect("step reply");
+        assert_eq!(
+            in_place.as_bytes(),
+            encode(&step).expect("encode"),
+            "len {len}"
+        );
+        assert_eq!(in_place.decode().expect("decodes"), step);
+        let mut head = reset.clone();
+        head.observation.data.clear();
+        let in_place = encode_with_tail(&head, len, fill).expect("reset reply");
+        assert_eq!(
+            in_place.as_bytes(),
+            encode(&reset).expect("encode"),
+            "len {len}"
+        );
+    }
+    // Only a message ending in an empty byte sequence can take a tail.
+    let refused = encode_with_tail(&common::step_request(), 4, |_| Ok::<(), EncodeError>(()));
+    assert!(refused.is_err());
+    // The filler's own error comes back as it is.
+    let mut head = common::step_reply();
+    head.observation.data.clear();
+    let failed = encode_with_tail(&head, 4, |_| Err(EncodeError("no frame".into())));
+    let error = failed.map(|_| ()).expect_err("the filler failed");
+    assert_eq!(error.0, "no frame");
+}

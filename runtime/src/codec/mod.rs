@@ -20,6 +20,76 @@ pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, EncodeError> {
     Ok(buf)
 }
 
+/// A message already encoded, e.g. by [`encode_with_tail`]: replied as is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Encoded<T> {
+    bytes: Vec<u8>,
+    of: std::marker::PhantomData<fn() -> T>,
+}
+
+impl<T: Serialize> Encoded<T> {
+    /// Encodes `msg`.
+    pub fn new(msg: &T) -> Result<Self, EncodeError> {
+        Ok(Self::from_bytes(encode(msg)?))
+    }
+}
+
+impl<T> Encoded<T> {
+    fn from_bytes(bytes: Vec<u8>) -> Self {
+        Self {
+            bytes,
+            of: std::marker::PhantomData,
+        }
+    }
+
+    /// The payload.
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.bytes
+    }
+
+    /// The payload, owned.
+    pub fn into_bytes(self) -> Vec<u8> {
+        self.bytes
+    }
+}
+
+impl<T: DeserializeOwned> Encoded<T> {
+    /// Decodes the message back.
+    pub fn decode(&self) -> Result<T, DecodeError> {
+        decode(&self.bytes)
+    }
+}
+
+/// Encodes `msg`, whose last field is an empty byte sequence, as if that
+/// field held `len` bytes, and lets `fill` write those bytes in place: a
+/// big array (an observation) goes into the payload with no copy of its
+/// own. Equal, byte for byte, to [`encode`] of the message with the bytes.
+pub fn encode_with_tail<T: Serialize, E: From<EncodeError>>(
+    msg: &T,
+    len: usize,
+    fill: impl FnOnce(&mut [u8]) -> Result<(), E>,
+) -> Result<Encoded<T>, E> {
+    let head_len = cdr::calc_serialized_size(msg) as usize;
+    let mut bytes = Vec::with_capacity(head_len + len);
+    encode_into(msg, &mut bytes)?;
+    let head = bytes.len();
+    let count = u32::try_from(len)
+        .map_err(|_| EncodeError(format!("a byte sequence of {len} bytes is too long")))?;
+    // CDR writes a sequence as its u32 count, then its elements: the empty
+    // last field is the count 0 at the very end.
+    match bytes.last_chunk_mut::<4>() {
+        Some(last) if *last == [0; 4] => *last = count.to_le_bytes(),
+        _ => {
+            return Err(
+                EncodeError("the message does not end with an empty byte sequence".into()).into(),
+            )
+        }
+    }
+    bytes.resize(head + len, 0);
+    fill(&mut bytes[head..])?;
+    Ok(Encoded::from_bytes(bytes))
+}
+
 /// Encodes a message into `buf`, replacing its contents but keeping its
 /// capacity: big frames reuse one allocation from step to step.
 pub fn encode_into<T: Serialize + ?Sized>(msg: &T, buf: &mut Vec<u8>) -> Result<(), EncodeError> {

@@ -97,13 +97,17 @@ pub struct ObsArray {
 }
 
 impl ObsArray {
-    /// Checks that the data length matches the shape.
-    pub fn is_consistent(&self) -> bool {
-        let expected = u64::from(self.height)
+    /// Bytes of data the shape and element type call for.
+    pub fn shape_len(&self) -> u64 {
+        u64::from(self.height)
             * u64::from(self.width)
             * u64::from(self.channels)
-            * self.dtype.size() as u64;
-        expected == self.data.len() as u64
+            * self.dtype.size() as u64
+    }
+
+    /// Checks that the data length matches the shape.
+    pub fn is_consistent(&self) -> bool {
+        self.shape_len() == self.data.len() as u64
     }
 }
 
@@ -243,8 +247,6 @@ pub struct StepInfo {
 pub struct StepReply {
     /// Echo of the request's `seq`.
     pub seq: u64,
-    /// Observation after the action.
-    pub observation: ObsArray,
     /// Reward for this step.
     pub reward: f64,
     /// Episode ended by the task (success or out of bounds).
@@ -253,6 +255,10 @@ pub struct StepReply {
     pub truncated: bool,
     /// Counters.
     pub info: StepInfo,
+    /// Observation after the action. Last on the wire, its pixels last of
+    /// all, so a server writes them straight into the payload
+    /// ([`crate::codec::encode_with_tail`]).
+    pub observation: ObsArray,
 }
 
 /// How to seed a reset (CDR has no `Option`).
@@ -276,10 +282,10 @@ pub struct ResetRequest {
 /// The first observation of the new episode.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct ResetReply {
-    /// Observation after arrival at the spawn pose.
-    pub observation: ObsArray,
     /// Counters (step = 0).
     pub info: StepInfo,
+    /// Observation after arrival at the spawn pose (last, as in [`StepReply`]).
+    pub observation: ObsArray,
 }
 
 /// Release the lease.
