@@ -2,7 +2,7 @@
 //! the floor: a raw Zenoh get/reply carrying the same observation bytes.
 //!
 //! overhead = median(step round trip) − median(twin compute for the same
-//! actions, measured in-process). The floor is reported twice: in a tight
+//! actions, measured in-process), and the same paired step by step. The floor is reported twice: in a tight
 //! loop, and interleaved with the steps (raw, step, compute, raw, …). Run:
 //! `cargo bench -p offworld-env-controller --bench step_overhead`
 
@@ -26,9 +26,11 @@ const ACTIONS: [(f64, f64, f64); 4] = [
     (-0.1, 0.0, 0.6),
 ];
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// The `q`-quantile (0..=1) of `v`.
+fn quantile(v: &[f64], q: f64) -> f64 {
+    let mut v = v.to_vec();
     v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
@@ -147,21 +149,33 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     server_task.abort();
 
-    let (hot_m, raw_m) = (median(raw_hot), median(raw));
-    let (compute_m, full_m) = (median(compute), median(full));
+    let median = |v: &[f64]| quantile(v, 0.5);
+    let (hot, raw_m) = (median(&raw_hot), median(&raw));
+    let (compute_m, full_m) = (median(&compute), median(&full));
     let overhead = full_m - compute_m;
     println!("step overhead at {w}x{h} RGBD uint8 ({obs_bytes} B observations), loopback TCP, medians of {STEPS}:");
-    println!("  floor: raw zenoh get/reply, tight loop      : {hot_m:8.0} µs");
+    println!("  floor: raw zenoh get/reply, tight loop      : {hot:8.0} µs");
     println!("  floor: raw zenoh get/reply, between steps   : {raw_m:8.0} µs");
     println!("  full step via controller + twin             : {full_m:8.0} µs");
     println!("  twin compute (physics + render), in-process : {compute_m:8.0} µs");
     println!("  controller + zenoh overhead = full − compute: {overhead:8.0} µs");
-    for (name, floor) in [("tight-loop", hot_m), ("between-steps", raw_m)] {
+    for (name, floor) in [("tight-loop", hot), ("between-steps", raw_m)] {
         println!(
             "    vs the {name} floor: {:.2}×, {:.0} µs above it",
             overhead / floor,
             overhead - floor
         );
     }
+    // Paired per step (step i's compute replays step i's pose, its floor
+    // ran just before it): a slow spell then hits both sides of a pair.
+    let pairs = |f: fn(f64, f64, f64) -> f64| -> Vec<f64> {
+        (0..STEPS).map(|i| f(full[i], compute[i], raw[i])).collect()
+    };
+    let paired = median(&pairs(|f, c, _| f - c));
+    let ratio = median(&pairs(|f, c, r| (f - c) / r));
+    let above = median(&pairs(|f, c, r| f - c - r));
+    println!(
+        "  paired per step: overhead {paired:.0} µs, {ratio:.2}× its between-steps floor, {above:.0} µs above it"
+    );
     Ok(())
 }
