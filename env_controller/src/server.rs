@@ -234,14 +234,10 @@ async fn respond<T: serde::Serialize>(
     query: &Query,
     work: impl std::future::Future<Output = Result<T, WireError>>,
 ) -> Result<(), offworld_runtime::RequestError> {
-    let result = work.await;
-    if let Err(e) = &result {
-        tracing::debug!(key = %query.key_expr(), "request refused: {e}");
-    }
-    wire::reply(query, result.as_ref().map_err(Clone::clone)).await
+    respond_encoded(query, async { Ok(Encoded::new(&work.await?)?) }).await
 }
 
-/// Like [`respond`] for replies encoded by the handler.
+/// Replies with the handler's encoded reply or its typed error.
 async fn respond_encoded<T>(
     query: &Query,
     work: impl std::future::Future<Output = Result<Encoded<T>, WireError>>,

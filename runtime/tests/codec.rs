@@ -248,20 +248,12 @@ fn observations_written_in_place_equal_the_plain_encoding() {
         let mut head = step.clone();
         head.observation.data.clear();
         let in_place = encode_with_tail(&head, len, fill).expect("step reply");
-        assert_eq!(
-            in_place.as_bytes(),
-            encode(&step).expect("encode"),
-            "len {len}"
-        );
+        assert_same_payload(in_place.as_bytes(), &step, len);
         assert_eq!(in_place.decode().expect("decodes"), step);
         let mut head = reset.clone();
         head.observation.data.clear();
         let in_place = encode_with_tail(&head, len, fill).expect("reset reply");
-        assert_eq!(
-            in_place.as_bytes(),
-            encode(&reset).expect("encode"),
-            "len {len}"
-        );
+        assert_same_payload(in_place.as_bytes(), &reset, len);
     }
     // Only a message ending in an empty byte sequence can take a tail.
     let refused = encode_with_tail(&common::step_request(), 4, |_| Ok::<(), EncodeError>(()));
@@ -272,4 +264,12 @@ fn observations_written_in_place_equal_the_plain_encoding() {
     let failed = encode_with_tail(&head, 4, |_| Err(EncodeError("no frame".into())));
     let error = failed.map(|_| ()).expect_err("the filler failed");
     assert_eq!(error.0, "no frame");
+}
+
+fn assert_same_payload<T: Serialize>(in_place: &[u8], full: &T, len: usize) {
+    assert_eq!(
+        in_place,
+        encode(full).expect("encode"),
+        "tail of {len} bytes"
+    );
 }
