@@ -12,9 +12,10 @@ use offworld_runtime::msg::{
     EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsOptions, OpenReply,
     OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
 };
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
 use offworld_runtime::zenoh::Session;
-use offworld_runtime::{wire, WireError};
+use offworld_runtime::WireError;
 use rand::Rng;
 use tokio::sync::Mutex as AsyncMutex;
 
@@ -124,7 +125,8 @@ impl EnvServer {
         store: Arc<Mutex<Store>>,
     ) -> Result<Self, crate::ControllerError> {
         let link = RobotLink::connect(session, &env, options.timeouts).await?;
-        let events = wire::declare_publisher(session, env.key(Topic::Reward))
+        // Spectators' view: a slow one must never stall a step.
+        let events = wire::publisher(session, env.key(Topic::Reward), Delivery::Latest)
             .await
             .map_err(|e| crate::ControllerError::Zenoh(e.to_string()))?;
         Ok(Self {
@@ -769,7 +771,7 @@ impl EnvServer {
             success: end == Some(&EndReason::Success),
             end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
         };
-        if let Err(e) = wire::publish(&self.events, &event).await {
+        if let Err(e) = wire::publish(&self.events, &event) {
             tracing::warn!("reward publish failed: {e}");
         }
     }

@@ -13,7 +13,7 @@ use offworld_runtime::msg::{
     CameraFrameView, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag,
     TrackingStatus,
 };
-use offworld_runtime::wire;
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
@@ -202,7 +202,7 @@ impl RobotLink {
             })
             .await
             .map_err(zerr)?;
-        let cmd = wire::declare_publisher(session, env.key(Topic::Cmd))
+        let cmd = wire::publisher(session, env.key(Topic::Cmd), Delivery::Every)
             .await
             .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
         Ok(Self {
@@ -242,7 +242,6 @@ impl RobotLink {
         let mut frames = self.frames.clone();
         frames.mark_unchanged();
         wire::publish(&self.cmd, cmd)
-            .await
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
         let seq = cmd.seq;
@@ -323,7 +322,7 @@ impl RobotLink {
             angular_z: 0.0,
             duration_s: 0.0,
         };
-        if let Err(e) = wire::publish(&self.cmd, &halt).await {
+        if let Err(e) = wire::publish(&self.cmd, &halt) {
             tracing::error!(env = %self.env, "cannot send stop: {e}");
         }
     }

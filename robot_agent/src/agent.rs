@@ -15,9 +15,9 @@ use offworld_runtime::msg::{
     CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, Time,
     TrackingStatus,
 };
-use offworld_runtime::wire;
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
 use offworld_runtime::zenoh::query::{Query, Queryable};
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
@@ -93,11 +93,7 @@ pub async fn spawn<H: RobotHardware>(
     let (pose_tx, poses) = watch::channel(None);
     let declarations = Declarations::declare(session, &env, tx, pose_tx).await?;
     let agent = Agent {
-        session: session.clone(),
-        keys: Keys {
-            obs: env.key(Topic::Obs),
-            odom: env.key(Topic::Odom),
-        },
+        answers: Answers::declare(session, &env).await?,
         env,
         watchdog: Watchdog::new(config.watchdog()),
         limiter: VelocityLimiter::new(config.limits),
@@ -254,9 +250,20 @@ impl Declarations {
     }
 }
 
-struct Keys {
-    obs: String,
-    odom: String,
+/// The publishers of a command's answer: a dropped one fails the step, so
+/// they wait out a congested link instead.
+struct Answers {
+    obs: Publisher<'static>,
+    odom: Publisher<'static>,
+}
+
+impl Answers {
+    async fn declare(session: &Session, env: &EnvId) -> Result<Self, AgentError> {
+        Ok(Self {
+            obs: wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?,
+            odom: wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?,
+        })
+    }
 }
 
 /// What the robot is doing.
@@ -293,9 +300,8 @@ struct Navigation {
 }
 
 struct Agent<H: RobotHardware> {
-    session: Session,
     env: EnvId,
-    keys: Keys,
+    answers: Answers,
     config: AgentConfig,
     robot: H,
     sensors: watch::Receiver<Sensors>,
@@ -698,16 +704,13 @@ impl<H: RobotHardware> Agent<H> {
                 _ => return false,
             }
         };
+        if let Err(e) = wire::publish(&self.answers.obs, &frame) {
+            tracing::warn!("obs put failed: {e}");
+        }
         if let Some(odom) = odom {
-            let tag = SeqTag { seq };
-            if let Err(e) =
-                wire::put_with_attachment(&self.session, &self.keys.odom, &*odom, &tag).await
-            {
+            if let Err(e) = wire::publish_tagged(&self.answers.odom, &*odom, SeqTag { seq }) {
                 tracing::warn!("odom put failed: {e}");
             }
-        }
-        if let Err(e) = wire::put(&self.session, &self.keys.obs, &frame).await {
-            tracing::warn!("obs put failed: {e}");
         }
         true
     }

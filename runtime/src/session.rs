@@ -167,10 +167,10 @@ impl SessionConfig {
                 self.multicast_scouting.to_string(),
             )?;
         }
-        // Zenoh drops a message after waiting 1 ms for a full queue; on a
-        // loaded 2-core host (or a TLS hop) a step's answer then vanishes.
-        // Wait up to 50 ms first. Blocking instead would close the whole
-        // session after 5 s of congestion, which is worse.
+        // Zenoh drops a stream sample after waiting 1 ms for a full queue;
+        // on a loaded 2-core host (or a TLS hop) that loses most of a
+        // stream. Wait up to 50 ms first. What a step cannot lose (commands
+        // and their answers) is published with `Delivery::Every` instead.
         if self.config_file.is_none() {
             set(
                 &mut config,

@@ -5,12 +5,15 @@ use std::time::{Duration, Instant};
 
 use serde::{de::DeserializeOwned, Serialize};
 use zenoh::bytes::{Encoding, ZBytes};
-use zenoh::pubsub::Publisher;
+use zenoh::pubsub::{Publisher, PublisherBuilder};
+use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, QueryTarget};
 use zenoh::Session;
+use zenoh::Wait;
 
 use crate::codec;
 use crate::error::{DecodeError, EncodeError, WireError};
+use crate::msg::SeqTag;
 
 /// Why a request got no usable answer.
 #[derive(Debug, thiserror::Error)]
@@ -54,7 +57,7 @@ impl RequestError {
     }
 }
 
-/// Puts one message on `key` (labelled as CDR).
+/// Puts one message on `key` (labelled as CDR) with [`Delivery::Latest`].
 pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<(), RequestError> {
     let bytes = codec::encode(msg)?;
     session
@@ -64,42 +67,68 @@ pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
 
-/// Declares a publisher of CDR messages on `key`: for keys put on every
-/// step, it resolves the key once instead of at each put.
-pub async fn declare_publisher(
+/// What a congested link does with a publication.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Delivery {
+    /// A stream whose next sample supersedes this one (heartbeats, status,
+    /// tracker poses, camera topics): dropped when the link stays congested
+    /// (after [`crate::session::PATIENT_DROP_US`]; a fragmented message
+    /// after Zenoh's 50 ms), so a slow reader never stalls the publisher.
+    Latest,
+    /// A message a step cannot do without (a command, the frame and pose
+    /// answering it): the publisher waits for room instead. A frame is
+    /// several fragments and one stall of the reader over 50 ms would
+    /// otherwise lose it, failing the step after its whole answer timeout.
+    Every,
+}
+
+impl Delivery {
+    /// Zenoh's congestion control for this delivery.
+    pub fn congestion_control(self) -> CongestionControl {
+        match self {
+            Delivery::Latest => CongestionControl::Drop,
+            Delivery::Every => CongestionControl::Block,
+        }
+    }
+}
+
+/// A publisher of CDR messages on `key` for keys put on every step (the key
+/// is resolved once instead of at each put); `.await` or `.wait()` it.
+pub fn publisher(
     session: &Session,
     key: String,
-) -> Result<Publisher<'static>, RequestError> {
+    delivery: Delivery,
+) -> PublisherBuilder<'_, 'static> {
     session
         .declare_publisher(key)
         .encoding(Encoding::APPLICATION_CDR)
-        .await
-        .map_err(|e| RequestError::Zenoh(e.to_string()))
+        .congestion_control(delivery.congestion_control())
 }
 
-/// Publishes one message through a publisher from [`declare_publisher`].
-pub async fn publish<T: Serialize>(publisher: &Publisher<'_>, msg: &T) -> Result<(), RequestError> {
+/// Publishes one message through a [`publisher`]. Zenoh's put is synchronous
+/// whether awaited or not (an [`Delivery::Every`] put holds the caller while
+/// it waits for room), so this one is plainly blocking.
+pub fn publish<T: Serialize>(publisher: &Publisher<'_>, msg: &T) -> Result<(), RequestError> {
     let bytes = codec::encode(msg)?;
     publisher
         .put(bytes)
-        .await
+        .wait()
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
 
-/// Puts one message with a CDR-encoded attachment (e.g. a [`crate::msg::SeqTag`]).
-pub async fn put_with_attachment<T: Serialize, A: Serialize>(
-    session: &Session,
-    key: &str,
+/// Publishes one message tagged with the command it answers (a
+/// [`SeqTag`] attachment).
+pub fn publish_tagged<T: Serialize>(
+    publisher: &Publisher<'_>,
     msg: &T,
-    attachment: &A,
+    tag: SeqTag,
 ) -> Result<(), RequestError> {
     let bytes = codec::encode(msg)?;
-    let attachment = codec::encode(attachment)?;
-    session
-        .put(key, bytes)
-        .encoding(Encoding::APPLICATION_CDR)
+    let attachment = codec::encode(&tag)?;
+    publisher
+        .put(bytes)
         .attachment(attachment)
-        .await
+        .wait()
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
 

@@ -24,7 +24,7 @@ use offworld_runtime::msg::{
     CameraFrameView, EStop, GotoReply, GotoRequest, MotionCommand, PixelEncoding, Pose2D, SeqTag,
     Time,
 };
-use offworld_runtime::wire;
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
@@ -35,7 +35,7 @@ use offworld_runtime::WireError;
 
 use crate::error::SimError;
 use crate::overhead::OverheadStream;
-use crate::physics::{BodyPose, PlanarPose, DT};
+use crate::physics::{PlanarPose, DT};
 use crate::ros_out;
 use crate::twin::SimTwin;
 
@@ -215,24 +215,26 @@ struct Worker {
 
 /// Declared once: a declared publisher skips the per-put key resolution.
 struct Publishers {
+    /// The answers to a command: a dropped one fails the step.
     obs: Publisher<'static>,
     odom: Publisher<'static>,
     pose: Publisher<'static>,
+    /// The tracker-rate pose stream between commands: the next supersedes.
+    pose_stream: Publisher<'static>,
 }
 
 impl Worker {
     fn new(session: Session, env: EnvId, twin: SimTwin, clock: Clock) -> Result<Self, SimError> {
-        let declare = |topic: Topic| {
-            session
-                .declare_publisher(env.key(topic))
-                .encoding(Encoding::APPLICATION_CDR)
+        let declare = |topic: Topic, delivery: Delivery| {
+            wire::publisher(&session, env.key(topic), delivery)
                 .wait()
                 .map_err(|e| SimError::Zenoh(e.to_string()))
         };
         let publishers = Publishers {
-            obs: declare(Topic::Obs)?,
-            odom: declare(Topic::Odom)?,
-            pose: declare(Topic::Pose)?,
+            obs: declare(Topic::Obs, Delivery::Every)?,
+            odom: declare(Topic::Odom, Delivery::Every)?,
+            pose: declare(Topic::Pose, Delivery::Every)?,
+            pose_stream: declare(Topic::Pose, Delivery::Latest)?,
         };
         let overhead = env
             .overhead_key(OVERHEAD_CAMERA)
@@ -345,8 +347,10 @@ impl Worker {
                 }
             }
             if now >= next_pose {
-                let reading = self.twin.tracker_reading();
-                self.publish_pose(&reading, None);
+                let msg = ros_out::world_pose(&self.twin.tracker_reading(), Time::now());
+                if let Err(e) = wire::publish(&self.publishers.pose_stream, &msg) {
+                    tracing::warn!("pose put failed: {e}");
+                }
                 next_pose = now + tracker_period;
                 self.publish_overhead();
             }
@@ -427,9 +431,9 @@ impl Worker {
     /// odometry (the controller waits for the first two only).
     fn answer(&mut self, seq: u64) {
         let stamp = Time::now();
-        let tag = Some(SeqTag { seq });
-        let reading = self.twin.tracker_reading();
-        self.publish_pose(&reading, tag);
+        let tag = SeqTag { seq };
+        let pose = ros_out::world_pose(&self.twin.tracker_reading(), Time::now());
+        publish(&self.publishers.pose, &pose, tag);
         let frame = self.twin.render();
         let (color, depth) = ros_out::frame_images(
             frame,
@@ -451,30 +455,11 @@ impl Worker {
         // After the answer: the step never waits for the spectators' view.
         self.publish_overhead();
     }
-
-    fn publish_pose(&mut self, reading: &BodyPose, tag: Option<SeqTag>) {
-        let msg = ros_out::world_pose(reading, Time::now());
-        publish(&self.publishers.pose, &msg, tag);
-    }
 }
 
-/// Publishes `msg`, with `tag` as its attachment.
-fn publish<T: serde::Serialize>(publisher: &Publisher<'_>, msg: &T, tag: Option<SeqTag>) {
-    let bytes = match codec::encode(msg) {
-        Ok(b) => b,
-        Err(e) => {
-            tracing::error!("cannot encode for {}: {e}", publisher.key_expr());
-            return;
-        }
-    };
-    let mut put = publisher.put(bytes);
-    if let Some(tag) = tag {
-        match codec::encode(&tag) {
-            Ok(a) => put = put.attachment(a),
-            Err(e) => tracing::error!("cannot encode tag: {e}"),
-        }
-    }
-    if let Err(e) = put.wait() {
+/// Publishes `msg`, tagged with the command it answers.
+fn publish<T: serde::Serialize>(publisher: &Publisher<'_>, msg: &T, tag: SeqTag) {
+    if let Err(e) = wire::publish_tagged(publisher, msg, tag) {
         tracing::warn!("put on {} failed: {e}", publisher.key_expr());
     }
 }
