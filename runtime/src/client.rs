@@ -142,7 +142,7 @@ impl EnvClient {
             session_id: self.reply.session_id.clone(),
             seed,
         };
-        ask(
+        ask_observation(
             &self.session,
             &self.env,
             Topic::Reset,
@@ -161,7 +161,7 @@ impl EnvClient {
             seq: self.seq,
             action,
         };
-        ask(
+        ask_observation(
             &self.session,
             &self.env,
             Topic::Step,
@@ -201,6 +201,22 @@ async fn ask<Req: serde::Serialize, Rep: serde::de::DeserializeOwned>(
     timeout: Duration,
 ) -> Result<Rep, WireError> {
     wire::request(session, &env.key(topic), request, timeout)
+        .await
+        .map_err(wire::RequestError::into_wire)
+}
+
+/// [`ask`] for the replies carrying an observation (received with one copy).
+async fn ask_observation<Req: serde::Serialize, Rep>(
+    session: &Session,
+    env: &EnvId,
+    topic: Topic,
+    request: &Req,
+    timeout: Duration,
+) -> Result<Rep, WireError>
+where
+    Rep: serde::de::DeserializeOwned + crate::codec::ByteTail,
+{
+    wire::request_tail(session, &env.key(topic), request, timeout)
         .await
         .map_err(wire::RequestError::into_wire)
 }

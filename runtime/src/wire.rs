@@ -143,12 +143,34 @@ pub async fn request<Req: Serialize, Rep: DeserializeOwned>(
     request_raw(session, key, payload, timeout).await
 }
 
+/// [`request`] for a reply whose last field is an observation: its pixels
+/// are copied once out of the received fragments ([`codec::decode_payload_tail`]).
+pub async fn request_tail<Req: Serialize, Rep: DeserializeOwned + codec::ByteTail>(
+    session: &Session,
+    key: &str,
+    req: &Req,
+    timeout: Duration,
+) -> Result<Rep, RequestError> {
+    let payload = codec::encode(req)?;
+    request_decoded(session, key, payload, timeout, codec::decode_payload_tail).await
+}
+
 /// Like [`request`] with an already encoded payload (empty for `spec`).
 pub async fn request_raw<Rep: DeserializeOwned>(
     session: &Session,
     key: &str,
     payload: Vec<u8>,
     timeout: Duration,
+) -> Result<Rep, RequestError> {
+    request_decoded(session, key, payload, timeout, codec::decode_payload).await
+}
+
+async fn request_decoded<Rep: DeserializeOwned>(
+    session: &Session,
+    key: &str,
+    payload: Vec<u8>,
+    timeout: Duration,
+    decode: fn(&ZBytes) -> Result<Rep, DecodeError>,
 ) -> Result<Rep, RequestError> {
     let started = Instant::now();
     let replies = session
@@ -161,7 +183,7 @@ pub async fn request_raw<Rep: DeserializeOwned>(
         .map_err(|e| RequestError::Zenoh(e.to_string()))?;
     match replies.recv_async().await {
         Ok(reply) => match reply.result() {
-            Ok(sample) => Ok(codec::decode_payload(sample.payload())?),
+            Ok(sample) => Ok(decode(sample.payload())?),
             // Our servers label typed errors as CDR; anything else comes
             // from Zenoh itself (its query timeout replies "Timeout").
             Err(err) if err.encoding() == &Encoding::APPLICATION_CDR => {

@@ -273,3 +273,68 @@ fn assert_same_payload<T: Serialize>(in_place: &[u8], full: &T, len: usize) {
         "tail of {len} bytes"
     );
 }
+
+/// A payload as Zenoh hands over a reassembled reply: in fragments.
+fn fragmented(bytes: &[u8], cuts: &[usize]) -> offworld_runtime::zenoh::bytes::ZBytes {
+    let mut writer = offworld_runtime::zenoh::bytes::ZBytes::writer();
+    let mut start = 0;
+    for &cut in cuts.iter().chain([&bytes.len()]) {
+        writer.append(bytes[start..cut].to_vec().into());
+        start = cut;
+    }
+    writer.finish()
+}
+
+/// The receiving mirror of `encode_with_tail`: a fragmented reply decodes
+/// to the very message, wherever the fragments are cut, and whatever is
+/// broken fails exactly as the plain decode fails.
+#[test]
+fn fragmented_observations_decode_as_the_plain_payload() {
+    use offworld_runtime::codec::{decode_payload, decode_payload_tail};
+    let data: Vec<u8> = (0..40u8).map(|i| i.wrapping_mul(13)).collect();
+    let step = StepReply {
+        observation: ObsArray {
+            height: 4,
+            width: 10,
+            channels: 1,
+            dtype: DType::U8,
+            data,
+        },
+        ..common::step_reply()
+    };
+    let bytes = encode(&step).expect("encode");
+    for cut in 1..bytes.len() {
+        for cuts in [vec![cut], vec![cut / 2, cut]] {
+            let payload = fragmented(&bytes, &cuts);
+            assert!(payload.slices().count() >= 2);
+            let decoded: StepReply = decode_payload_tail(&payload).expect("decodes");
+            assert_eq!(decoded, step, "cut at {cuts:?}");
+        }
+    }
+    let reset = ResetReply {
+        observation: step.observation.clone(),
+        ..common::reset_reply()
+    };
+    let bytes = encode(&reset).expect("encode");
+    let decoded: ResetReply = decode_payload_tail(&fragmented(&bytes, &[9, 30])).expect("decodes");
+    assert_eq!(decoded, reset);
+    // Truncated, padded with garbage, a lying length, a bad header.
+    let bytes = encode(&step).expect("encode");
+    let mut lying = bytes.clone();
+    let count_at = bytes.len() - 44;
+    lying[count_at..count_at + 4].copy_from_slice(&41u32.to_le_bytes());
+    let mut bad_header = bytes.clone();
+    bad_header[0] = 1;
+    for broken in [
+        bytes[..bytes.len() - 1].to_vec(),
+        [bytes.as_slice(), &[9, 9, 9, 9]].concat(),
+        lying,
+        bad_header,
+    ] {
+        let payload = fragmented(&broken, &[broken.len() - 20]);
+        let tail = decode_payload_tail::<StepReply>(&payload).map_err(|e| e.to_string());
+        let plain = decode_payload::<StepReply>(&payload).map_err(|e| e.to_string());
+        assert!(plain.is_err());
+        assert_eq!(tail, plain);
+    }
+}

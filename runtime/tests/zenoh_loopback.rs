@@ -308,3 +308,44 @@ async fn open_when_ready_waits_for_a_late_server_and_returns_hard_errors_at_once
     assert_eq!(refused.code, ErrorCode::Unauthorized, "{refused}");
     refuser.abort();
 }
+
+/// A native 320×240 RGBD observation crosses loopback in fragments; the
+/// reply received with its pixels copied once out of them is the very
+/// reply sent (and the same as the joined-then-decoded one).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_native_observation_arrives_intact_from_its_fragments() {
+    let (a, b) = pair().await;
+    let key = EnvId::sim("loopback-tail").expect("env").key(Topic::Step);
+    let data: Vec<u8> = (0..320 * 240 * 4u32).map(|i| (i % 251) as u8).collect();
+    let reply = StepReply {
+        observation: ObsArray {
+            height: 240,
+            width: 320,
+            channels: 4,
+            dtype: DType::U8,
+            data,
+        },
+        ..common::step_reply()
+    };
+    let queryable = a.declare_queryable(&key).await.expect("queryable");
+    let answer = reply.clone();
+    let server = tokio::spawn(async move {
+        for _ in 0..2 {
+            let query = queryable.recv_async().await.expect("query");
+            wire::reply(&query, Ok(&answer)).await.expect("reply");
+        }
+    });
+    let request = common::step_request();
+    let mut tail = Err(RequestError::NoResponder(key.clone()));
+    for _ in 0..ATTEMPTS {
+        tail = wire::request_tail::<_, StepReply>(&b, &key, &request, Duration::from_secs(5)).await;
+        if !matches!(tail, Err(RequestError::NoResponder(_))) {
+            break;
+        }
+        tokio::time::sleep(RETRY).await;
+    }
+    assert_eq!(tail.expect("tail request"), reply);
+    let plain: StepReply = retry_request(&b, &key, &request).await.expect("request");
+    assert_eq!(plain, reply);
+    server.await.expect("server task");
+}

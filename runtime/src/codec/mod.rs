@@ -141,3 +141,44 @@ pub fn decode_payload<T: DeserializeOwned>(
 ) -> Result<T, DecodeError> {
     decode(&payload.to_bytes())
 }
+
+/// A message whose last field is a big byte sequence (an observation's
+/// pixels), the mirror of [`encode_with_tail`] on the receiving side.
+pub trait ByteTail {
+    /// The last field.
+    fn tail_mut(&mut self) -> &mut Vec<u8>;
+}
+
+/// [`decode_payload`] for a [`ByteTail`] message: a payload that arrived in
+/// fragments has its tail copied once, straight from the fragments, instead
+/// of being joined first and copied again. Same result, same errors.
+pub fn decode_payload_tail<T: DeserializeOwned + ByteTail>(
+    payload: &zenoh::bytes::ZBytes,
+) -> Result<T, DecodeError> {
+    let mut slices = payload.slices();
+    let (Some(first), Some(_)) = (slices.next(), payload.slices().nth(1)) else {
+        return decode_payload(payload);
+    };
+    let total = payload.len();
+    let open_tail = first
+        .split_first_chunk::<4>()
+        .filter(|(header, _)| header[..2] == CDR_LE_HEADER[..2])
+        .and_then(|(_, head)| {
+            let mut reader = reader::CdrReader::with_open_tail(head, total - 4);
+            let msg = T::deserialize(&mut reader).ok()?;
+            Some((msg, reader.tail_at()? + 4))
+        });
+    // Anything else (the tail not last, not reaching into a later
+    // fragment) takes the general path, which also words the errors.
+    let Some((mut msg, tail_at)) = open_tail else {
+        return decode_payload(payload);
+    };
+    let tail = msg.tail_mut();
+    tail.clear();
+    tail.reserve_exact(total - tail_at);
+    tail.extend_from_slice(&first[tail_at..]);
+    for slice in slices {
+        tail.extend_from_slice(slice);
+    }
+    Ok(msg)
+}

@@ -20,11 +20,36 @@ impl de::Error for DecodeError {
 pub(crate) struct CdrReader<'de> {
     data: &'de [u8],
     pos: usize,
+    /// Reading only the first `data.len()` of a body this long: a byte
+    /// sequence running from inside `data` exactly to the body's end is
+    /// the open tail, read as empty and left to the caller.
+    body_len: Option<usize>,
+    /// Where the open tail's bytes start, once read.
+    tail_at: Option<usize>,
 }
 
 impl<'de> CdrReader<'de> {
     pub(crate) fn new(data: &'de [u8]) -> Self {
-        Self { data, pos: 0 }
+        Self {
+            data,
+            pos: 0,
+            body_len: None,
+            tail_at: None,
+        }
+    }
+
+    /// Reads `head`, the first bytes of a body of `body_len` bytes whose
+    /// last field is a byte sequence (see [`CdrReader::tail_at`]).
+    pub(crate) fn with_open_tail(head: &'de [u8], body_len: usize) -> Self {
+        Self {
+            body_len: Some(body_len),
+            ..Self::new(head)
+        }
+    }
+
+    /// Offset in the body of the open tail's first byte, if one was read.
+    pub(crate) fn tail_at(&self) -> Option<usize> {
+        self.tail_at
     }
 
     /// Bytes not consumed yet.
@@ -155,6 +180,17 @@ impl<'de> de::Deserializer<'de> for &mut CdrReader<'de> {
     }
 
     fn deserialize_bytes<V: Visitor<'de>>(self, visitor: V) -> Result<V::Value, DecodeError> {
+        if let Some(body_len) = self.body_len.filter(|_| self.tail_at.is_none()) {
+            let at = self.pos;
+            let len = self.read_u32()? as usize;
+            let start = self.pos;
+            if start.checked_add(len) == Some(body_len) && start + len > self.data.len() {
+                self.tail_at = Some(start);
+                self.pos = self.data.len();
+                return visitor.visit_borrowed_bytes(&[]);
+            }
+            self.pos = at;
+        }
         let len = self.read_len()?;
         visitor.visit_borrowed_bytes(self.take(len)?)
     }

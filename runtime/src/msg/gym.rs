@@ -488,3 +488,15 @@ pub struct Bookings {
     /// Earliest first.
     pub bookings: Vec<Booking>,
 }
+
+impl crate::codec::ByteTail for StepReply {
+    fn tail_mut(&mut self) -> &mut Vec<u8> {
+        &mut self.observation.data
+    }
+}
+
+impl crate::codec::ByteTail for ResetReply {
+    fn tail_mut(&mut self) -> &mut Vec<u8> {
+        &mut self.observation.data
+    }
+}
