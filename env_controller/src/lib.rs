@@ -13,6 +13,7 @@
 //! - [`env`]: one env's sessions, leases and request handlers.
 //! - [`server`]: many envs served over Zenoh.
 //! - [`embedded`]: twins + controller in one process.
+//! - [`operator`]: the operator's e-stops.
 
 pub mod deployment;
 pub mod embedded;
@@ -21,6 +22,7 @@ pub mod episode;
 mod error;
 pub mod link;
 pub mod observation;
+pub mod operator;
 pub mod server;
 pub mod store;
 pub mod task;

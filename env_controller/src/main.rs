@@ -5,6 +5,8 @@
 //! env_controller users add alice [--operator]
 //! env_controller experiments list
 //! env_controller leaderboard --env sim/monolith-0
+//! env_controller estop --env real/monolith-0 --reason "person in the enclosure" [--release]
+//! env_controller estop --site --reason "fire alarm"
 //! ```
 
 use std::path::PathBuf;
@@ -12,7 +14,9 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::{Controller, EnvOptions, Store, Task};
+use offworld_runtime::msg::EStop;
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
 #[derive(Parser)]
@@ -61,6 +65,26 @@ enum Command {
         /// Env id.
         #[arg(long)]
         env: EnvId,
+    },
+    /// Press (or release) an e-stop: one env's robot, or every robot of the site.
+    Estop {
+        /// The env whose robot stops.
+        #[arg(long, required_unless_present = "site", conflicts_with = "site")]
+        env: Option<EnvId>,
+        /// Every robot of the site.
+        #[arg(long)]
+        site: bool,
+        /// Who and why, for the robots' logs.
+        #[arg(long)]
+        reason: String,
+        /// Release instead of press.
+        #[arg(long)]
+        release: bool,
+        /// How long to wait for a robot or twin to listen, s.
+        #[arg(long, default_value_t = 5.0)]
+        wait_s: f64,
+        #[command(flatten)]
+        common: CommonArgs,
     },
 }
 
@@ -133,6 +157,29 @@ async fn main() -> anyhow::Result<()> {
             };
             tracing::info!("serving; Ctrl-C to stop");
             tokio::signal::ctrl_c().await?;
+        }
+        Command::Estop {
+            env,
+            site: _,
+            reason,
+            release,
+            wait_s,
+            common,
+        } => {
+            let scope = env.map_or(EStopScope::Site, EStopScope::Env);
+            let wait = std::time::Duration::try_from_secs_f64(wait_s)
+                .context("--wait-s must be a non-negative number of seconds")?;
+            let session = common.client_config().open().await?;
+            let stop = EStop {
+                engaged: !release,
+                reason,
+            };
+            press_estop(&session, &scope, &stop, wait).await?;
+            // Let the publication leave before the session closes.
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+            let verb = if release { "released" } else { "engaged" };
+            println!("e-stop {verb} on {}", scope.key());
         }
         Command::Users {
             command: UsersCommand::Add { name, operator },
