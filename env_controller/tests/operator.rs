@@ -1,13 +1,14 @@
 //! The operator's e-stops over real Zenoh: pressed and released from the
 //! library and from the `env_controller estop` CLI, heard by a robot's
-//! subscription byte for byte; a press nobody hears is a typed error.
+//! subscription byte for byte; a press with no robot or twin present is a
+//! typed error.
 
 use std::time::Duration;
 
 use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::ControllerError;
 use offworld_runtime::codec;
-use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
+use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::EStop;
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
 use offworld_runtime::zenoh::handlers::FifoChannelHandler;
@@ -28,6 +29,12 @@ async fn next_estop(robot: &Subscriber<FifoChannelHandler<Sample>>) -> EStop {
 async fn an_env_and_the_site_estop_reach_the_robot_and_an_unheard_press_is_an_error() {
     let (robot_side, operator) = loopback_pair().await.expect("sessions");
     let env = EnvId::real("estop-0").expect("env");
+    // What an e-stop waits for: a robot agent declaring itself.
+    let _alive = robot_side
+        .liveliness()
+        .declare_token(env.alive_key(Component::RobotAgent))
+        .await
+        .expect("token");
     let robot = robot_side
         .declare_subscriber(env.key(Topic::EStop))
         .await
@@ -58,7 +65,16 @@ async fn an_env_and_the_site_estop_reach_the_robot_and_an_unheard_press_is_an_er
         .expect("site pressed");
     assert_eq!(next_estop(&site).await, press);
 
-    // Nobody listens for this env: a typed error naming the key.
+    // No robot or twin for this env (a subscriber alone is no robot): a
+    // typed error naming the key.
+    let _bystander = robot_side
+        .declare_subscriber(
+            EnvId::real("estop-unwatched")
+                .expect("env")
+                .key(Topic::EStop),
+        )
+        .await
+        .expect("subscriber");
     let nobody = EnvId::real("estop-unwatched").expect("env");
     let error = press_estop(
         &operator,
@@ -84,6 +100,11 @@ async fn the_cli_presses_and_releases_an_env_estop() {
         .await
         .expect("session");
     let env = EnvId::real("estop-cli").expect("env");
+    let _alive = robot_side
+        .liveliness()
+        .declare_token(env.alive_key(Component::SimTwin))
+        .await
+        .expect("token");
     let robot = robot_side
         .declare_subscriber(env.key(Topic::EStop))
         .await

@@ -11,6 +11,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
@@ -414,8 +415,15 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
         planar_distance(&before, &after) > 0.03,
         "the robot moved: {before:?} -> {after:?}"
     );
-    // …an operator's does.
-    wire::put(&operator, &env.key(Topic::EStop), &engage).await?;
+    // …an operator's does (pressed as `env_controller estop` presses it:
+    // once the robot's subscription is seen through the router).
+    press_estop(
+        &operator,
+        &EStopScope::Env(env.clone()),
+        &engage,
+        Duration::from_secs(10),
+    )
+    .await?;
     settle().await;
     assert_eq!(spy.count("estop", None), 1);
     let held_seq = step(&mut gym, &spy).await;
