@@ -12,8 +12,10 @@ use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::EStop;
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
 use offworld_runtime::zenoh::handlers::FifoChannelHandler;
+use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
 
 const HEARD_WITHIN: Duration = Duration::from_secs(10);
 
@@ -25,24 +27,35 @@ async fn next_estop(robot: &Subscriber<FifoChannelHandler<Sample>>) -> EStop {
     codec::decode_payload(sample.payload()).expect("an EStop")
 }
 
+/// What an e-stop reaches and waits for: a robot agent or twin's
+/// subscription to the env's e-stop and, declared after it as the agents
+/// do, its liveliness token.
+async fn embodiment(
+    session: &Session,
+    env: &EnvId,
+    component: Component,
+) -> (LivelinessToken, Subscriber<FifoChannelHandler<Sample>>) {
+    let estop = session
+        .declare_subscriber(env.key(Topic::EStop))
+        .await
+        .expect("subscriber");
+    let token = session
+        .liveliness()
+        .declare_token(env.alive_key(component))
+        .await
+        .expect("token");
+    (token, estop)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_env_and_the_site_estop_reach_the_robot_and_an_unheard_press_is_an_error() {
     let (robot_side, operator) = loopback_pair().await.expect("sessions");
     let env = EnvId::real("estop-0").expect("env");
-    // What an e-stop waits for: a robot agent declaring itself.
-    let _alive = robot_side
-        .liveliness()
-        .declare_token(env.alive_key(Component::RobotAgent))
-        .await
-        .expect("token");
-    let robot = robot_side
-        .declare_subscriber(env.key(Topic::EStop))
-        .await
-        .expect("subscriber");
     let site = robot_side
         .declare_subscriber(global_estop_key())
         .await
         .expect("subscriber");
+    let (_alive, robot) = embodiment(&robot_side, &env, Component::RobotAgent).await;
     let wait = HEARD_WITHIN;
     let press = EStop {
         engaged: true,
@@ -100,15 +113,7 @@ async fn the_cli_presses_and_releases_an_env_estop() {
         .await
         .expect("session");
     let env = EnvId::real("estop-cli").expect("env");
-    let _alive = robot_side
-        .liveliness()
-        .declare_token(env.alive_key(Component::SimTwin))
-        .await
-        .expect("token");
-    let robot = robot_side
-        .declare_subscriber(env.key(Topic::EStop))
-        .await
-        .expect("subscriber");
+    let (_alive, robot) = embodiment(&robot_side, &env, Component::SimTwin).await;
     for (extra, engaged) in [(None, true), (Some("--release"), false)] {
         let mut cli = std::process::Command::new(env!("CARGO_BIN_EXE_env_controller"));
         cli.args(["estop", "--env", &env.to_string(), "--reason", "drill"])
