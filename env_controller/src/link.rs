@@ -203,6 +203,7 @@ impl RobotLink {
             .await
             .map_err(zerr)?;
         let cmd = wire::publisher(session, env.key(Topic::Cmd), Delivery::Every)
+            .priority(wire::CONTROL_PRIORITY)
             .await
             .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
         Ok(Self {

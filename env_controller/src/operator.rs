@@ -6,7 +6,7 @@ use std::time::Duration;
 use offworld_runtime::codec;
 use offworld_runtime::keys::{all_alive_selector, global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::EStop;
-use offworld_runtime::wire::Delivery;
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::Session;
 
@@ -66,6 +66,7 @@ pub async fn press_estop(
         .put(&key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
         .congestion_control(Delivery::Every.congestion_control())
+        .priority(wire::CONTROL_PRIORITY)
         .await
         .map_err(|e| zerr(e.to_string()))?;
     tracing::warn!(%key, engaged = stop.engaged, reason = %stop.reason, "e-stop published");

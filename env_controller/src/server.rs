@@ -144,7 +144,7 @@ impl Controller {
                     stamp: Time::now(),
                     counter,
                 };
-                if let Err(e) = wire::put(&session, &heartbeat_key, &beat).await {
+                if let Err(e) = wire::put_control(&session, &heartbeat_key, &beat).await {
                     tracing::warn!("heartbeat failed: {e}");
                 }
                 if counter.is_multiple_of(10) {

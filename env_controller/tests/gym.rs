@@ -10,6 +10,7 @@ use offworld_env_controller::Store;
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
+use offworld_runtime::zenoh::qos::Priority;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
 
@@ -177,6 +178,19 @@ async fn full_episode_and_seeded_determinism() {
         ActionSpace::Discrete { n: 4, .. }
     ));
 
+    // Commands and heartbeats travel at the control priority (ahead of
+    // camera data on every link).
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::<(Topic, Priority)>::new()));
+    let mut watches = Vec::new();
+    for topic in [Topic::Cmd, Topic::Heartbeat] {
+        let seen = seen.clone();
+        let watch = session
+            .declare_subscriber(d.env.key(topic))
+            .callback(move |s| seen.lock().expect("lock").push((topic, s.priority())))
+            .await
+            .expect("subscriber");
+        watches.push(watch);
+    }
     let mut env = open(&session, &d.env, ALICE, "det").await.expect("open");
     let a = seeded_run(&mut env, 7).await;
     let b = seeded_run(&mut env, 7).await;
@@ -210,6 +224,23 @@ async fn full_episode_and_seeded_determinism() {
     assert_eq!(after.code, ErrorCode::InvalidState);
     let closed = env.close().await.expect("close");
     assert!(closed.experiment.episodes >= 4, "{:?}", closed.experiment);
+    let seen = seen.lock().expect("lock").clone();
+    for topic in [Topic::Cmd, Topic::Heartbeat] {
+        let priorities: Vec<Priority> = seen
+            .iter()
+            .filter(|(t, _)| *t == topic)
+            .map(|(_, p)| *p)
+            .collect();
+        assert!(
+            !priorities.is_empty(),
+            "no {topic:?} seen in {}",
+            seen.len()
+        );
+        assert!(
+            priorities.iter().all(|p| *p == wire::CONTROL_PRIORITY),
+            "{topic:?} priorities {priorities:?}"
+        );
+    }
     assert_eq!(env.close().await.expect("idempotent"), closed);
 }
 

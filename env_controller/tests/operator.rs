@@ -7,7 +7,6 @@ use std::time::Duration;
 
 use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::ControllerError;
-use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::EStop;
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
@@ -16,6 +15,7 @@ use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
+use offworld_runtime::{codec, wire};
 
 const HEARD_WITHIN: Duration = Duration::from_secs(10);
 
@@ -24,6 +24,7 @@ async fn next_estop(robot: &Subscriber<FifoChannelHandler<Sample>>) -> EStop {
         .await
         .expect("an e-stop within the bound")
         .expect("subscriber open");
+    assert_eq!(sample.priority(), wire::CONTROL_PRIORITY);
     codec::decode_payload(sample.payload()).expect("an EStop")
 }
 

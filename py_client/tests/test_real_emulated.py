@@ -17,19 +17,27 @@ AGENT = textwrap.dedent(
     from offworld_gym.envs.common.channels import Channels
     from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
 
-    env = gymnasium.make(
-        "OffWorldMonolithDiscreteReal-v0",
-        experiment_name="emulated-py",
-        resume_experiment=False,
-        learning_type=LearningType.END_TO_END,
-        algorithm_mode=AlgorithmMode.TRAIN,
-        channel_type=Channels.DEPTH_ONLY,
-        resolution=(84, 84),
-    )
+    def make_env(attempt):
+        return gymnasium.make(
+            "OffWorldMonolithDiscreteReal-v0",
+            experiment_name="emulated-py",
+            resume_experiment=attempt > 0,
+            learning_type=LearningType.END_TO_END,
+            algorithm_mode=AlgorithmMode.TRAIN,
+            channel_type=Channels.DEPTH_ONLY,
+            resolution=(84, 84),
+        )
+
     # A real deployment's typed transient errors (a starved host loses a
     # frame or the tracker for a moment) end the attempt; the script starts
-    # the episode over, as a training loop on a real robot does.
+    # over with a fresh env, as a training loop on a real robot does
+    # (gymnasium's passive checker cannot step an env whose first reset
+    # raised).
+    env = None
     for attempt in range(3):
+        if env is not None:
+            env.close()
+        env = make_env(attempt)
         try:
             obs, info = env.reset(seed=7)  # the robot agent drives to the spawn pose
             assert obs.shape == (84, 84, 1) and obs.dtype == np.uint8, obs.shape

@@ -297,6 +297,18 @@ struct Navigation {
     started: Instant,
     deadline: Instant,
     arrived_still_since: Option<Instant>,
+    /// Since when, and why, the drive is held still.
+    held: Option<(Instant, String)>,
+}
+
+/// What a safety stop does to a reset drive in progress.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum OnHalt {
+    /// End it with an error reply (e-stop, controller gone, shutdown).
+    Abandon,
+    /// Hold it still; it drives on when motion is allowed again (a
+    /// heartbeat gap: the controller is late, not gone).
+    Hold,
 }
 
 struct Agent<H: RobotHardware> {
@@ -333,7 +345,7 @@ impl<H: RobotHardware> Agent<H> {
                 _ = tick.tick() => self.tick(period.as_secs_f64()).await,
             }
         }
-        self.halt("agent shutting down").await;
+        self.halt("agent shutting down", OnHalt::Abandon).await;
         tracing::info!(env = %self.env, "robot agent stopped");
     }
 
@@ -354,7 +366,8 @@ impl<H: RobotHardware> Agent<H> {
                 if stop.engaged {
                     tracing::warn!(env = %self.env, reason = %stop.reason, "E-STOP engaged");
                     self.estop = Some(stop.reason.clone());
-                    self.halt(&format!("e-stop: {}", stop.reason)).await;
+                    self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
+                        .await;
                 } else {
                     tracing::warn!(env = %self.env, reason = %stop.reason, "e-stop released");
                     self.estop = None;
@@ -497,6 +510,7 @@ impl<H: RobotHardware> Agent<H> {
             started: now,
             deadline: now + timeout,
             arrived_still_since: None,
+            held: None,
         }));
     }
 
@@ -514,7 +528,12 @@ impl<H: RobotHardware> Agent<H> {
         match self.watchdog.check(now) {
             Some(Transition::Tripped(reason)) => {
                 tracing::error!(env = %self.env, %reason, "WATCHDOG: stopping the robot");
-                self.halt(&format!("watchdog: {reason}")).await;
+                let on_nav = if self.watchdog.controller_is_present() {
+                    OnHalt::Hold
+                } else {
+                    OnHalt::Abandon
+                };
+                self.halt(&format!("watchdog: {reason}"), on_nav).await;
             }
             Some(Transition::Rearmed) => tracing::info!(env = %self.env, "watchdog armed"),
             None => {}
@@ -522,8 +541,8 @@ impl<H: RobotHardware> Agent<H> {
     }
 
     /// Safety stop: zero velocity now, cut the motion short (its answer is
-    /// still sent after the robot settles), abort navigation.
-    async fn halt(&mut self, reason: &str) {
+    /// still sent after the robot settles), abandon or hold navigation.
+    async fn halt(&mut self, reason: &str, on_nav: OnHalt) {
         self.limiter.halt();
         self.send(Velocity::ZERO).await;
         match std::mem::replace(&mut self.activity, Activity::Idle) {
@@ -532,6 +551,12 @@ impl<H: RobotHardware> Agent<H> {
                     seq,
                     still_since: None,
                 }
+            }
+            Activity::Navigating(mut nav) if on_nav == OnHalt::Hold => {
+                tracing::warn!(env = %self.env, %reason, "reset navigation held");
+                nav.held.get_or_insert((Instant::now(), reason.to_owned()));
+                nav.arrived_still_since = None;
+                self.activity = Activity::Navigating(nav);
             }
             Activity::Navigating(nav) => {
                 let err = WireError::unavailable(format!("reset navigation stopped: {reason}"));
@@ -641,10 +666,36 @@ impl<H: RobotHardware> Agent<H> {
             reply_goto(&nav.query, Err(err)).await;
             return Activity::Idle;
         }
-        let Some(pose) = self.fresh_pose(now) else {
-            let err = WireError::unavailable("tracking lost during reset navigation");
-            reply_goto(&nav.query, Err(err)).await;
-            return Activity::Idle;
+        let pose = match (self.refusal(now), self.fresh_pose(now)) {
+            (None, Some(pose)) => {
+                if let Some((since, reason)) = nav.held.take() {
+                    tracing::info!(
+                        env = %self.env,
+                        held_ms = now.saturating_duration_since(since).as_millis() as u64,
+                        %reason,
+                        "reset navigation drives on"
+                    );
+                }
+                pose
+            }
+            (refusal, _) => {
+                // Hold still (the target stays zero) and drive on when the
+                // heartbeats or poses are back, unless that takes too long.
+                let reason = refusal.unwrap_or_else(|| "tracking lost".to_owned());
+                let since = nav.held.get_or_insert((now, reason.clone())).0;
+                let held = now.saturating_duration_since(since);
+                if held >= Duration::from_millis(self.config.nav_hold_ms) {
+                    let err = WireError::unavailable(format!(
+                        "reset navigation stopped: held still {} ms (limit {} ms): {reason}",
+                        held.as_millis(),
+                        self.config.nav_hold_ms
+                    ));
+                    reply_goto(&nav.query, Err(err)).await;
+                    return Activity::Idle;
+                }
+                nav.arrived_still_since = None;
+                return Activity::Navigating(nav);
+            }
         };
         let command = match nav.navigator.step(&self.grid, pose) {
             Ok(command) => command,

@@ -61,6 +61,11 @@ pub struct AgentConfig {
     pub control_hz: f64,
     /// A tracker pose older than this cannot steer navigation, ms.
     pub pose_stale_ms: u64,
+    /// A reset drive held still this long (watchdog tripped by a
+    /// heartbeat gap, or no fresh tracker pose) gives up, ms. Shorter
+    /// holds are ridden out: the robot stops and drives on when the
+    /// heartbeats or poses are back.
+    pub nav_hold_ms: u64,
     /// The enclosure layout (built-in world name or TOML path): the map
     /// reset navigation plans on.
     pub world: String,
@@ -80,6 +85,7 @@ impl Default for AgentConfig {
             frame_timeout_ms: 2000,
             control_hz: 50.0,
             pose_stale_ms: 500,
+            nav_hold_ms: 3000,
             world: "monolith".into(),
             nav: NavConfig::default(),
         }
@@ -122,6 +128,12 @@ impl AgentConfig {
             return Err(AgentError::Config(format!(
                 "watchdog_ms must be in 1..=5000, got {}",
                 self.watchdog_ms
+            )));
+        }
+        if self.nav_hold_ms == 0 || self.nav_hold_ms > 60_000 {
+            return Err(AgentError::Config(format!(
+                "nav_hold_ms must be in 1..=60000, got {}",
+                self.nav_hold_ms
             )));
         }
         self.graph()?;

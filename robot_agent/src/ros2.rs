@@ -10,6 +10,7 @@ use std::time::Instant;
 use offworld_runtime::codec;
 use offworld_runtime::msg::{Image, Odometry, Twist};
 use offworld_runtime::ros2::{KeyStyle, RmwPublisherId, RobotTopics, RosGraph, RosType};
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::Sample;
@@ -121,7 +122,11 @@ impl RobotHardware for Ros2Robot {
         let mut put = self
             .session
             .put(&self.cmd_vel_key, bytes)
-            .encoding(Encoding::APPLICATION_CDR);
+            .encoding(Encoding::APPLICATION_CDR)
+            // The watchdog's stop rides here: never dropped, never queued
+            // behind the camera stream on the robot's router.
+            .congestion_control(Delivery::Every.congestion_control())
+            .priority(wire::CONTROL_PRIORITY);
         if self.rmw {
             // rmw_zenoh subscribers read the sender's GID and sequence here.
             put = put.attachment(self.publisher.next_attachment().to_bytes().to_vec());

@@ -45,6 +45,12 @@ impl Watchdog {
         self.controller_present = present;
     }
 
+    /// Whether the controller's liveliness token is there (a trip without
+    /// it means the controller is gone, not merely late).
+    pub fn controller_is_present(&self) -> bool {
+        self.controller_present
+    }
+
     /// Whether motion is allowed.
     pub fn armed(&self) -> bool {
         self.armed

@@ -187,6 +187,8 @@ struct Rig {
     agent: Option<AgentHandle>,
     token: Option<LivelinessToken>,
     beating: Arc<AtomicBool>,
+    /// Clear to silence the tracker poses [`Rig::track`] publishes.
+    tracking: Arc<AtomicBool>,
     frames: mpsc::UnboundedReceiver<CameraFrame>,
     /// Sequence numbers of every answer received, in order.
     seen: Vec<u64>,
@@ -243,6 +245,7 @@ impl Rig {
             agent: Some(agent),
             token: Some(token),
             beating,
+            tracking: Arc::new(AtomicBool::new(true)),
             frames,
             seen: Vec::new(),
             tasks,
@@ -362,11 +365,12 @@ impl Rig {
     /// time) when `closed_loop`. Returns the live pose.
     fn track(&mut self, start: Pose2D, closed_loop: bool) -> Arc<Mutex<Pose2D>> {
         let pose = Arc::new(Mutex::new(start));
-        let (session, key, robot, shared) = (
+        let (session, key, robot, shared, tracking) = (
             self.ctl.clone(),
             self.env.key(Topic::Pose),
             self.robot.clone(),
             pose.clone(),
+            self.tracking.clone(),
         );
         self.tasks.push(tokio::spawn(async move {
             let mut tick = tokio::time::interval(Duration::from_millis(20));
@@ -397,10 +401,44 @@ impl Rig {
                         orientation: Quaternion::from_yaw(p.yaw),
                     },
                 };
-                let _ = wire::put(&session, &key, &msg).await;
+                if tracking.load(Ordering::SeqCst) {
+                    let _ = wire::put(&session, &key, &msg).await;
+                }
             }
         }));
         pose
+    }
+
+    /// `goto`, retried while the first tracker poses are still arriving.
+    async fn goto_when_tracked(&self, request: &GotoRequest) -> Result<GotoReply, RequestError> {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            match self.goto(request, Duration::from_secs(30)).await {
+                Err(RequestError::Remote(e))
+                    if e.code == ErrorCode::Unavailable && Instant::now() < deadline =>
+                {
+                    tokio::time::sleep(Duration::from_millis(50)).await
+                }
+                other => return other,
+            }
+        }
+    }
+
+    /// Silences `signal` (heartbeats or tracker poses) for `gap` once the
+    /// robot moves; returns when the signal was cut and when it resumed.
+    async fn gap_while_moving(&self, signal: &AtomicBool, gap: Duration) -> (Instant, Instant) {
+        let robot = self.robot.clone();
+        let since = Instant::now();
+        let moving = wait_until(Duration::from_secs(30), move || {
+            moved(&robot.sent_since(since))
+        })
+        .await;
+        assert!(moving, "the reset drive moved the robot");
+        signal.store(false, Ordering::SeqCst);
+        let cut = Instant::now();
+        tokio::time::sleep(gap).await;
+        signal.store(true, Ordering::SeqCst);
+        (cut, Instant::now())
     }
 
     async fn finish(mut self) {
@@ -907,17 +945,7 @@ async fn goto_drives_to_a_free_pose_on_tracker_poses() {
         target: pose(0.1, 0.35, 0.5),
         timeout_s: 25.0,
     };
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let reply = loop {
-        match rig.goto(&request, Duration::from_secs(30)).await {
-            Err(RequestError::Remote(e))
-                if e.code == ErrorCode::Unavailable && Instant::now() < deadline =>
-            {
-                tokio::time::sleep(Duration::from_millis(50)).await
-            }
-            other => break other.expect("goto reply"),
-        }
-    };
+    let reply = rig.goto_when_tracked(&request).await.expect("goto reply");
     assert_eq!(reply.seq, 77);
     let (target, achieved) = (request.target, reply.achieved);
     let miss = (achieved.x - target.x).hypot(achieved.y - target.y);
@@ -945,5 +973,98 @@ async fn goto_drives_to_a_free_pose_on_tracker_poses() {
             "{s:?}"
         );
     }
+    rig.finish().await;
+}
+
+/// Held still from `after` (a stop within [`PROMPTLY`]) until `until`:
+/// a zero velocity was sent and nothing else.
+fn assert_held(log: &[Sent], after: Instant, until: Instant, what: &str) {
+    let held: Vec<&Sent> = log
+        .iter()
+        .filter(|s| s.at >= after + PROMPTLY && s.at < until)
+        .collect();
+    assert!(
+        held.iter().all(|s| s.velocity.is_zero()),
+        "{what}: moved while held: {:?}",
+        held.iter().find(|s| !s.velocity.is_zero())
+    );
+    assert!(
+        log.iter()
+            .any(|s| s.at >= after && s.at < until && s.velocity.is_zero()),
+        "{what}: the robot was stopped"
+    );
+}
+
+/// A reset drive rides out a heartbeat gap longer than the watchdog
+/// window and a tracker gap: each time the robot stops, then drives on
+/// when the signal is back, and the drive arrives. Held still longer than
+/// `nav_hold_ms`, the drive ends with a typed Unavailable naming why.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
+    let config = AgentConfig {
+        world: "monolith_obstacle".into(),
+        watchdog_ms: 300,
+        nav_hold_ms: 4_000,
+        ..config()
+    };
+    let mut rig = Rig::start("goto-hold", config).await;
+    let _live = rig.track(pose(-0.2, 0.2, 0.0), true);
+    let gap = PROMPTLY + Duration::from_millis(700);
+
+    // A heartbeat gap (the controller late, its token still there).
+    let request = GotoRequest {
+        seq: 81,
+        target: pose(0.1, 0.35, 0.5),
+        timeout_s: 25.0,
+    };
+    let (reply, (cut, resumed)) = tokio::join!(
+        rig.goto_when_tracked(&request),
+        rig.gap_while_moving(&rig.beating, gap)
+    );
+    let reply = reply.expect("the drive arrives after the heartbeat gap");
+    assert_held(&rig.robot.sent(), cut, resumed, "heartbeat gap");
+    assert!(
+        rig.robot
+            .sent_since(resumed)
+            .iter()
+            .any(|s| !s.velocity.is_zero()),
+        "drove on after the heartbeat gap"
+    );
+    let miss = (reply.achieved.x - 0.1).hypot(reply.achieved.y - 0.35);
+    assert!(miss < 0.1, "arrived: {:?}", reply.achieved);
+
+    // A tracker gap.
+    rig.robot.clear();
+    let request = GotoRequest {
+        seq: 82,
+        target: pose(-0.2, 0.2, 0.0),
+        timeout_s: 25.0,
+    };
+    let (reply, (cut, resumed)) = tokio::join!(
+        rig.goto_when_tracked(&request),
+        rig.gap_while_moving(&rig.tracking, gap)
+    );
+    let reply = reply.expect("the drive arrives after the tracker gap");
+    assert_held(&rig.robot.sent(), cut, resumed, "tracker gap");
+    let miss = (reply.achieved.x + 0.2).hypot(reply.achieved.y - 0.2);
+    assert!(miss < 0.1, "arrived: {:?}", reply.achieved);
+
+    // A tracker gap past the hold limit.
+    let request = GotoRequest {
+        seq: 83,
+        target: pose(0.1, 0.35, 0.5),
+        timeout_s: 25.0,
+    };
+    // (Tracked now: no retry, the Unavailable is the hold's.)
+    let (result, _) = tokio::join!(
+        rig.goto(&request, Duration::from_secs(30)),
+        rig.gap_while_moving(&rig.tracking, Duration::from_secs(8))
+    );
+    let err = assert_code(result, ErrorCode::Unavailable, "held past the limit");
+    assert!(
+        err.message.contains("held still") && err.message.contains("tracking lost"),
+        "{err}"
+    );
+    assert_eq!(rig.robot.last(), Velocity::ZERO);
     rig.finish().await;
 }

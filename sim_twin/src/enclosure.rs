@@ -16,11 +16,17 @@
 //!   `overhead/<camera>` key (a camera streamer at the site would).
 //!
 //! It declares nothing under `offworld/…`: only the agents speak there.
+//!
+//! Like separate device drivers, the emulation loop never waits on Zenoh:
+//! it hands encoded messages to an output thread through a short queue and
+//! drops a frame when that queue is full (a camera driver whose consumer
+//! lags does the same), so a congested link to the robot agent cannot
+//! stall physics or the tracker stream.
 
 use std::io::Write;
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -32,6 +38,7 @@ use offworld_runtime::ros2::{RmwPublisherId, RobotTopics, RosGraph, RosType};
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::session::SessionPutBuilder;
 use offworld_runtime::zenoh::{Session, Wait};
 
 use crate::error::SimError;
@@ -105,6 +112,7 @@ enum Event {
 pub struct EmulatedEnclosure {
     events: SyncSender<Event>,
     thread: Option<JoinHandle<()>>,
+    output: Option<JoinHandle<()>>,
     tracker_addr: SocketAddr,
     stop_accepting: Arc<AtomicBool>,
     acceptor: Option<JoinHandle<()>>,
@@ -170,20 +178,27 @@ impl EmulatedEnclosure {
             .overhead_key
             .clone()
             .map(|key| OverheadStream::new(twin.scene(), key, OverheadStream::DEFAULT_HZ));
+        let (out_tx, out_rx) = sync_channel::<Outgoing>(OUTPUT_QUEUE);
+        let out = RosOut {
+            session: session.clone(),
+            overhead_key: config.overhead_key.clone(),
+            keys,
+            color_id: RmwPublisherId::random(),
+            depth_id: RmwPublisherId::random(),
+            odom_id: RmwPublisherId::random(),
+        };
+        let output = std::thread::Builder::new()
+            .name("enclosure/output".into())
+            .spawn(move || out.run(out_rx))
+            .map_err(|e| SimError::Io(e.to_string()))?;
         let hardware = Hardware {
             overhead,
             twin,
-            keys,
             config,
             clients,
             depth_scratch: Vec::new(),
-            out: RosOut {
-                session: session.clone(),
-                color_id: RmwPublisherId::random(),
-                depth_id: RmwPublisherId::random(),
-                odom_id: RmwPublisherId::random(),
-                buffer: Vec::new(),
-            },
+            out: out_tx,
+            dropped: 0,
         };
         let thread = std::thread::Builder::new()
             .name("enclosure/hardware".into())
@@ -193,6 +208,7 @@ impl EmulatedEnclosure {
         Ok(Self {
             events: tx,
             thread: Some(thread),
+            output: Some(output),
             tracker_addr,
             stop_accepting,
             acceptor: Some(acceptor),
@@ -210,7 +226,8 @@ impl Drop for EmulatedEnclosure {
     fn drop(&mut self) {
         let _ = self.events.send(Event::Shutdown);
         self.stop_accepting.store(true, Ordering::SeqCst);
-        for handle in [self.thread.take(), self.acceptor.take()]
+        // The hardware thread first: its end closes the output queue.
+        for handle in [self.thread.take(), self.output.take(), self.acceptor.take()]
             .into_iter()
             .flatten()
         {
@@ -248,26 +265,43 @@ struct RosKeys {
     odom: String,
 }
 
+/// Encoded messages waiting for the output thread: a camera frame pair
+/// and a few odometry messages; more means the link lags and we drop.
+const OUTPUT_QUEUE: usize = 8;
+
 /// The emulation thread's state.
 struct Hardware {
     twin: SimTwin,
-    keys: RosKeys,
     config: EnclosureConfig,
     clients: Arc<Mutex<Vec<TcpStream>>>,
     /// Depth bytes converted from the render's metres (reused).
     depth_scratch: Vec<u8>,
-    out: RosOut,
+    out: SyncSender<Outgoing>,
+    /// Messages dropped because the output queue was full.
+    dropped: u64,
     overhead: Option<OverheadStream>,
 }
 
-/// The emulated drivers' ROS publishers.
+/// Encoded messages for the output thread.
+enum Outgoing {
+    /// A colour and depth image of one exposure: both or neither (the
+    /// robot agent pairs them by stamp).
+    Camera {
+        color: Vec<u8>,
+        depth: Vec<u8>,
+    },
+    Odom(Vec<u8>),
+    Overhead(Vec<u8>),
+}
+
+/// The emulated drivers' publishers, on the output thread.
 struct RosOut {
     session: Session,
+    keys: RosKeys,
+    overhead_key: Option<String>,
     color_id: RmwPublisherId,
     depth_id: RmwPublisherId,
     odom_id: RmwPublisherId,
-    /// Encoded message (reused).
-    buffer: Vec<u8>,
 }
 
 /// A periodic deadline that never bursts to catch up.
@@ -321,14 +355,18 @@ impl Hardware {
             }
             if odom.due(now) {
                 let msg = ros_out::odometry(&self.twin, Time::now());
-                self.out.publish(&self.keys.odom, &msg, Publisher::Odom);
+                if let Some(bytes) = encode(&msg) {
+                    self.enqueue(Outgoing::Odom(bytes));
+                }
             }
             if tracker.due(now) {
                 self.stream_tracker(now);
             }
             if let Some(stream) = &mut self.overhead {
                 let pose = self.twin.ground_truth();
-                stream.maybe_publish(&self.out.session, self.twin.scene(), &pose);
+                if let Some(bytes) = stream.maybe_encode(self.twin.scene(), &pose) {
+                    self.enqueue(Outgoing::Overhead(bytes));
+                }
             }
         }
     }
@@ -342,8 +380,27 @@ impl Hardware {
             self.config.depth_encoding,
             &mut self.depth_scratch,
         );
-        self.out.publish(&self.keys.color, &color, Publisher::Color);
-        self.out.publish(&self.keys.depth, &depth, Publisher::Depth);
+        if let (Some(color), Some(depth)) = (encode(&color), encode(&depth)) {
+            self.enqueue(Outgoing::Camera { color, depth });
+        }
+    }
+
+    fn enqueue(&mut self, outgoing: Outgoing) {
+        match self.out.try_send(outgoing) {
+            Ok(()) | Err(TrySendError::Disconnected(_)) => {}
+            Err(TrySendError::Full(_)) => self.count_dropped(),
+        }
+    }
+
+    fn count_dropped(&mut self) {
+        self.dropped += 1;
+        // Log at 1, 2, 4, 8, … drops: visible without flooding.
+        if self.dropped.is_power_of_two() {
+            tracing::warn!(
+                dropped = self.dropped,
+                "emulated drivers dropped messages: the link to the robot agent lags"
+            );
+        }
     }
 
     /// One raw tracker line: the device's pose in the tracking frame.
@@ -372,31 +429,43 @@ impl Hardware {
 }
 
 impl RosOut {
-    fn publish<T: serde::Serialize>(&mut self, key: &str, msg: &T, publisher: Publisher) {
-        if let Err(e) = codec::encode_into(msg, &mut self.buffer) {
-            tracing::error!("cannot encode for {key}: {e}");
-            return;
+    /// Publishes what the emulation queues until it stops.
+    fn run(self, queue: Receiver<Outgoing>) {
+        for outgoing in queue {
+            match outgoing {
+                Outgoing::Camera { color, depth } => {
+                    self.put_ros(&self.keys.color, color, &self.color_id);
+                    self.put_ros(&self.keys.depth, depth, &self.depth_id);
+                }
+                Outgoing::Odom(bytes) => self.put_ros(&self.keys.odom, bytes, &self.odom_id),
+                Outgoing::Overhead(bytes) => {
+                    if let Some(key) = &self.overhead_key {
+                        self.put(self.session.put(key, bytes), key);
+                    }
+                }
+            }
         }
-        let id = match publisher {
-            Publisher::Color => &self.color_id,
-            Publisher::Depth => &self.depth_id,
-            Publisher::Odom => &self.odom_id,
-        };
+    }
+
+    /// A put the way an rmw_zenoh publisher makes it (with its attachment).
+    fn put_ros(&self, key: &str, bytes: Vec<u8>, id: &RmwPublisherId) {
         let put = self
             .session
-            .put(key, self.buffer.clone())
-            .encoding(Encoding::APPLICATION_CDR)
-            .attachment(id.next_attachment().to_bytes().to_vec())
-            .wait();
-        if let Err(e) = put {
+            .put(key, bytes)
+            .attachment(id.next_attachment().to_bytes().to_vec());
+        self.put(put, key);
+    }
+
+    fn put(&self, put: SessionPutBuilder<'_, '_>, key: &str) {
+        if let Err(e) = put.encoding(Encoding::APPLICATION_CDR).wait() {
             tracing::warn!("put on {key} failed: {e}");
         }
     }
 }
 
-#[derive(Clone, Copy)]
-enum Publisher {
-    Color,
-    Depth,
-    Odom,
+/// `msg` in CDR, or logged.
+fn encode<T: serde::Serialize>(msg: &T) -> Option<Vec<u8>> {
+    codec::encode(msg)
+        .map_err(|e| tracing::error!("emulated driver cannot encode: {e}"))
+        .ok()
 }

@@ -131,7 +131,6 @@ pub struct OverheadStream {
     period: std::time::Duration,
     last: Option<std::time::Instant>,
     image: offworld_runtime::msg::Image,
-    buffer: Vec<u8>,
 }
 
 impl OverheadStream {
@@ -157,11 +156,29 @@ impl OverheadStream {
             period: std::time::Duration::from_secs_f64(1.0 / hz.clamp(0.01, 60.0)),
             last: None,
             image,
-            buffer: Vec::new(),
         }
     }
 
-    /// Publishes a frame if the last one is older than the period.
+    /// A frame (CDR `sensor_msgs/Image`) if the last one is older than
+    /// the period.
+    pub fn maybe_encode(&mut self, scene: &Scene, robot: &BodyPose) -> Option<Vec<u8>> {
+        let now = std::time::Instant::now();
+        if self
+            .last
+            .is_some_and(|t| now.duration_since(t) < self.period)
+        {
+            return None;
+        }
+        self.last = Some(now);
+        self.image.header.stamp = offworld_runtime::msg::Time::now();
+        self.camera.render(scene, robot, &mut self.image.data);
+        offworld_runtime::codec::encode(&self.image)
+            .map_err(|e| tracing::error!("cannot encode the overhead view: {e}"))
+            .ok()
+    }
+
+    /// Publishes a frame on `session` if the last one is older than the
+    /// period.
     pub fn maybe_publish(
         &mut self,
         session: &offworld_runtime::zenoh::Session,
@@ -169,22 +186,11 @@ impl OverheadStream {
         robot: &BodyPose,
     ) {
         use offworld_runtime::zenoh::Wait;
-        let now = std::time::Instant::now();
-        if self
-            .last
-            .is_some_and(|t| now.duration_since(t) < self.period)
-        {
+        let Some(bytes) = self.maybe_encode(scene, robot) else {
             return;
-        }
-        self.last = Some(now);
-        self.image.header.stamp = offworld_runtime::msg::Time::now();
-        self.camera.render(scene, robot, &mut self.image.data);
-        if let Err(e) = offworld_runtime::codec::encode_into(&self.image, &mut self.buffer) {
-            tracing::error!("cannot encode the overhead view: {e}");
-            return;
-        }
+        };
         let put = session
-            .put(&self.key, self.buffer.clone())
+            .put(&self.key, bytes)
             .encoding(offworld_runtime::zenoh::bytes::Encoding::APPLICATION_CDR)
             .wait();
         if let Err(e) = put {
