@@ -28,6 +28,7 @@ use tokio::task::JoinHandle;
 use crate::config::AgentConfig;
 use crate::error::AgentError;
 use crate::hardware::{RobotHardware, Sensors};
+use crate::latch::EStopLatch;
 use crate::limiter::{Velocity, VelocityLimiter};
 use crate::nav::{NavCommand, Navigator, OccupancyGrid};
 use crate::watchdog::{Transition, Watchdog};
@@ -101,6 +102,7 @@ pub async fn spawn<H: RobotHardware>(
         robot,
         grid,
         poses,
+        latch: config.estop_latch.clone().map(EStopLatch::new),
         config,
         estop: None,
         tracking: true,
@@ -322,6 +324,8 @@ struct Agent<H: RobotHardware> {
     watchdog: Watchdog,
     limiter: VelocityLimiter,
     estop: Option<String>,
+    /// Where an engaged e-stop is remembered across restarts.
+    latch: Option<EStopLatch>,
     tracking: bool,
     activity: Activity,
     /// When a non-zero velocity was last sent.
@@ -332,6 +336,10 @@ struct Agent<H: RobotHardware> {
 impl<H: RobotHardware> Agent<H> {
     async fn run(mut self, mut events: mpsc::Receiver<Event>, mut stop: oneshot::Receiver<()>) {
         tracing::info!(env = %self.env, graph = %self.config.graph().map(|g| g.to_string()).unwrap_or_default(), "robot agent serving");
+        if let Some(reason) = self.latch.as_ref().and_then(EStopLatch::engaged) {
+            tracing::warn!(env = %self.env, %reason, "E-STOP engaged before this start: motion refused until an operator releases it");
+            self.estop = Some(reason);
+        }
         let period = Duration::from_secs_f64(1.0 / self.config.control_hz);
         let mut tick = tokio::time::interval(period);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
@@ -368,9 +376,19 @@ impl<H: RobotHardware> Agent<H> {
                     self.estop = Some(stop.reason.clone());
                     self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
                         .await;
+                    if let Some(latch) = &self.latch {
+                        if let Err(e) = latch.engage(&stop.reason) {
+                            tracing::error!(path = %latch.path().display(), "cannot latch the e-stop: {e}");
+                        }
+                    }
                 } else {
                     tracing::warn!(env = %self.env, reason = %stop.reason, "e-stop released");
                     self.estop = None;
+                    if let Some(latch) = &self.latch {
+                        if let Err(e) = latch.release() {
+                            tracing::error!(path = %latch.path().display(), "cannot clear the e-stop latch (it engages again at the next start): {e}");
+                        }
+                    }
                 }
             }
             Event::Command(cmd) => {

@@ -2,7 +2,7 @@
 //! the safety timings. Loaded from TOML; every field has a default that
 //! fits a ROSbot 2 on rmw_zenoh.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use offworld_runtime::ros2::{KeyStyle, RobotTopics, RosGraph};
@@ -71,6 +71,9 @@ pub struct AgentConfig {
     pub world: String,
     /// Reset navigation tuning.
     pub nav: NavConfig,
+    /// File that remembers an engaged e-stop across agent restarts (see
+    /// [`crate::latch`]); `None`: an e-stop lasts as long as the process.
+    pub estop_latch: Option<PathBuf>,
 }
 
 impl Default for AgentConfig {
@@ -88,6 +91,7 @@ impl Default for AgentConfig {
             nav_hold_ms: 3000,
             world: "monolith".into(),
             nav: NavConfig::default(),
+            estop_latch: None,
         }
     }
 }

@@ -11,7 +11,8 @@
 //!   while no command or controller heartbeat arrived within the window
 //!   (default 200 ms) or the controller's liveliness token is gone; `estop`
 //!   (per env and site-wide) acts immediately; speeds and accelerations are
-//!   clamped with a warning.
+//!   clamped with a warning. An engaged e-stop survives an agent restart
+//!   when [`latch`] keeps it on disk.
 //! - Reset navigation ([`nav`]): `goto` drives to a pose on the tracker's
 //!   localization with an A* plan over the known map and a path follower,
 //!   with a timeout and typed failures.
@@ -23,6 +24,7 @@ pub mod agent;
 pub mod config;
 mod error;
 pub mod hardware;
+pub mod latch;
 pub mod limiter;
 pub mod nav;
 pub mod ros2;

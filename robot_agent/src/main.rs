@@ -25,6 +25,11 @@ struct Args {
     /// Watchdog window, ms (overrides the config).
     #[arg(long)]
     watchdog_ms: Option<u64>,
+    /// File that remembers an engaged e-stop across restarts (overrides
+    /// the config; default `$XDG_STATE_HOME` or `~/.local/state`, then
+    /// `offworld/robot_agent/<env>.estop`).
+    #[arg(long)]
+    estop_latch: Option<PathBuf>,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -48,6 +53,16 @@ async fn main() -> anyhow::Result<()> {
     if let Some(ms) = args.watchdog_ms {
         config.watchdog_ms = ms;
     }
+    if args.estop_latch.is_some() {
+        config.estop_latch = args.estop_latch;
+    }
+    if config.estop_latch.is_none() {
+        config.estop_latch = default_latch(&args.env);
+    }
+    match &config.estop_latch {
+        Some(path) => tracing::info!(path = %path.display(), "e-stop latch"),
+        None => tracing::warn!("no state directory: an e-stop will not survive a restart"),
+    }
     config.validate()?;
     let session = args.common.client_config().open().await?;
     let robot = Ros2Robot::connect(&session, &config.graph()?, &config.topics).await?;
@@ -56,4 +71,15 @@ async fn main() -> anyhow::Result<()> {
     tokio::signal::ctrl_c().await?;
     agent.shutdown().await;
     Ok(())
+}
+
+/// `<state dir>/offworld/robot_agent/<env>.estop`, the env's `/` as `+`.
+fn default_latch(env: &EnvId) -> Option<PathBuf> {
+    let state = std::env::var_os("XDG_STATE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| {
+            std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".local/state"))
+        })?;
+    let file = format!("{}.estop", env.to_string().replace('/', "+"));
+    Some(state.join("offworld/robot_agent").join(file))
 }

@@ -201,6 +201,14 @@ impl Rig {
     /// command makes the robot move (subscriptions propagated both ways,
     /// watchdog armed); the velocity log is then cleared.
     async fn start(name: &str, config: AgentConfig) -> Rig {
+        let mut rig = Rig::launch(name, config).await;
+        rig.until_motion_allowed().await;
+        rig
+    }
+
+    /// Starts the agent and plays the controller, without waiting for
+    /// motion to be allowed.
+    async fn launch(name: &str, config: AgentConfig) -> Rig {
         let (agent_session, ctl) = loopback_pair().await.expect("loopback sessions");
         let env = EnvId::real(name).expect("env id");
         let robot = RecordingRobot::new();
@@ -237,7 +245,7 @@ impl Rig {
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
         }));
-        let mut rig = Rig {
+        Rig {
             env,
             ctl,
             _agent_session: agent_session,
@@ -250,9 +258,7 @@ impl Rig {
             seen: Vec::new(),
             tasks,
             _obs: obs,
-        };
-        rig.until_motion_allowed().await;
-        rig
+        }
     }
 
     /// Probes with short commands until one moves the robot (bounded), then
@@ -1067,4 +1073,61 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
     );
     assert_eq!(rig.robot.last(), Velocity::ZERO);
     rig.finish().await;
+}
+
+/// An e-stop engaged before the agent restarts (crash, reboot, update) is
+/// still engaged after it: commands are answered without motion and
+/// `goto` is refused, naming the reason, until an operator releases it;
+/// the release clears the latch file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_estop_survives_an_agent_restart() {
+    let dir = std::env::temp_dir().join(format!(
+        "offworld-agent-latch-{}",
+        offworld_runtime::client::random_id()
+    ));
+    let config = AgentConfig {
+        estop_latch: Some(dir.join("estop")),
+        ..config()
+    };
+    let rig = Rig::start("estop-latch", config.clone()).await;
+    let estop_key = rig.env.key(Topic::EStop);
+    rig.estop(&estop_key, true).await;
+    let latched = wait_until(PROMPTLY * 5, || dir.join("estop").exists()).await;
+    assert!(latched, "the engaged e-stop is on disk");
+    rig.finish().await;
+
+    // A new agent on the same latch: engaged from its first moment.
+    let mut rig = Rig::launch("estop-latch", config).await;
+    let deadline = Instant::now() + Duration::from_secs(15);
+    for probe in 2_000_000u64.. {
+        assert!(Instant::now() < deadline, "no probe was answered");
+        rig.cmd(probe, CRUISE, 0.0, 0.3).await;
+        if rig
+            .try_answer(probe, Duration::from_millis(1500))
+            .await
+            .is_some()
+        {
+            break;
+        }
+    }
+    assert!(!moved(&rig.robot.sent()), "no motion after the restart");
+    let request = GotoRequest {
+        seq: 9,
+        target: pose(0.5, 0.5, 0.0),
+        timeout_s: 10.0,
+    };
+    let refused = rig.goto(&request, Duration::from_secs(5)).await;
+    let err = assert_code(
+        refused,
+        ErrorCode::InvalidState,
+        "goto under a latched e-stop",
+    );
+    assert!(err.message.contains("test (engage)"), "{err}");
+
+    // The operator's release restores motion and clears the latch.
+    rig.estop(&estop_key, false).await;
+    rig.until_motion_allowed().await;
+    assert!(!dir.join("estop").exists(), "the latch is cleared");
+    rig.finish().await;
+    std::fs::remove_dir_all(dir).expect("scratch");
 }

@@ -180,6 +180,8 @@ impl EmulatedEnclosure {
                 options.world(),
                 "--watchdog-ms",
                 &options.watchdog_ms.to_string(),
+                "--estop-latch",
+                &dir.join("robot_agent.estop").to_string_lossy(),
                 // A Zenoh client of the robot's router.
                 "--mode",
                 "client",
