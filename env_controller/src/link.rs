@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrameView, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag,
-    TrackingStatus,
+    CameraFrameView, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, PoseStamped,
+    SeqTag, TrackingStatus,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::ZBytes;
@@ -113,6 +113,7 @@ pub struct RobotLink {
     env: EnvId,
     cmd: Publisher<'static>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
+    faults: watch::Receiver<Option<MotionFault>>,
     poses: watch::Receiver<Option<PoseSample>>,
     tracking_lost: Arc<AtomicBool>,
     embodiment_alive: watch::Receiver<bool>,
@@ -121,8 +122,8 @@ pub struct RobotLink {
 }
 
 impl RobotLink {
-    /// Subscribes to `obs`, `pose`, `tracking` and the embodiment's
-    /// liveliness tokens of `env`.
+    /// Subscribes to `obs`, `fault`, `pose`, `tracking` and the
+    /// embodiment's liveliness tokens of `env`.
     pub async fn connect(
         session: &Session,
         env: &EnvId,
@@ -140,6 +141,19 @@ impl RobotLink {
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
                 },
             )
+            .await
+            .map_err(zerr)?;
+        let (fault_tx, faults) = watch::channel(None);
+        let fault = session
+            .declare_subscriber(env.key(Topic::Fault))
+            .callback(move |sample: Sample| {
+                match codec::decode_payload::<MotionFault>(sample.payload()) {
+                    Ok(fault) => {
+                        fault_tx.send_replace(Some(fault));
+                    }
+                    Err(e) => tracing::warn!("rejected a malformed fault: {e}"),
+                }
+            })
             .await
             .map_err(zerr)?;
         let (pose_tx, poses) = watch::channel(None);
@@ -211,11 +225,12 @@ impl RobotLink {
             env: env.clone(),
             cmd,
             frames,
+            faults,
             poses,
             tracking_lost,
             embodiment_alive,
             timeouts,
-            _subscribers: vec![obs, pose, tracking, liveliness],
+            _subscribers: vec![obs, fault, pose, tracking, liveliness],
         })
     }
 
@@ -242,18 +257,30 @@ impl RobotLink {
         }
         let mut frames = self.frames.clone();
         frames.mark_unchanged();
+        let mut faults = self.faults.clone();
+        faults.mark_unchanged();
         wire::publish(&self.cmd, cmd)
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
         let seq = cmd.seq;
-        let frame = tokio::time::timeout(limit, async {
+        let answer = tokio::time::timeout(limit, async {
             loop {
-                if frames.changed().await.is_err() {
-                    return None;
-                }
-                let frame = frames.borrow_and_update().clone();
-                if let Some(frame) = frame.filter(|f| f.seq() == seq) {
-                    return Some(frame);
+                tokio::select! {
+                    changed = frames.changed() => {
+                        if changed.is_err() {
+                            return None;
+                        }
+                        let frame = frames.borrow_and_update().clone();
+                        if let Some(frame) = frame.filter(|f| f.seq() == seq) {
+                            return Some(Ok(frame));
+                        }
+                    }
+                    Ok(()) = faults.changed() => {
+                        let fault = faults.borrow_and_update().clone();
+                        if let Some(fault) = fault.filter(|f| f.seq == seq) {
+                            return Some(Err(fault));
+                        }
+                    }
                 }
             }
         })
@@ -264,6 +291,12 @@ impl RobotLink {
             WireError::timeout(format!(
                 "the robot did not answer command {seq} within {:.1} s",
                 limit.as_secs_f64()
+            ))
+        })?;
+        let frame = answer.map_err(|fault| {
+            WireError::unavailable(format!(
+                "the robot cannot answer command {seq}: {}",
+                fault.reason
             ))
         })?;
         let arrived = Instant::now();

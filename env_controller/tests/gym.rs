@@ -224,6 +224,18 @@ async fn full_episode_and_seeded_determinism() {
     assert_eq!(after.code, ErrorCode::InvalidState);
     let closed = env.close().await.expect("close");
     assert!(closed.experiment.episodes >= 4, "{:?}", closed.experiment);
+    // A sim episode can outrun the 50 ms heartbeat: wait (bounded) for one.
+    for _ in 0..100 {
+        if seen
+            .lock()
+            .expect("lock")
+            .iter()
+            .any(|(t, _)| *t == Topic::Heartbeat)
+        {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
     let seen = seen.lock().expect("lock").clone();
     for topic in [Topic::Cmd, Topic::Heartbeat] {
         let priorities: Vec<Priority> = seen

@@ -12,8 +12,8 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, Pose2D, PoseStamped, SeqTag, Time,
-    TrackingStatus,
+    CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, PoseStamped,
+    SeqTag, Time, TrackingStatus,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
@@ -257,6 +257,7 @@ impl Declarations {
 struct Answers {
     obs: Publisher<'static>,
     odom: Publisher<'static>,
+    fault: Publisher<'static>,
 }
 
 impl Answers {
@@ -264,6 +265,7 @@ impl Answers {
         Ok(Self {
             obs: wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?,
             odom: wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?,
+            fault: wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?,
         })
     }
 }
@@ -638,11 +640,17 @@ impl<H: RobotHardware> Agent<H> {
                 if self.answer(seq, after).await {
                     Activity::Idle
                 } else if now >= deadline {
-                    tracing::error!(
+                    let fault = MotionFault {
                         seq,
-                        "no camera frames within {} ms after the motion: not answered",
-                        self.config.frame_timeout_ms
-                    );
+                        reason: format!(
+                            "no camera frames within {} ms after the motion",
+                            self.config.frame_timeout_ms
+                        ),
+                    };
+                    tracing::error!(seq, "{}: not answered", fault.reason);
+                    if let Err(e) = wire::publish(&self.answers.fault, &fault) {
+                        tracing::warn!("cannot report the fault: {e}");
+                    }
                     Activity::Idle
                 } else {
                     Activity::Capturing {

@@ -18,7 +18,7 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, EStop, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
-    PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
+    MotionFault, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
 };
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
@@ -1130,4 +1130,49 @@ async fn an_estop_survives_an_agent_restart() {
     assert!(!dir.join("estop").exists(), "the latch is cleared");
     rig.finish().await;
     std::fs::remove_dir_all(dir).expect("scratch");
+}
+
+/// The camera goes silent: a command is driven but cannot be answered, so
+/// the agent says so on `fault` (seq and reason) once the frame timeout
+/// runs out, instead of leaving the controller to its answer timeout.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_camera_is_reported_as_a_fault_of_the_command() {
+    let config = AgentConfig {
+        frame_timeout_ms: 600,
+        ..config()
+    };
+    let mut rig = Rig::start("camera-silent", config).await;
+    let (tx, mut faults) = mpsc::unbounded_channel();
+    let _fault_sub = rig
+        .ctl
+        .declare_subscriber(rig.env.key(Topic::Fault))
+        .callback(move |s: Sample| {
+            let _ = tx.send(codec::decode_payload::<MotionFault>(s.payload()));
+        })
+        .await
+        .expect("fault subscriber");
+    let camera = rig.tasks.remove(0);
+    camera.abort();
+    let _ = camera.await;
+    // Frames already captured before the motion ends are too old to answer.
+    rig.cmd(70, CRUISE, 0.0, 0.3).await;
+    let fault = tokio::time::timeout(ANSWER, faults.recv())
+        .await
+        .expect("a fault within the answer bound")
+        .expect("fault channel")
+        .expect("a well-formed fault");
+    assert_eq!(
+        fault,
+        MotionFault {
+            seq: 70,
+            reason: "no camera frames within 600 ms after the motion".into(),
+        }
+    );
+    assert!(
+        rig.try_answer(70, Duration::from_millis(300))
+            .await
+            .is_none(),
+        "no frame answers it"
+    );
+    rig.finish().await;
 }

@@ -165,6 +165,10 @@ pub enum Topic {
     Obs,
     /// Twin/robot → all: `nav_msgs/Odometry` (pub/sub).
     Odom,
+    /// Robot → controller: [`crate::msg::MotionFault`], a command that
+    /// will not be answered and why (pub/sub), so the step fails at once
+    /// instead of after its answer timeout.
+    Fault,
     /// Twin/tracker → all: `geometry_msgs/PoseStamped` of base_link in the world frame.
     Pose,
     /// Tracker → all: [`crate::msg::TrackingStatus`] on change.
@@ -201,10 +205,11 @@ pub enum Topic {
 
 impl Topic {
     /// Every topic, in declaration order.
-    pub const ALL: [Topic; 18] = [
+    pub const ALL: [Topic; 19] = [
         Topic::Cmd,
         Topic::Obs,
         Topic::Odom,
+        Topic::Fault,
         Topic::Pose,
         Topic::Tracking,
         Topic::Reward,
@@ -228,6 +233,7 @@ impl Topic {
             Topic::Cmd => "cmd",
             Topic::Obs => "obs",
             Topic::Odom => "odom",
+            Topic::Fault => "fault",
             Topic::Pose => "pose",
             Topic::Tracking => "tracking",
             Topic::Reward => "reward",

@@ -38,6 +38,19 @@ fn known_sizes_match_the_ros_layouts() {
 }
 
 #[test]
+fn a_motion_fault_has_its_documented_bytes() {
+    let fault = MotionFault {
+        seq: 7,
+        reason: "no".into(),
+    };
+    // header, seq u64 LE, reason: u32 length with NUL, bytes, NUL.
+    let expected = [
+        0x00, 0x01, 0x00, 0x00, 7, 0, 0, 0, 0, 0, 0, 0, 3, 0, 0, 0, b'n', b'o', 0,
+    ];
+    assert_eq!(encode(&fault).expect("fault"), expected);
+}
+
+#[test]
 fn encode_into_reuses_the_buffer() {
     let frame = common::camera_frame();
     let mut buf = Vec::with_capacity(4096);

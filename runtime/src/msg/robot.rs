@@ -20,6 +20,16 @@ pub struct MotionCommand {
     pub duration_s: f64,
 }
 
+/// A motion command the robot cannot answer (no camera frames after it,
+/// say): the controller fails the step with `reason` at once.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MotionFault {
+    /// The command concerned.
+    pub seq: u64,
+    /// Why it will not be answered.
+    pub reason: String,
+}
+
 /// A planar pose in the world frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct Pose2D {

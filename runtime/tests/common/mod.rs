@@ -284,6 +284,13 @@ macro_rules! for_each_sample {
         $f("MotionCommand", motion());
         $f("CameraFrame", camera_frame());
         $f("SeqTag", SeqTag { seq: 5 });
+        $f(
+            "MotionFault",
+            MotionFault {
+                seq: 12,
+                reason: "no camera frames".into(),
+            },
+        );
         $f("GotoRequest", goto_request());
         $f("GotoReply", goto_reply());
         $f(
