@@ -59,12 +59,7 @@ impl RequestError {
 
 /// Puts one message on `key` (labelled as CDR) with [`Delivery::Latest`].
 pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<(), RequestError> {
-    let bytes = codec::encode(msg)?;
-    session
-        .put(key, bytes)
-        .encoding(Encoding::APPLICATION_CDR)
-        .await
-        .map_err(|e| RequestError::Zenoh(e.to_string()))
+    put_at(session, key, msg, Priority::Data).await
 }
 
 /// The Zenoh priority of what keeps a robot safe and moving: commands,
@@ -81,11 +76,20 @@ pub async fn put_control<T: Serialize>(
     key: &str,
     msg: &T,
 ) -> Result<(), RequestError> {
+    put_at(session, key, msg, CONTROL_PRIORITY).await
+}
+
+async fn put_at<T: Serialize>(
+    session: &Session,
+    key: &str,
+    msg: &T,
+    priority: Priority,
+) -> Result<(), RequestError> {
     let bytes = codec::encode(msg)?;
     session
         .put(key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
-        .priority(CONTROL_PRIORITY)
+        .priority(priority)
         .await
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
