@@ -95,19 +95,54 @@ pub fn assemble_into(
         depth_enc,
         depth_scale: 255.0 / depth_max_m.max(1e-6),
     };
-    // One monomorphised loop per layout: no per-pixel branching.
-    match (opts.channels, dtype) {
-        (Channels::DepthOnly, DType::U8) => layout.fill::<false, true, false>(data, sh, h),
-        (Channels::DepthOnly, DType::F32) => layout.fill::<false, true, true>(data, sh, h),
-        (Channels::RgbOnly, DType::U8) => layout.fill::<true, false, false>(data, sh, h),
-        (Channels::RgbOnly, DType::F32) => layout.fill::<true, false, true>(data, sh, h),
-        (Channels::Rgbd, DType::U8) => layout.fill::<true, true, false>(data, sh, h),
-        (Channels::Rgbd, DType::F32) => layout.fill::<true, true, true>(data, sh, h),
-    }
+    pulp::Arch::new().dispatch(Fill {
+        layout: &layout,
+        data,
+        channels: opts.channels,
+        dtype,
+        rows: (sh, h),
+    });
     if color_enc == PixelEncoding::Bgr8 && opts.channels != Channels::DepthOnly {
         swap_red_blue(data, channels, dtype.size());
     }
     Ok(())
+}
+
+/// One layout's fill, compiled once per instruction set (AVX-512, AVX2,
+/// baseline) and run in the one the CPU has: the row loops vectorise 2-4×
+/// wider than baseline x86-64 allows.
+struct Fill<'l, 'f, 'a, 'd> {
+    layout: &'l Layout<'f, 'a>,
+    data: &'d mut [u8],
+    channels: Channels,
+    dtype: DType,
+    /// Source and output rows.
+    rows: (usize, usize),
+}
+
+impl pulp::WithSimd for Fill<'_, '_, '_, '_> {
+    type Output = ();
+
+    // Inlined into each instruction set's entry point, so the loops below
+    // are compiled for it.
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let Self {
+            layout,
+            data,
+            rows: (sh, h),
+            ..
+        } = self;
+        // One monomorphised loop per layout: no per-pixel branching.
+        match (self.channels, self.dtype) {
+            (Channels::DepthOnly, DType::U8) => layout.fill::<false, true, false>(data, sh, h),
+            (Channels::DepthOnly, DType::F32) => layout.fill::<false, true, true>(data, sh, h),
+            (Channels::RgbOnly, DType::U8) => layout.fill::<true, false, false>(data, sh, h),
+            (Channels::RgbOnly, DType::F32) => layout.fill::<true, false, true>(data, sh, h),
+            (Channels::Rgbd, DType::U8) => layout.fill::<true, true, false>(data, sh, h),
+            (Channels::Rgbd, DType::F32) => layout.fill::<true, true, true>(data, sh, h),
+        }
+    }
 }
 
 /// Where each output pixel samples the source frame.
@@ -125,6 +160,7 @@ struct Layout<'f, 'a> {
 impl Layout<'_, '_> {
     /// Fills `data` a row at a time: depth is converted for the whole row
     /// first (a tight loop), then the row is interleaved.
+    #[inline(always)]
     fn fill<const RGB: bool, const DEPTH: bool, const F32: bool>(
         &self,
         data: &mut [u8],
@@ -166,6 +202,7 @@ impl Layout<'_, '_> {
 
     /// Converts source row `sy`'s depth at every output column into `out`;
     /// no return (NaN, ±inf, 0 mm) is 0 m.
+    #[inline(always)]
     fn depth_row<T>(&self, sy: usize, out: &mut [T], convert: impl Fn(f32) -> T) {
         let depth = &self.frame.depth;
         let row = &depth.data[sy * depth.step as usize..];
@@ -219,6 +256,7 @@ fn depth_level(m: f32, scale: f32) -> u8 {
 /// Native-resolution RGBD uint8: `rgb` (3 bytes a pixel) and `levels` (1)
 /// into `out` (4), eight pixels per step in 64-bit words (shifts and masks:
 /// baseline x86-64 has no byte shuffle).
+#[inline(always)]
 fn interleave_rgbd8(out: &mut [u8], rgb: &[u8], levels: &[u8]) {
     let word = |bytes: &[u8]| {
         let mut w = [0u8; 8];
@@ -260,6 +298,7 @@ fn interleave_rgbd8(out: &mut [u8], rgb: &[u8], levels: &[u8]) {
     }
 }
 
+#[inline(always)]
 fn store<T>(out: &mut [T], metres: impl Iterator<Item = f32>, convert: impl Fn(f32) -> T) {
     for (o, m) in out.iter_mut().zip(metres) {
         *o = convert(m);
@@ -267,6 +306,7 @@ fn store<T>(out: &mut [T], metres: impl Iterator<Item = f32>, convert: impl Fn(f
 }
 
 /// Interleaves one output row from its source colours and converted depth.
+#[inline(always)]
 fn write_row<'c, const RGB: bool, const DEPTH: bool, const F32: bool>(
     out: &mut [u8],
     colors: impl Iterator<Item = &'c [u8]>,
