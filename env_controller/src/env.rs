@@ -20,8 +20,8 @@ use rand::Rng;
 use tokio::sync::Mutex as AsyncMutex;
 
 use crate::episode::{judge, EndReason, SpawnSampler};
-use crate::link::{Answer, LinkTimeouts, RobotLink};
-use crate::observation::{assemble_into, shape, validate_options};
+use crate::link::{Answer, LinkTimeouts, ObservationRequest, RobotLink};
+use crate::observation::{shape, validate_options};
 use crate::store::{
     now_ms, BookingRules, EpisodeRecord, Experiment, SlotAt, Store, User, ANONYMOUS,
 };
@@ -430,9 +430,13 @@ impl EnvServer {
             angular_z: 0.0,
             duration_s: 0.0,
         };
-        let answer = self.link.execute(&observe).await?;
+        let obs = self.holder(&mut state, &req.session_id)?.obs;
+        let answer = self
+            .link
+            .execute(&observe, self.observation_request(obs))
+            .await?;
         let lease = self.holder(&mut state, &req.session_id)?;
-        let (index, obs) = (lease.experiment.episodes, lease.obs);
+        let index = lease.experiment.episodes;
         let experiment = lease.experiment.name.clone();
         let achieved = answer.pose.planar();
         tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, "reset");
@@ -453,27 +457,28 @@ impl EnvServer {
             },
             observation: shape(&obs),
         };
-        let reply = self.observe(&reply, &answer, &obs)?;
+        let reply = Self::observe(&reply, answer).await?;
         self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
             .await;
         Ok(reply)
     }
 
-    /// Encodes `reply`, assembling its observation (last, empty) from the
-    /// answer's frame straight into the payload.
-    fn observe<T: serde::Serialize>(
-        &self,
+    /// Encodes `reply` with the observation built from the answer's frame
+    /// as its last field.
+    async fn observe<T: serde::Serialize>(
         reply: &T,
-        answer: &Answer,
-        obs: &ObsOptions,
+        answer: Answer,
     ) -> Result<Encoded<T>, WireError> {
-        let len = shape(obs).shape_len() as usize;
-        let depth_max_m = self.task.episode.depth_max_m;
-        codec::encode_with_tail(reply, len, |data| {
-            answer
-                .frame
-                .with_view(|frame| assemble_into(frame, obs, depth_max_m, data))
-        })
+        let data = answer.observation().await?;
+        codec::encode_with_tail(reply, data).map_err(|e| WireError::internal(e.to_string()))
+    }
+
+    /// What to build from the frames answering the lease holder's commands.
+    fn observation_request(&self, options: ObsOptions) -> ObservationRequest {
+        ObservationRequest {
+            options,
+            depth_max_m: self.task.episode.depth_max_m,
+        }
     }
 
     /// `step`: act, observe, judge.
@@ -496,7 +501,8 @@ impl EnvServer {
         }
         let motion = self.task.motion(&req.action, state.seq + 1)?;
         state.seq += 1;
-        let answer = match self.link.execute(&motion).await {
+        let request = self.observation_request(obs);
+        let answer = match self.link.execute(&motion, request).await {
             Ok(a) => a,
             Err(e) => {
                 // The robot is stopped by the link; the episode cannot be scored.
@@ -524,7 +530,7 @@ impl EnvServer {
             },
             observation: shape(&obs),
         };
-        let reply = self.observe(&reply, &answer, &obs)?;
+        let reply = Self::observe(&reply, answer).await?;
         self.publish_event(
             &experiment,
             index,

@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrameView, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, PoseStamped,
-    SeqTag, TrackingStatus,
+    CameraFrameView, GotoReply, GotoRequest, MotionCommand, MotionFault, ObsOptions, Pose2D,
+    PoseStamped, SeqTag, TrackingStatus,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::ZBytes;
@@ -19,9 +19,10 @@ use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
-use tokio::sync::watch;
+use tokio::sync::{oneshot, watch};
 
 use crate::error::ControllerError;
+use crate::observation::{assemble_into, shape};
 
 /// A pose as received.
 #[derive(Debug, Clone)]
@@ -76,7 +77,35 @@ impl Frame {
             .map_err(|e| WireError::internal(format!("robot sent a bad frame: {e}")))?;
         read(&view)
     }
+
+    /// The observation `request` asks for, built from this frame.
+    fn build(&self, request: &ObservationRequest) -> Result<Vec<u8>, WireError> {
+        let mut data = vec![0; shape(&request.options).shape_len() as usize];
+        self.with_view(|frame| {
+            assemble_into(frame, &request.options, request.depth_max_m, &mut data)
+        })?;
+        Ok(data)
+    }
 }
+
+/// The observation to build from the frames that answer a command.
+#[derive(Debug, Clone, Copy)]
+pub struct ObservationRequest {
+    /// Channels, size and depth format.
+    pub options: ObsOptions,
+    /// Depth mapped to uint8 255.
+    pub depth_max_m: f32,
+}
+
+/// A command's observation, built where its frame is received.
+struct PendingObservation {
+    seq: u64,
+    request: ObservationRequest,
+    built: oneshot::Sender<Result<Vec<u8>, WireError>>,
+}
+
+/// The command waiting for its observation, if any.
+type Pending = Arc<std::sync::Mutex<Option<PendingObservation>>>;
 
 /// What answered a command.
 pub struct Answer {
@@ -84,6 +113,20 @@ pub struct Answer {
     pub frame: Arc<Frame>,
     /// The robot's pose after the motion.
     pub pose: PoseSample,
+    request: ObservationRequest,
+    observation: oneshot::Receiver<Result<Vec<u8>, WireError>>,
+}
+
+impl Answer {
+    /// The observation data built from the frame (see [`RobotLink::execute`]).
+    pub async fn observation(self) -> Result<Vec<u8>, WireError> {
+        match self.observation.await {
+            Ok(built) => built,
+            // Never built where received (cannot happen while one command
+            // is in flight): build it here.
+            Err(_) => self.frame.build(&self.request),
+        }
+    }
 }
 
 /// Timeouts of the link.
@@ -113,6 +156,7 @@ pub struct RobotLink {
     env: EnvId,
     cmd: Publisher<'static>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
+    pending: Pending,
     faults: watch::Receiver<Option<MotionFault>>,
     poses: watch::Receiver<Option<PoseSample>>,
     tracking_lost: Arc<AtomicBool>,
@@ -131,12 +175,27 @@ impl RobotLink {
     ) -> Result<Self, ControllerError> {
         let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
         let (frame_tx, frames) = watch::channel(None);
+        let pending = Pending::default();
+        let building = pending.clone();
         let obs = session
             .declare_subscriber(env.key(Topic::Obs))
             .callback(
                 move |sample: Sample| match Frame::accept(sample.payload()) {
                     Ok(frame) => {
-                        frame_tx.send_replace(Some(Arc::new(frame)));
+                        let frame = Arc::new(frame);
+                        // The step wakes first and reads the pose while this
+                        // thread builds the observation from the frame it has
+                        // just received (still in its cache; for a local twin,
+                        // the very thread that rendered it).
+                        frame_tx.send_replace(Some(frame.clone()));
+                        let waiting = building
+                            .lock()
+                            .ok()
+                            .and_then(|mut p| p.take_if(|p| p.seq == frame.seq()));
+                        if let Some(p) = waiting {
+                            // The step may have given up: nobody to tell.
+                            let _ = p.built.send(frame.build(&p.request));
+                        }
                     }
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
                 },
@@ -225,6 +284,7 @@ impl RobotLink {
             env: env.clone(),
             cmd,
             frames,
+            pending,
             faults,
             poses,
             tracking_lost,
@@ -247,14 +307,50 @@ impl RobotLink {
             .is_ok_and(|r| r.is_ok())
     }
 
-    /// Sends `cmd` and waits for the frame and pose answering it.
-    pub async fn execute(&self, cmd: &MotionCommand) -> Result<Answer, WireError> {
+    /// Sends `cmd` and waits for the frame and pose answering it; the
+    /// observation `request` asks for is built from that frame as it is
+    /// received, while the caller goes on ([`Answer::observation`]).
+    pub async fn execute(
+        &self,
+        cmd: &MotionCommand,
+        request: ObservationRequest,
+    ) -> Result<Answer, WireError> {
         if self.tracking_lost.load(Ordering::SeqCst) {
             self.stop().await;
             return Err(WireError::unavailable(
                 "tracking lost: the robot's pose is unknown",
             ));
         }
+        let (built, observation) = oneshot::channel();
+        self.expect(Some(PendingObservation {
+            seq: cmd.seq,
+            request,
+            built,
+        }));
+        let answer = self.await_answer(cmd).await;
+        if answer.is_err() {
+            self.expect(None);
+        }
+        let (frame, pose) = answer?;
+        Ok(Answer {
+            frame,
+            pose,
+            request,
+            observation,
+        })
+    }
+
+    /// Sets the observation to build from the next matching frame.
+    fn expect(&self, pending: Option<PendingObservation>) {
+        if let Ok(mut slot) = self.pending.lock() {
+            *slot = pending;
+        }
+    }
+
+    async fn await_answer(
+        &self,
+        cmd: &MotionCommand,
+    ) -> Result<(Arc<Frame>, PoseSample), WireError> {
         let mut frames = self.frames.clone();
         frames.mark_unchanged();
         let mut faults = self.faults.clone();
@@ -323,7 +419,7 @@ impl RobotLink {
             self.stop().await;
             return Err(WireError::unavailable("tracking lost during the step"));
         }
-        Ok(Answer { frame, pose })
+        Ok((frame, pose))
     }
 
     /// Moves the robot to a spawn pose (sim: teleport; real: drive there).

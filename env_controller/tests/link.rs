@@ -1,14 +1,19 @@
 //! The controller's link to the robot over real Zenoh, with the test
 //! playing the robot: a command the robot reports it cannot answer fails
 //! with the robot's reason (Unavailable), not with the answer timeout;
-//! faults of other commands and malformed faults are ignored.
+//! faults of other commands and malformed faults are ignored; the
+//! observation is built from the command's own frame, never a stale one.
 
 use std::time::Duration;
 
-use offworld_env_controller::link::{LinkTimeouts, RobotLink};
+use offworld_env_controller::link::{LinkTimeouts, ObservationRequest, RobotLink};
 use offworld_runtime::keys::{EnvId, Topic};
-use offworld_runtime::msg::{MotionCommand, MotionFault};
+use offworld_runtime::msg::{
+    CameraFrame, Channels, DepthFormat, Header, Image, MotionCommand, MotionFault, ObsOptions,
+    PixelEncoding, PoseStamped, SeqTag,
+};
 use offworld_runtime::session::loopback_pair;
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Wait;
 use offworld_runtime::{codec, ErrorCode};
@@ -62,7 +67,7 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
     let mut answered = None;
     for seq in 1..=5u64 {
         let cmd = command(seq);
-        let attempt = link.execute(&cmd);
+        let attempt = link.execute(&cmd, rgbd(2, 2));
         if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
             answered = Some((seq, result));
             break;
@@ -79,7 +84,7 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
     );
 
     // The link keeps serving: the next command fails with its own fault.
-    let Err(err) = link.execute(&command(50)).await else {
+    let Err(err) = link.execute(&command(50), rgbd(2, 2)).await else {
         panic!("command 50 was answered")
     };
     assert_eq!(err.code, ErrorCode::Unavailable);
@@ -87,4 +92,110 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
         err.message,
         "the robot cannot answer command 50: fault of 50"
     );
+}
+
+/// A 2×2 frame answering `seq`: every colour byte is `seq`, depth 1 m
+/// except one pixel with no return (NaN).
+fn frame(seq: u64) -> CameraFrame {
+    let depth = [1.0f32, 1.0, f32::NAN, 1.0]
+        .iter()
+        .flat_map(|d| d.to_le_bytes())
+        .collect();
+    CameraFrame {
+        seq,
+        color: Image::packed(
+            Header::default(),
+            2,
+            2,
+            PixelEncoding::Rgb8,
+            vec![seq as u8; 12],
+        ),
+        depth: Image::packed(Header::default(), 2, 2, PixelEncoding::Depth32FC1, depth),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_observation_is_built_from_the_commands_own_frame() {
+    let (controller, robot) = loopback_pair().await.expect("loopback sessions");
+    let env = EnvId::real("obs-link").expect("env id");
+    let timeouts = LinkTimeouts {
+        answer_margin: Duration::from_secs(60),
+        ..LinkTimeouts::default()
+    };
+    let link = RobotLink::connect(&controller, &env, timeouts)
+        .await
+        .expect("link");
+
+    // The robot: every command gets a malformed frame, a stale frame (of
+    // the command before), then its pose and its own frame.
+    let obs = wire::publisher(&robot, env.key(Topic::Obs), Delivery::Every)
+        .await
+        .expect("obs publisher");
+    let pose = wire::publisher(&robot, env.key(Topic::Pose), Delivery::Every)
+        .await
+        .expect("pose publisher");
+    let _robot_cmd = robot
+        .declare_subscriber(env.key(Topic::Cmd))
+        .callback(move |sample: Sample| {
+            let Ok(cmd) = codec::decode_payload::<MotionCommand>(sample.payload()) else {
+                return;
+            };
+            let _ = obs.put(vec![0xde, 0xad]).wait();
+            let _ = wire::publish(&obs, &frame(cmd.seq - 1));
+            let tag = SeqTag { seq: cmd.seq };
+            let _ = wire::publish_tagged(&pose, &PoseStamped::default(), tag);
+            let _ = wire::publish(&obs, &frame(cmd.seq));
+        })
+        .await
+        .expect("robot's cmd subscriber");
+
+    let command = |seq| MotionCommand {
+        seq,
+        linear_x: 0.0,
+        angular_z: 0.0,
+        duration_s: 0.0,
+    };
+    // Bounded attempts while the subscriptions propagate.
+    let mut answer = None;
+    for seq in 10..=15u64 {
+        let cmd = command(seq);
+        let attempt = link.execute(&cmd, rgbd(2, 2));
+        if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
+            answer = Some((seq, result.expect("answered")));
+            break;
+        }
+    }
+    let (seq, answer) = answer.expect("a command reached the robot");
+    assert_eq!(answer.frame.seq(), seq);
+    assert_eq!(answer.pose.seq, Some(seq));
+    let c = seq as u8;
+    // 1 m of 0–5 m is level 51; no return is 0.
+    assert_eq!(
+        answer.observation().await.expect("observation"),
+        [c, c, c, 51, c, c, c, 51, c, c, c, 0, c, c, c, 51]
+    );
+
+    // The next command, with other options, gets its own.
+    let mut depth_only = rgbd(1, 1);
+    depth_only.options.channels = Channels::DepthOnly;
+    let answer = link
+        .execute(&command(seq + 1), depth_only)
+        .await
+        .expect("answered");
+    assert_eq!(answer.frame.seq(), seq + 1);
+    // Sampled at the source pixel nearest the centre: (1, 1).
+    assert_eq!(answer.observation().await.expect("observation"), [51]);
+}
+
+/// RGBD uint8 observations of `width × height`, depth 0–5 m.
+fn rgbd(width: u32, height: u32) -> ObservationRequest {
+    ObservationRequest {
+        options: ObsOptions {
+            channels: Channels::Rgbd,
+            height,
+            width,
+            depth_format: DepthFormat::Uint8,
+        },
+        depth_max_m: 5.0,
+    }
 }

@@ -251,11 +251,11 @@ pub async fn reply<T: Serialize>(
     result: Result<&T, WireError>,
 ) -> Result<(), RequestError> {
     let encoded = match result.map(codec::encode) {
-        Ok(Ok(bytes)) => Ok(bytes),
+        Ok(Ok(bytes)) => Ok(bytes.into()),
         Ok(Err(e)) => Err(WireError::internal(e.to_string())),
         Err(err) => Err(err),
     };
-    reply_bytes(query, encoded).await
+    reply_payload(query, encoded).await
 }
 
 /// Like [`reply`] with a message already encoded (see
@@ -264,17 +264,17 @@ pub async fn reply_encoded<T>(
     query: &Query,
     result: Result<codec::Encoded<T>, WireError>,
 ) -> Result<(), RequestError> {
-    reply_bytes(query, result.map(codec::Encoded::into_bytes)).await
+    reply_payload(query, result.map(codec::Encoded::into_payload)).await
 }
 
-async fn reply_bytes(
+async fn reply_payload(
     query: &Query,
-    result: Result<Vec<u8>, WireError>,
+    result: Result<ZBytes, WireError>,
 ) -> Result<(), RequestError> {
     let outcome = match result {
-        Ok(bytes) => {
+        Ok(payload) => {
             query
-                .reply(query.key_expr().clone(), bytes)
+                .reply(query.key_expr().clone(), payload)
                 .encoding(Encoding::APPLICATION_CDR)
                 .await
         }

@@ -21,73 +21,78 @@ pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, EncodeError> {
 }
 
 /// A message already encoded, e.g. by [`encode_with_tail`]: replied as is.
+/// A big last byte sequence (an observation's pixels) is kept apart from the
+/// head and sent as a second slice, never copied into it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Encoded<T> {
-    bytes: Vec<u8>,
+    head: Vec<u8>,
+    tail: Vec<u8>,
     of: std::marker::PhantomData<fn() -> T>,
 }
 
 impl<T: Serialize> Encoded<T> {
     /// Encodes `msg`.
     pub fn new(msg: &T) -> Result<Self, EncodeError> {
-        Ok(Self::from_bytes(encode(msg)?))
+        Ok(Self::from_parts(encode(msg)?, Vec::new()))
     }
 }
 
 impl<T> Encoded<T> {
-    fn from_bytes(bytes: Vec<u8>) -> Self {
+    fn from_parts(head: Vec<u8>, tail: Vec<u8>) -> Self {
         Self {
-            bytes,
+            head,
+            tail,
             of: std::marker::PhantomData,
         }
     }
 
-    /// The payload.
-    pub fn as_bytes(&self) -> &[u8] {
-        &self.bytes
+    /// The payload as Zenoh sends it: head and tail as two slices.
+    pub fn into_payload(self) -> zenoh::bytes::ZBytes {
+        if self.tail.is_empty() {
+            return self.head.into();
+        }
+        let mut writer = zenoh::bytes::ZBytes::writer();
+        writer.append(self.head.into());
+        writer.append(self.tail.into());
+        writer.finish()
     }
 
-    /// The payload, owned.
-    pub fn into_bytes(self) -> Vec<u8> {
-        self.bytes
+    /// The payload in one buffer (a copy: for tests and tools).
+    pub fn to_vec(&self) -> Vec<u8> {
+        [self.head.as_slice(), &self.tail].concat()
     }
 }
 
 impl<T: DeserializeOwned> Encoded<T> {
     /// Decodes the message back.
     pub fn decode(&self) -> Result<T, DecodeError> {
-        decode(&self.bytes)
+        decode(&self.to_vec())
     }
 }
 
 /// Encodes `msg`, whose last field is an empty byte sequence, as if that
-/// field held `len` bytes, and lets `fill` write those bytes in place: a
-/// big array (an observation) goes into the payload with no copy of its
-/// own. Equal, byte for byte, to [`encode`] of the message with the bytes.
-pub fn encode_with_tail<T: Serialize, E: From<EncodeError>>(
-    msg: &T,
-    len: usize,
-    fill: impl FnOnce(&mut [u8]) -> Result<(), E>,
-) -> Result<Encoded<T>, E> {
-    let head_len = cdr::calc_serialized_size(msg) as usize;
-    let mut bytes = Vec::with_capacity(head_len + len);
-    encode_into(msg, &mut bytes)?;
-    let head = bytes.len();
-    let count = u32::try_from(len)
-        .map_err(|_| EncodeError(format!("a byte sequence of {len} bytes is too long")))?;
+/// field held `tail`: the bytes are those of the plain encoding, but `tail`
+/// is moved, not copied (see [`Encoded::into_payload`]).
+pub fn encode_with_tail<T: Serialize>(msg: &T, tail: Vec<u8>) -> Result<Encoded<T>, EncodeError> {
+    let mut head = encode(msg)?;
+    let count = u32::try_from(tail.len()).map_err(|_| {
+        EncodeError(format!(
+            "a byte sequence of {} bytes is too long",
+            tail.len()
+        ))
+    })?;
     // CDR writes a sequence as its u32 count, then its elements: the empty
-    // last field is the count 0 at the very end.
-    match bytes.last_chunk_mut::<4>() {
+    // last field is the count 0 at the very end, and its elements follow
+    // with no padding.
+    match head.last_chunk_mut::<4>() {
         Some(last) if *last == [0; 4] => *last = count.to_le_bytes(),
         _ => {
-            return Err(
-                EncodeError("the message does not end with an empty byte sequence".into()).into(),
-            )
+            return Err(EncodeError(
+                "the message does not end with an empty byte sequence".into(),
+            ))
         }
     }
-    bytes.resize(head + len, 0);
-    fill(&mut bytes[head..])?;
-    Ok(Encoded::from_bytes(bytes))
+    Ok(Encoded::from_parts(head, tail))
 }
 
 /// Encodes a message into `buf`, replacing its contents but keeping its
