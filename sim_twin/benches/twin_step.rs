@@ -1,10 +1,15 @@
 //! Sim twin throughput, single thread: full env steps (one discrete action
-//! of physics + one RGBD render), render-only, physics-only, and RSS.
+//! of physics + one RGBD render), render-only, a frame's wire payload
+//! (rendered in place vs rendered then encoded), physics-only, and RSS.
 //!
 //! `cargo bench -p offworld-sim-twin --bench twin_step`
 
 use std::time::Instant;
 
+use offworld_runtime::codec;
+use offworld_runtime::msg::{CameraFrameView, PixelEncoding, Time};
+use offworld_sim_twin::frame_payload::FramePayloads;
+use offworld_sim_twin::ros_out::frame_images;
 use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig};
 
 /// The discrete action table (linear, angular, duration).
@@ -82,6 +87,26 @@ fn main() {
     let render_small = rate(5, 2000, |_| {
         small.render();
     });
+    let payloads = FramePayloads::new();
+    let in_place = rate(5, 400, |i| {
+        let payload = payloads.render(&mut full, i as u64, Time::default());
+        std::hint::black_box(payload.expect("payload"));
+    });
+    let mut scratch = Vec::new();
+    let encoded = rate(5, 400, |i| {
+        let (color, depth) = frame_images(
+            full.render(),
+            Time::default(),
+            PixelEncoding::Depth32FC1,
+            &mut scratch,
+        );
+        let view = CameraFrameView {
+            seq: i as u64,
+            color,
+            depth,
+        };
+        std::hint::black_box(codec::encode(&view).expect("encode"));
+    });
     let physics = rate(5, 1000, |i| {
         let (v, w, d) = ACTIONS[i % 4];
         small.execute(v, w, d).expect("motion");
@@ -90,6 +115,8 @@ fn main() {
     println!("env steps/s  84x84 RGBD   : {steps_small:8.0}");
     println!("render fps   320x240      : {render_full:8.0}");
     println!("render fps   84x84        : {render_small:8.0}");
+    println!("frame payloads/s 320x240, rendered in place  : {in_place:8.0}");
+    println!("frame payloads/s 320x240, rendered + encoded : {encoded:8.0}");
     println!("physics actions/s         : {physics:8.0}");
     println!(
         "RSS: {rss_after:.1} MB after building one twin ({:.1} MB for the twin), {:.1} MB now",

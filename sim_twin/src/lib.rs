@@ -19,6 +19,7 @@
 pub mod camera;
 pub mod enclosure;
 mod error;
+pub mod frame_payload;
 pub mod node;
 pub mod overhead;
 pub mod physics;

@@ -20,10 +20,7 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
-use offworld_runtime::msg::{
-    CameraFrameView, EStop, GotoReply, GotoRequest, MotionCommand, PixelEncoding, Pose2D, SeqTag,
-    Time,
-};
+use offworld_runtime::msg::{EStop, GotoReply, GotoRequest, MotionCommand, Pose2D, SeqTag, Time};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
@@ -34,6 +31,7 @@ use offworld_runtime::zenoh::{Session, Wait};
 use offworld_runtime::WireError;
 
 use crate::error::SimError;
+use crate::frame_payload::FramePayloads;
 use crate::overhead::OverheadStream;
 use crate::physics::{PlanarPose, DT};
 use crate::ros_out;
@@ -207,8 +205,8 @@ struct Worker {
     clock: Clock,
     estopped: bool,
     publishers: Publishers,
-    /// Depth bytes when the render's need converting (reused).
-    depth_scratch: Vec<u8>,
+    /// Camera frame payloads (recycled).
+    frames: FramePayloads,
     rejected: u64,
     overhead: Option<OverheadStream>,
 }
@@ -248,7 +246,7 @@ impl Worker {
             clock,
             estopped: false,
             publishers,
-            depth_scratch: Vec::new(),
+            frames: FramePayloads::new(),
             rejected: 0,
         })
     }
@@ -434,17 +432,11 @@ impl Worker {
         let tag = SeqTag { seq };
         let pose = ros_out::world_pose(&self.twin.tracker_reading(), Time::now());
         publish(&self.publishers.pose, &pose, tag);
-        let frame = self.twin.render();
-        let (color, depth) = ros_out::frame_images(
-            frame,
-            stamp,
-            PixelEncoding::Depth32FC1,
-            &mut self.depth_scratch,
-        );
-        match codec::encode(&CameraFrameView { seq, color, depth }) {
-            // Moved, not copied: a local controller reads these very bytes.
-            Ok(bytes) => {
-                if let Err(e) = self.publishers.obs.put(bytes).wait() {
+        // Rendered into its payload: a local controller reads these very
+        // bytes, and hands the buffer back when done.
+        match self.frames.render(&mut self.twin, seq, stamp) {
+            Ok(payload) => {
+                if let Err(e) = self.publishers.obs.put(payload).wait() {
                     tracing::warn!("obs put failed: {e}");
                 }
             }

@@ -114,12 +114,26 @@ fn image_view<'a>(
     data: &'a [u8],
 ) -> ImageView<'a> {
     ImageView {
+        data,
+        ..image_header(stamp, frame_id, frame.width, frame.height, encoding)
+    }
+}
+
+/// A `width × height` image's fields other than its pixels (`data` empty).
+pub fn image_header(
+    stamp: Time,
+    frame_id: &str,
+    width: u32,
+    height: u32,
+    encoding: PixelEncoding,
+) -> ImageView<'static> {
+    ImageView {
         header: Header::new(stamp, frame_id),
-        height: frame.height,
-        width: frame.width,
+        height,
+        width,
         encoding: encoding.as_str(),
         is_bigendian: 0,
-        step: frame.width * encoding.bytes_per_pixel(),
-        data,
+        step: width * encoding.bytes_per_pixel(),
+        data: &[],
     }
 }

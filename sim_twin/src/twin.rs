@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use crate::camera::{CameraPose, ColumnRenderer, Intrinsics, RgbdFrame};
+use crate::camera::{CameraPose, ColumnRenderer, Intrinsics, PixelsMut, RgbdFrame};
 use crate::error::SimError;
 use crate::physics::{BodyPose, PlanarPose, RobotPhysics};
 use crate::scene::Scene;
@@ -191,17 +191,19 @@ impl SimTwin {
     pub fn render(&mut self) -> &RgbdFrame {
         let pose = self.camera_pose();
         self.renderer.render(&self.scene, &pose, &mut self.frame);
-        let r = self.randomization;
-        if r.depth_noise > 0.0 || r.depth_dropout > 0.0 {
-            for d in &mut self.frame.depth {
-                if r.depth_dropout > 0.0 && self.rng.random::<f32>() < r.depth_dropout {
-                    *d = f32::NAN;
-                } else if r.depth_noise > 0.0 && d.is_finite() {
-                    *d *= 1.0 + r.depth_noise * self.rng.sample::<f32, _>(StandardNormal);
-                }
-            }
-        }
+        perturb_depth(&self.randomization, &mut self.rng, &mut self.frame.depth);
         &self.frame
+    }
+
+    /// [`Self::render`] into `pixels` (e.g. a message's pixel fields), which
+    /// must have the camera's resolution; false, writing nothing, if not.
+    pub fn render_into(&mut self, mut pixels: PixelsMut<'_>) -> bool {
+        let pose = self.camera_pose();
+        if !self.renderer.render_into(&self.scene, &pose, &mut pixels) {
+            return false;
+        }
+        perturb_depth(&self.randomization, &mut self.rng, pixels.depth);
+        true
     }
 
     /// Ground-truth base_link pose.
@@ -238,5 +240,19 @@ impl SimTwin {
     /// Intrinsics of rendered frames.
     pub fn intrinsics(&self) -> &Intrinsics {
         self.renderer.intrinsics()
+    }
+}
+
+/// Depth noise and dropout, if enabled.
+fn perturb_depth(r: &Randomization, rng: &mut ChaCha8Rng, depth: &mut [f32]) {
+    if r.depth_noise <= 0.0 && r.depth_dropout <= 0.0 {
+        return;
+    }
+    for d in depth {
+        if r.depth_dropout > 0.0 && rng.random::<f32>() < r.depth_dropout {
+            *d = f32::NAN;
+        } else if r.depth_noise > 0.0 && d.is_finite() {
+            *d *= 1.0 + r.depth_noise * rng.sample::<f32, _>(StandardNormal);
+        }
     }
 }

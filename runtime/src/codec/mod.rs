@@ -74,16 +74,21 @@ impl<T: DeserializeOwned> Encoded<T> {
 /// field held `tail`: the bytes are those of the plain encoding, but `tail`
 /// is moved, not copied (see [`Encoded::into_payload`]).
 pub fn encode_with_tail<T: Serialize>(msg: &T, tail: Vec<u8>) -> Result<Encoded<T>, EncodeError> {
+    Ok(Encoded::from_parts(
+        encode_open_tail(msg, tail.len())?,
+        tail,
+    ))
+}
+
+/// Encodes `msg`, whose last field is an empty byte sequence, as if that
+/// field held `len` bytes, leaving them out: the caller writes them right
+/// after the returned bytes (CDR puts no padding before them).
+pub fn encode_open_tail<T: Serialize>(msg: &T, len: usize) -> Result<Vec<u8>, EncodeError> {
     let mut head = encode(msg)?;
-    let count = u32::try_from(tail.len()).map_err(|_| {
-        EncodeError(format!(
-            "a byte sequence of {} bytes is too long",
-            tail.len()
-        ))
-    })?;
+    let count = u32::try_from(len)
+        .map_err(|_| EncodeError(format!("a byte sequence of {len} bytes is too long")))?;
     // CDR writes a sequence as its u32 count, then its elements: the empty
-    // last field is the count 0 at the very end, and its elements follow
-    // with no padding.
+    // last field is the count 0 at the very end.
     match head.last_chunk_mut::<4>() {
         Some(last) if *last == [0; 4] => *last = count.to_le_bytes(),
         _ => {
@@ -92,7 +97,7 @@ pub fn encode_with_tail<T: Serialize>(msg: &T, tail: Vec<u8>) -> Result<Encoded<
             ))
         }
     }
-    Ok(Encoded::from_parts(head, tail))
+    Ok(head)
 }
 
 /// Encodes a message into `buf`, replacing its contents but keeping its

@@ -9,7 +9,7 @@
 //! heightfield along a line is piecewise linear between grid-line and
 //! diagonal crossings). Boxes are intersected analytically per column.
 
-use super::{CameraPose, Intrinsics, RgbdFrame, Shading};
+use super::{CameraPose, Intrinsics, PixelsMut, RgbdFrame, Shading};
 use crate::scene::Scene;
 use crate::terrain::Terrain;
 use crate::world::LightSpec;
@@ -58,6 +58,22 @@ impl ColumnRenderer {
         if frame.width != intr.width || frame.height != intr.height {
             *frame = RgbdFrame::new(intr.width, intr.height);
         }
+        self.render_into(scene, pose, &mut frame.pixels_mut());
+    }
+
+    /// Renders into `pixels`, which must have the sizes of the intrinsics
+    /// (every pixel is written); returns false, writing nothing, if not.
+    pub fn render_into(
+        &mut self,
+        scene: &Scene,
+        pose: &CameraPose,
+        pixels: &mut PixelsMut<'_>,
+    ) -> bool {
+        let intr = self.intrinsics;
+        let n = (intr.width * intr.height) as usize;
+        if pixels.rgb.len() != n * 3 || pixels.depth.len() != n {
+            return false;
+        }
         let (sin_y, cos_y) = pose.yaw.sin_cos();
         let forward = [cos_y, sin_y];
         let right = [sin_y, -cos_y];
@@ -65,11 +81,12 @@ impl ColumnRenderer {
             let a = intr.col_slope(u);
             let dir = [forward[0] + a * right[0], forward[1] + a * right[1]];
             self.render_column(scene, pose.position, dir);
-            self.write_column(frame, u);
+            self.write_column(pixels, u);
         }
+        true
     }
 
-    fn write_column(&self, frame: &mut RgbdFrame, u: u32) {
+    fn write_column(&self, frame: &mut PixelsMut<'_>, u: u32) {
         let intr = &self.intrinsics;
         let w = intr.width as usize;
         for (v, (&d, &g)) in self.col_depth.iter().zip(&self.col_grey).enumerate() {

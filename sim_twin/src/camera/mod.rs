@@ -104,6 +104,16 @@ impl CameraPose {
     }
 }
 
+/// Where a renderer writes a frame's pixels (row-major, the sizes of its
+/// intrinsics): an [`RgbdFrame`]'s buffers, or the pixel fields of a message
+/// payload, which is then encoded without copying them.
+pub struct PixelsMut<'a> {
+    /// `width × height × 3` bytes.
+    pub rgb: &'a mut [u8],
+    /// `width × height` metres.
+    pub depth: &'a mut [f32],
+}
+
 /// One RGBD frame: row-major `rgb8` and `f32` depth in metres along the
 /// optical axis (NaN = no valid return).
 #[derive(Debug, Clone, PartialEq)]
@@ -127,6 +137,14 @@ impl RgbdFrame {
             height,
             rgb: vec![0; n * 3],
             depth: vec![f32::NAN; n],
+        }
+    }
+
+    /// Its pixel buffers, for a renderer.
+    pub fn pixels_mut(&mut self) -> PixelsMut<'_> {
+        PixelsMut {
+            rgb: &mut self.rgb,
+            depth: &mut self.depth,
         }
     }
 
