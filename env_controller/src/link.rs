@@ -13,6 +13,7 @@ use offworld_runtime::msg::{
     CameraFrameView, GotoReply, GotoRequest, MotionCommand, MotionFault, ObsOptions, Pose2D,
     PoseStamped, SeqTag, TrackingStatus,
 };
+use offworld_runtime::pool::BufferPool;
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
@@ -78,13 +79,18 @@ impl Frame {
         read(&view)
     }
 
-    /// The observation `request` asks for, built from this frame.
-    fn build(&self, request: &ObservationRequest) -> Result<Vec<u8>, WireError> {
-        let mut data = vec![0; shape(&request.options).shape_len() as usize];
+    /// The observation `request` asks for, built from this frame into a
+    /// buffer of `buffers`.
+    fn build(
+        &self,
+        request: &ObservationRequest,
+        buffers: &BufferPool,
+    ) -> Result<ZBytes, WireError> {
+        let mut data = buffers.take(shape(&request.options).shape_len() as usize);
         self.with_view(|frame| {
             assemble_into(frame, &request.options, request.depth_max_m, &mut data)
         })?;
-        Ok(data)
+        Ok(buffers.payload(data))
     }
 }
 
@@ -101,7 +107,7 @@ pub struct ObservationRequest {
 struct PendingObservation {
     seq: u64,
     request: ObservationRequest,
-    built: oneshot::Sender<Result<Vec<u8>, WireError>>,
+    built: oneshot::Sender<Result<ZBytes, WireError>>,
 }
 
 /// The command waiting for its observation, if any.
@@ -114,17 +120,18 @@ pub struct Answer {
     /// The robot's pose after the motion.
     pub pose: PoseSample,
     request: ObservationRequest,
-    observation: oneshot::Receiver<Result<Vec<u8>, WireError>>,
+    observation: oneshot::Receiver<Result<ZBytes, WireError>>,
+    buffers: BufferPool,
 }
 
 impl Answer {
     /// The observation data built from the frame (see [`RobotLink::execute`]).
-    pub async fn observation(self) -> Result<Vec<u8>, WireError> {
+    pub async fn observation(self) -> Result<ZBytes, WireError> {
         match self.observation.await {
             Ok(built) => built,
             // Never built where received (cannot happen while one command
             // is in flight): build it here.
-            Err(_) => self.frame.build(&self.request),
+            Err(_) => self.frame.build(&self.request, &self.buffers),
         }
     }
 }
@@ -157,6 +164,8 @@ pub struct RobotLink {
     cmd: Publisher<'static>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
     pending: Pending,
+    /// Observation buffers, recycled once a reply is sent.
+    observations: BufferPool,
     faults: watch::Receiver<Option<MotionFault>>,
     poses: watch::Receiver<Option<PoseSample>>,
     tracking_lost: Arc<AtomicBool>,
@@ -177,6 +186,8 @@ impl RobotLink {
         let (frame_tx, frames) = watch::channel(None);
         let pending = Pending::default();
         let building = pending.clone();
+        let observations = BufferPool::new();
+        let buffers = observations.clone();
         let obs = session
             .declare_subscriber(env.key(Topic::Obs))
             .callback(
@@ -194,7 +205,7 @@ impl RobotLink {
                             .and_then(|mut p| p.take_if(|p| p.seq == frame.seq()));
                         if let Some(p) = waiting {
                             // The step may have given up: nobody to tell.
-                            let _ = p.built.send(frame.build(&p.request));
+                            let _ = p.built.send(frame.build(&p.request, &buffers));
                         }
                     }
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
@@ -285,6 +296,7 @@ impl RobotLink {
             cmd,
             frames,
             pending,
+            observations,
             faults,
             poses,
             tracking_lost,
@@ -337,6 +349,7 @@ impl RobotLink {
             pose,
             request,
             observation,
+            buffers: self.observations.clone(),
         })
     }
 

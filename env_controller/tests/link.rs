@@ -171,8 +171,8 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
     let c = seq as u8;
     // 1 m of 0–5 m is level 51; no return is 0.
     assert_eq!(
-        answer.observation().await.expect("observation"),
-        [c, c, c, 51, c, c, c, 51, c, c, c, 0, c, c, c, 51]
+        answer.observation().await.expect("observation").to_bytes(),
+        [c, c, c, 51, c, c, c, 51, c, c, c, 0, c, c, c, 51].as_slice()
     );
 
     // The next command, with other options, gets its own.
@@ -184,7 +184,8 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
         .expect("answered");
     assert_eq!(answer.frame.seq(), seq + 1);
     // Sampled at the source pixel nearest the centre: (1, 1).
-    assert_eq!(answer.observation().await.expect("observation"), [51]);
+    let observation = answer.observation().await.expect("observation");
+    assert_eq!(observation.to_bytes(), [51].as_slice());
 }
 
 /// RGBD uint8 observations of `width × height`, depth 0–5 m.

@@ -20,6 +20,7 @@ pub mod codec;
 mod error;
 pub mod keys;
 pub mod msg;
+pub mod pool;
 pub mod ros2;
 pub mod session;
 pub mod wire;

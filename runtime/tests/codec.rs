@@ -260,7 +260,11 @@ fn observations_kept_apart_equal_the_plain_encoding() {
         assert_same_payload(&apart.to_vec(), &step, len);
         assert_eq!(apart.decode().expect("decodes"), step);
         let payload = apart.into_payload();
-        assert_eq!(payload.slices().count(), if len == 0 { 1 } else { 2 });
+        assert_eq!(
+            payload.slices().count(),
+            if len == 0 { 1 } else { 2 },
+            "not joined"
+        );
         assert_same_payload(&payload.to_bytes(), &step, len);
         let mut head = reset.clone();
         head.observation.data.clear();

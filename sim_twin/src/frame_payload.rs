@@ -3,10 +3,9 @@
 //! `CameraFrame` (`rgb8` + `32FC1`). No 0.5 MB copy into a fresh buffer per
 //! step; the same bytes as encoding the rendered frame.
 
-use std::sync::{Arc, Mutex, Weak};
-
 use offworld_runtime::codec::{self, CDR_LE_HEADER};
 use offworld_runtime::msg::{CameraFrameView, PixelEncoding, Time};
+use offworld_runtime::pool::BufferPool;
 use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::EncodeError;
 
@@ -14,18 +13,11 @@ use crate::camera::PixelsMut;
 use crate::ros_out::{self, COLOR_FRAME, DEPTH_FRAME};
 use crate::twin::SimTwin;
 
-/// Idle buffers kept for the next frames: a frame is held by at most the
-/// reader's latest and the one in flight.
-const POOL_SIZE: usize = 4;
-
-/// Payload buffers no reader holds any more.
-type Pool = Mutex<Vec<Vec<u8>>>;
-
-/// Renders frames into payloads and takes their buffers back once every
-/// reader has dropped them.
+/// Renders frames into payloads whose buffers come back once every reader
+/// has dropped them.
 #[derive(Default)]
 pub struct FramePayloads {
-    idle: Arc<Pool>,
+    buffers: BufferPool,
 }
 
 impl FramePayloads {
@@ -54,7 +46,9 @@ impl FramePayloads {
         let middle = codec::encode_open_tail(&depth, depth_len)?;
         // A part continuing a message has no encapsulation header.
         let middle = &middle[CDR_LE_HEADER.len()..];
-        let mut buffer = self.take(front.len() + rgb_len + middle.len() + depth_len);
+        let mut buffer = self
+            .buffers
+            .take(front.len() + rgb_len + middle.len() + depth_len);
         let (front_bytes, rest) = buffer.split_at_mut(front.len());
         front_bytes.copy_from_slice(&front);
         let (rgb, rest) = rest.split_at_mut(rgb_len);
@@ -67,11 +61,7 @@ impl FramePayloads {
         if !twin.render_into(PixelsMut { rgb, depth }) {
             return Err(EncodeError("frame buffers of the wrong size".into()));
         }
-        let payload = Recycled {
-            buffer,
-            idle: Arc::downgrade(&self.idle),
-        };
-        Ok(bytes::Bytes::from_owner(payload).into())
+        Ok(self.buffers.payload(buffer))
     }
 
     /// The plain path: render, then encode a copy of the pixels.
@@ -86,40 +76,6 @@ impl FramePayloads {
         let (color, depth) =
             ros_out::frame_images(frame, stamp, PixelEncoding::Depth32FC1, &mut scratch);
         Ok(codec::encode(&CameraFrameView { seq, color, depth })?.into())
-    }
-
-    /// An idle buffer of `len` bytes (its old contents are overwritten).
-    fn take(&self, len: usize) -> Vec<u8> {
-        let idle = self.idle.lock().ok().and_then(|mut idle| idle.pop());
-        let mut buffer = idle.unwrap_or_default();
-        buffer.resize(len, 0);
-        buffer
-    }
-}
-
-/// A payload's buffer, back to the pool when the last reader drops it.
-struct Recycled {
-    buffer: Vec<u8>,
-    idle: Weak<Pool>,
-}
-
-impl AsRef<[u8]> for Recycled {
-    fn as_ref(&self) -> &[u8] {
-        &self.buffer
-    }
-}
-
-impl Drop for Recycled {
-    fn drop(&mut self) {
-        let Some(pool) = self.idle.upgrade() else {
-            return;
-        };
-        let Ok(mut idle) = pool.lock() else {
-            return;
-        };
-        if idle.len() < POOL_SIZE {
-            idle.push(std::mem::take(&mut self.buffer));
-        }
     }
 }
 

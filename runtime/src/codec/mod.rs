@@ -6,6 +6,7 @@
 mod reader;
 
 use serde::{de::DeserializeOwned, Deserialize, Serialize};
+use zenoh::bytes::ZBytes;
 
 use crate::error::{DecodeError, EncodeError};
 
@@ -22,23 +23,23 @@ pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, EncodeError> {
 
 /// A message already encoded, e.g. by [`encode_with_tail`]: replied as is.
 /// A big last byte sequence (an observation's pixels) is kept apart from the
-/// head and sent as a second slice, never copied into it.
+/// head and sent as its own slices, never copied into it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Encoded<T> {
     head: Vec<u8>,
-    tail: Vec<u8>,
+    tail: ZBytes,
     of: std::marker::PhantomData<fn() -> T>,
 }
 
 impl<T: Serialize> Encoded<T> {
     /// Encodes `msg`.
     pub fn new(msg: &T) -> Result<Self, EncodeError> {
-        Ok(Self::from_parts(encode(msg)?, Vec::new()))
+        Ok(Self::from_parts(encode(msg)?, ZBytes::default()))
     }
 }
 
 impl<T> Encoded<T> {
-    fn from_parts(head: Vec<u8>, tail: Vec<u8>) -> Self {
+    fn from_parts(head: Vec<u8>, tail: ZBytes) -> Self {
         Self {
             head,
             tail,
@@ -46,20 +47,20 @@ impl<T> Encoded<T> {
         }
     }
 
-    /// The payload as Zenoh sends it: head and tail as two slices.
-    pub fn into_payload(self) -> zenoh::bytes::ZBytes {
+    /// The payload as Zenoh sends it: the head, then the tail's slices.
+    pub fn into_payload(self) -> ZBytes {
         if self.tail.is_empty() {
             return self.head.into();
         }
-        let mut writer = zenoh::bytes::ZBytes::writer();
+        let mut writer = ZBytes::writer();
         writer.append(self.head.into());
-        writer.append(self.tail.into());
+        writer.append(self.tail);
         writer.finish()
     }
 
     /// The payload in one buffer (a copy: for tests and tools).
     pub fn to_vec(&self) -> Vec<u8> {
-        [self.head.as_slice(), &self.tail].concat()
+        [self.head.as_slice(), &self.tail.to_bytes()].concat()
     }
 }
 
@@ -72,8 +73,12 @@ impl<T: DeserializeOwned> Encoded<T> {
 
 /// Encodes `msg`, whose last field is an empty byte sequence, as if that
 /// field held `tail`: the bytes are those of the plain encoding, but `tail`
-/// is moved, not copied (see [`Encoded::into_payload`]).
-pub fn encode_with_tail<T: Serialize>(msg: &T, tail: Vec<u8>) -> Result<Encoded<T>, EncodeError> {
+/// is not copied (see [`Encoded::into_payload`]).
+pub fn encode_with_tail<T: Serialize>(
+    msg: &T,
+    tail: impl Into<ZBytes>,
+) -> Result<Encoded<T>, EncodeError> {
+    let tail = tail.into();
     Ok(Encoded::from_parts(
         encode_open_tail(msg, tail.len())?,
         tail,
