@@ -705,9 +705,16 @@ impl<H: RobotHardware> Agent<H> {
                 pose
             }
             (refusal, _) => {
+                let reason = refusal.unwrap_or_else(|| "tracking lost".to_owned());
+                // A vanished controller is not late: nobody waits for this
+                // drive any more, even if it was held for another reason.
+                if !self.watchdog.controller_is_present() {
+                    let err = WireError::unavailable(format!("reset navigation stopped: {reason}"));
+                    reply_goto(&nav.query, Err(err)).await;
+                    return Activity::Idle;
+                }
                 // Hold still (the target stays zero) and drive on when the
                 // heartbeats or poses are back, unless that takes too long.
-                let reason = refusal.unwrap_or_else(|| "tracking lost".to_owned());
                 let since = nav.held.get_or_insert((now, reason.clone())).0;
                 let held = now.saturating_duration_since(since);
                 if held >= Duration::from_millis(self.config.nav_hold_ms) {

@@ -1004,7 +1004,8 @@ fn assert_held(log: &[Sent], after: Instant, until: Instant, what: &str) {
 /// A reset drive rides out a heartbeat gap longer than the watchdog
 /// window and a tracker gap: each time the robot stops, then drives on
 /// when the signal is back, and the drive arrives. Held still longer than
-/// `nav_hold_ms`, the drive ends with a typed Unavailable naming why.
+/// `nav_hold_ms`, the drive ends with a typed Unavailable naming why; held
+/// when the controller's token vanishes, it ends on that.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
     let config = AgentConfig {
@@ -1072,6 +1073,48 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
         "{err}"
     );
     assert_eq!(rig.robot.last(), Velocity::ZERO);
+
+    // Held by a heartbeat gap, then the controller's token vanishes: the
+    // drive ends on that, not on the hold limit.
+    let request = GotoRequest {
+        seq: 84,
+        target: pose(-0.2, 0.2, 0.0),
+        timeout_s: 25.0,
+    };
+    let token = rig.token.take().expect("token");
+    let drive = async {
+        // Retried while the tracker poses are coming back after the gap.
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            match rig.goto(&request, Duration::from_secs(30)).await {
+                Err(RequestError::Remote(e))
+                    if e.message.contains("no fresh tracker pose") && Instant::now() < deadline =>
+                {
+                    tokio::time::sleep(Duration::from_millis(50)).await
+                }
+                other => return other,
+            }
+        }
+    };
+    let (result, ()) = tokio::join!(drive, async {
+        let since = Instant::now();
+        let robot = rig.robot.clone();
+        let moving = wait_until(Duration::from_secs(30), move || {
+            moved(&robot.sent_since(since))
+        })
+        .await;
+        assert!(moving, "the reset drive moved the robot");
+        rig.beating.store(false, Ordering::SeqCst);
+        tokio::time::sleep(PROMPTLY).await;
+        token.undeclare().await.expect("undeclare");
+    });
+    let err = assert_code(result, ErrorCode::Unavailable, "controller gone while held");
+    assert!(
+        err.message.contains("liveliness token is gone") && !err.message.contains("held still"),
+        "{err}"
+    );
+    assert_eq!(rig.robot.last(), Velocity::ZERO);
+    rig.beating.store(true, Ordering::SeqCst);
     rig.finish().await;
 }
 
