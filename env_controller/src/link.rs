@@ -214,48 +214,37 @@ impl RobotLink {
             .await
             .map_err(zerr)?;
         let (fault_tx, faults) = watch::channel(None);
-        let fault = session
-            .declare_subscriber(env.key(Topic::Fault))
-            .callback(move |sample: Sample| {
-                match codec::decode_payload::<MotionFault>(sample.payload()) {
-                    Ok(fault) => {
-                        fault_tx.send_replace(Some(fault));
-                    }
-                    Err(e) => tracing::warn!("rejected a malformed fault: {e}"),
-                }
-            })
-            .await
-            .map_err(zerr)?;
+        let fault = subscribe_decoded(session, env.key(Topic::Fault), "fault", move |fault, _| {
+            fault_tx.send_replace(Some(fault));
+        })
+        .await
+        .map_err(zerr)?;
         let (pose_tx, poses) = watch::channel(None);
-        let pose = session
-            .declare_subscriber(env.key(Topic::Pose))
-            .callback(move |sample: Sample| {
-                match codec::decode_payload::<PoseStamped>(sample.payload()) {
-                    Ok(pose) => {
-                        let seq = wire::decode_attachment::<SeqTag>(&sample).map(|t| t.seq);
-                        pose_tx.send_replace(Some(PoseSample {
-                            pose,
-                            seq,
-                            received: Instant::now(),
-                        }));
-                    }
-                    Err(e) => tracing::warn!("rejected a malformed pose: {e}"),
-                }
-            })
-            .await
-            .map_err(zerr)?;
+        let pose = subscribe_decoded(
+            session,
+            env.key(Topic::Pose),
+            "pose",
+            move |pose, sample| {
+                let seq = wire::decode_attachment::<SeqTag>(sample).map(|t| t.seq);
+                pose_tx.send_replace(Some(PoseSample {
+                    pose,
+                    seq,
+                    received: Instant::now(),
+                }));
+            },
+        )
+        .await
+        .map_err(zerr)?;
         let tracking_lost = Arc::new(AtomicBool::new(false));
         let lost = tracking_lost.clone();
-        let tracking = session
-            .declare_subscriber(env.key(Topic::Tracking))
-            .callback(move |sample: Sample| {
-                match codec::decode_payload::<TrackingStatus>(sample.payload()) {
-                    Ok(status) => lost.store(!status.tracking, Ordering::SeqCst),
-                    Err(e) => tracing::warn!("rejected a malformed tracking status: {e}"),
-                }
-            })
-            .await
-            .map_err(zerr)?;
+        let tracking = subscribe_decoded(
+            session,
+            env.key(Topic::Tracking),
+            "tracking status",
+            move |status: TrackingStatus, _| lost.store(!status.tracking, Ordering::SeqCst),
+        )
+        .await
+        .map_err(zerr)?;
         // The env is online while a sim twin or a robot agent declares itself.
         let (alive_tx, embodiment_alive) = watch::channel(false);
         let twin_key = env.alive_key(Component::SimTwin);
@@ -469,4 +458,24 @@ impl RobotLink {
             tracing::error!(env = %self.env, "cannot send stop: {e}");
         }
     }
+}
+
+/// Subscribes to `key`, handing each sample that decodes as `T` (with the
+/// sample, for its attachment) to `on`; malformed ones are logged and
+/// dropped.
+async fn subscribe_decoded<T: serde::de::DeserializeOwned>(
+    session: &Session,
+    key: String,
+    what: &'static str,
+    on: impl Fn(T, &Sample) + Send + Sync + 'static,
+) -> Result<Subscriber<()>, offworld_runtime::zenoh::Error> {
+    session
+        .declare_subscriber(key)
+        .callback(
+            move |sample: Sample| match codec::decode_payload::<T>(sample.payload()) {
+                Ok(msg) => on(msg, &sample),
+                Err(e) => tracing::warn!("rejected a malformed {what}: {e}"),
+            },
+        )
+        .await
 }
