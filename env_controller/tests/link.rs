@@ -6,7 +6,7 @@
 
 use std::time::Duration;
 
-use offworld_env_controller::link::{LinkTimeouts, ObservationRequest, RobotLink};
+use offworld_env_controller::link::{Answer, LinkTimeouts, ObservationRequest, RobotLink};
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, Channels, DepthFormat, Header, Image, MotionCommand, MotionFault, ObsOptions,
@@ -15,21 +15,12 @@ use offworld_runtime::msg::{
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Wait;
-use offworld_runtime::{codec, ErrorCode};
+use offworld_runtime::zenoh::{Session, Wait};
+use offworld_runtime::{codec, ErrorCode, WireError};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reported_fault_fails_the_command_with_its_reason() {
-    let (controller, robot) = loopback_pair().await.expect("loopback sessions");
-    let env = EnvId::real("fault-link").expect("env id");
-    // Far beyond the test: a timeout would be its own error code.
-    let timeouts = LinkTimeouts {
-        answer_margin: Duration::from_secs(60),
-        ..LinkTimeouts::default()
-    };
-    let link = RobotLink::connect(&controller, &env, timeouts)
-        .await
-        .expect("link");
+    let (link, robot, env) = connect("fault-link").await;
 
     // The robot: every command gets a malformed fault, a fault of another
     // command, then its own.
@@ -55,25 +46,13 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
         .await
         .expect("robot's cmd subscriber");
 
-    // The subscriptions may still be propagating: a command sent before
-    // the robot hears it goes unanswered, so each attempt is bounded (an
-    // answer timeout is impossible within 60 s).
     let command = |seq| MotionCommand {
         seq,
         linear_x: 0.1,
         angular_z: 0.0,
         duration_s: 0.5,
     };
-    let mut answered = None;
-    for seq in 1..=5u64 {
-        let cmd = command(seq);
-        let attempt = link.execute(&cmd, rgbd(2, 2));
-        if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
-            answered = Some((seq, result));
-            break;
-        }
-    }
-    let (seq, result) = answered.expect("a command reached the robot");
+    let (seq, result) = first_heard(&link, 1, command).await;
     let Err(err) = result else {
         panic!("command {seq} was answered")
     };
@@ -116,15 +95,7 @@ fn frame(seq: u64) -> CameraFrame {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_observation_is_built_from_the_commands_own_frame() {
-    let (controller, robot) = loopback_pair().await.expect("loopback sessions");
-    let env = EnvId::real("obs-link").expect("env id");
-    let timeouts = LinkTimeouts {
-        answer_margin: Duration::from_secs(60),
-        ..LinkTimeouts::default()
-    };
-    let link = RobotLink::connect(&controller, &env, timeouts)
-        .await
-        .expect("link");
+    let (link, robot, env) = connect("obs-link").await;
 
     // The robot: every command gets a malformed frame, a stale frame (of
     // the command before), then its pose and its own frame.
@@ -155,17 +126,8 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
         angular_z: 0.0,
         duration_s: 0.0,
     };
-    // Bounded attempts while the subscriptions propagate.
-    let mut answer = None;
-    for seq in 10..=15u64 {
-        let cmd = command(seq);
-        let attempt = link.execute(&cmd, rgbd(2, 2));
-        if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
-            answer = Some((seq, result.expect("answered")));
-            break;
-        }
-    }
-    let (seq, answer) = answer.expect("a command reached the robot");
+    let (seq, answer) = first_heard(&link, 10, command).await;
+    let answer = answer.expect("answered");
     assert_eq!(answer.frame.seq(), seq);
     assert_eq!(answer.pose.seq, Some(seq));
     let c = seq as u8;
@@ -186,6 +148,39 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
     // Sampled at the source pixel nearest the centre: (1, 1).
     let observation = answer.observation().await.expect("observation");
     assert_eq!(observation.to_bytes(), [51].as_slice());
+}
+
+/// A link to env `name` and the session that plays its robot. The answer
+/// margin is far beyond the tests: a timeout would be its own error code.
+async fn connect(name: &str) -> (RobotLink, Session, EnvId) {
+    let (controller, robot) = loopback_pair().await.expect("loopback sessions");
+    let env = EnvId::real(name).expect("env id");
+    let timeouts = LinkTimeouts {
+        answer_margin: Duration::from_secs(60),
+        ..LinkTimeouts::default()
+    };
+    let link = RobotLink::connect(&controller, &env, timeouts)
+        .await
+        .expect("link");
+    (link, robot, env)
+}
+
+/// Executes `command(seq)` for seq = `first`, `first + 1`, … until the
+/// robot hears one: the subscriptions may still be propagating, and a
+/// command sent before that goes unanswered, so each attempt is bounded.
+async fn first_heard(
+    link: &RobotLink,
+    first: u64,
+    command: impl Fn(u64) -> MotionCommand,
+) -> (u64, Result<Answer, WireError>) {
+    for seq in first..first + 5 {
+        let cmd = command(seq);
+        let attempt = link.execute(&cmd, rgbd(2, 2));
+        if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
+            return (seq, result);
+        }
+    }
+    panic!("no command reached the robot");
 }
 
 /// RGBD uint8 observations of `width × height`, depth 0–5 m.
