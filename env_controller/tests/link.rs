@@ -46,13 +46,7 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
         .await
         .expect("robot's cmd subscriber");
 
-    let command = |seq| MotionCommand {
-        seq,
-        linear_x: 0.1,
-        angular_z: 0.0,
-        duration_s: 0.5,
-    };
-    let (seq, result) = first_heard(&link, 1, command).await;
+    let (seq, result) = first_heard(&link, 1, 0.1, 0.5).await;
     let Err(err) = result else {
         panic!("command {seq} was answered")
     };
@@ -63,7 +57,7 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
     );
 
     // The link keeps serving: the next command fails with its own fault.
-    let Err(err) = link.execute(&command(50), rgbd(2, 2)).await else {
+    let Err(err) = link.execute(&command(50, 0.1, 0.5), rgbd(2, 2)).await else {
         panic!("command 50 was answered")
     };
     assert_eq!(err.code, ErrorCode::Unavailable);
@@ -120,13 +114,7 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
         .await
         .expect("robot's cmd subscriber");
 
-    let command = |seq| MotionCommand {
-        seq,
-        linear_x: 0.0,
-        angular_z: 0.0,
-        duration_s: 0.0,
-    };
-    let (seq, answer) = first_heard(&link, 10, command).await;
+    let (seq, answer) = first_heard(&link, 10, 0.0, 0.0).await;
     let answer = answer.expect("answered");
     assert_eq!(answer.frame.seq(), seq);
     assert_eq!(answer.pose.seq, Some(seq));
@@ -141,7 +129,7 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
     let mut depth_only = rgbd(1, 1);
     depth_only.options.channels = Channels::DepthOnly;
     let answer = link
-        .execute(&command(seq + 1), depth_only)
+        .execute(&command(seq + 1, 0.0, 0.0), depth_only)
         .await
         .expect("answered");
     assert_eq!(answer.frame.seq(), seq + 1);
@@ -165,16 +153,28 @@ async fn connect(name: &str) -> (RobotLink, Session, EnvId) {
     (link, robot, env)
 }
 
-/// Executes `command(seq)` for seq = `first`, `first + 1`, … until the
-/// robot hears one: the subscriptions may still be propagating, and a
-/// command sent before that goes unanswered, so each attempt is bounded.
+/// Command `seq`: straight ahead at `linear_x` for `duration_s`.
+fn command(seq: u64, linear_x: f64, duration_s: f64) -> MotionCommand {
+    MotionCommand {
+        seq,
+        linear_x,
+        angular_z: 0.0,
+        duration_s,
+    }
+}
+
+/// Drives at `linear_x` for `duration_s` as command `first`, `first + 1`,
+/// … until the robot hears one: the subscriptions may still be
+/// propagating, and a command sent before that goes unanswered, so each
+/// attempt is bounded.
 async fn first_heard(
     link: &RobotLink,
     first: u64,
-    command: impl Fn(u64) -> MotionCommand,
+    linear_x: f64,
+    duration_s: f64,
 ) -> (u64, Result<Answer, WireError>) {
     for seq in first..first + 5 {
-        let cmd = command(seq);
+        let cmd = command(seq, linear_x, duration_s);
         let attempt = link.execute(&cmd, rgbd(2, 2));
         if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
             return (seq, result);

@@ -461,6 +461,15 @@ impl Rig {
 
 // ---------------------------------------------------------------- helpers
 
+/// A reset drive to `target` within `timeout_s`.
+fn goto_request(seq: u64, target: Pose2D, timeout_s: f64) -> GotoRequest {
+    GotoRequest {
+        seq,
+        target,
+        timeout_s,
+    }
+}
+
 /// Polls `cond` every 5 ms until true or `timeout`.
 async fn wait_until(timeout: Duration, cond: impl Fn() -> bool) -> bool {
     let deadline = Instant::now() + timeout;
@@ -647,11 +656,7 @@ async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
     // Engaged: answered, never moved.
     rig.cmd(11, CRUISE, 0.5, 0.5).await;
     assert_eq!(rig.answer(11).await.seq, 11);
-    let request = GotoRequest {
-        seq: 1,
-        target: pose(0.5, 0.5, 0.0),
-        timeout_s: 10.0,
-    };
+    let request = goto_request(1, pose(0.5, 0.5, 0.0), 10.0);
     let refused = rig.goto(&request, Duration::from_secs(5)).await;
     assert_code(refused, ErrorCode::InvalidState, "goto under e-stop");
     assert!(
@@ -878,11 +883,7 @@ async fn goto_failures_are_typed_errors() {
     };
     let mut rig = Rig::start("goto-errors", config).await;
     let timeout = Duration::from_secs(5);
-    let free = GotoRequest {
-        seq: 1,
-        target: pose(0.1, 0.3, 0.0),
-        timeout_s: 10.0,
-    };
+    let free = goto_request(1, pose(0.1, 0.3, 0.0), 10.0);
 
     let e = assert_code(
         rig.goto(&free, timeout).await,
@@ -903,11 +904,7 @@ async fn goto_failures_are_typed_errors() {
     // A fresh pose in free space, then a goal inside a boulder
     // (runtime/worlds/monolith_obstacle.toml: centre (0.762, −0.241)).
     rig.track(pose(-0.2, 0.2, 0.0), false);
-    let boulder = GotoRequest {
-        seq: 2,
-        target: pose(0.762, -0.241, 0.0),
-        timeout_s: 10.0,
-    };
+    let boulder = goto_request(2, pose(0.762, -0.241, 0.0), 10.0);
     let deadline = Instant::now() + Duration::from_secs(10);
     let result = loop {
         match rig.goto(&boulder, timeout).await {
@@ -946,11 +943,7 @@ async fn goto_drives_to_a_free_pose_on_tracker_poses() {
     };
     let mut rig = Rig::start("goto-drive", config).await;
     let live = rig.track(pose(-0.2, 0.2, 0.0), true);
-    let request = GotoRequest {
-        seq: 77,
-        target: pose(0.1, 0.35, 0.5),
-        timeout_s: 25.0,
-    };
+    let request = goto_request(77, pose(0.1, 0.35, 0.5), 25.0);
     let reply = rig.goto_when_tracked(&request).await.expect("goto reply");
     assert_eq!(reply.seq, 77);
     let (target, achieved) = (request.target, reply.achieved);
@@ -1019,11 +1012,7 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
     let gap = PROMPTLY + Duration::from_millis(700);
 
     // A heartbeat gap (the controller late, its token still there).
-    let request = GotoRequest {
-        seq: 81,
-        target: pose(0.1, 0.35, 0.5),
-        timeout_s: 25.0,
-    };
+    let request = goto_request(81, pose(0.1, 0.35, 0.5), 25.0);
     let (reply, (cut, resumed)) = tokio::join!(
         rig.goto_when_tracked(&request),
         rig.gap_while_moving(&rig.beating, gap)
@@ -1042,11 +1031,7 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
 
     // A tracker gap.
     rig.robot.clear();
-    let request = GotoRequest {
-        seq: 82,
-        target: pose(-0.2, 0.2, 0.0),
-        timeout_s: 25.0,
-    };
+    let request = goto_request(82, pose(-0.2, 0.2, 0.0), 25.0);
     let (reply, (cut, resumed)) = tokio::join!(
         rig.goto_when_tracked(&request),
         rig.gap_while_moving(&rig.tracking, gap)
@@ -1057,11 +1042,7 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
     assert!(miss < 0.1, "arrived: {:?}", reply.achieved);
 
     // A tracker gap past the hold limit.
-    let request = GotoRequest {
-        seq: 83,
-        target: pose(0.1, 0.35, 0.5),
-        timeout_s: 25.0,
-    };
+    let request = goto_request(83, pose(0.1, 0.35, 0.5), 25.0);
     // (Tracked now: no retry, the Unavailable is the hold's.)
     let (result, _) = tokio::join!(
         rig.goto(&request, Duration::from_secs(30)),
@@ -1076,11 +1057,7 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
 
     // Held by a heartbeat gap, then the controller's token vanishes: the
     // drive ends on that, not on the hold limit.
-    let request = GotoRequest {
-        seq: 84,
-        target: pose(-0.2, 0.2, 0.0),
-        timeout_s: 25.0,
-    };
+    let request = goto_request(84, pose(-0.2, 0.2, 0.0), 25.0);
     let token = rig.token.take().expect("token");
     let drive = async {
         // Retried while the tracker poses are coming back after the gap.
@@ -1154,11 +1131,7 @@ async fn an_estop_survives_an_agent_restart() {
         }
     }
     assert!(!moved(&rig.robot.sent()), "no motion after the restart");
-    let request = GotoRequest {
-        seq: 9,
-        target: pose(0.5, 0.5, 0.0),
-        timeout_s: 10.0,
-    };
+    let request = goto_request(9, pose(0.5, 0.5, 0.0), 10.0);
     let refused = rig.goto(&request, Duration::from_secs(5)).await;
     let err = assert_code(
         refused,
