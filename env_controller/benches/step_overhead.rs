@@ -1,30 +1,24 @@
 //! What the controller + Zenoh add to a step on loopback, side by side with
 //! the floor: a raw Zenoh get/reply carrying the same observation bytes.
 //!
-//! overhead = median(step round trip) − median(twin compute for the same
-//! actions, measured in-process), and the same paired step by step. The floor is reported twice: in a tight
-//! loop, and interleaved with the steps (raw, step, compute, raw, …). Run:
-//! `cargo bench -p offworld-env-controller --bench step_overhead`
+//! Each step's overhead is its round trip minus the compute the twin itself
+//! measured for it (physics + render, `TwinNode::stats`). The floor is
+//! measured in a tight loop and interleaved with the steps (raw, step, raw,
+//! …), so slow spells of a shared machine hit both alike; the ratio and the
+//! µs above the floor are also taken per step against the floor run just
+//! before it. Run: `cargo bench -p offworld-env-controller --bench step_overhead`
 
 use std::time::{Duration, Instant};
 
 use offworld_env_controller::embedded::{Embedded, SimEnv};
-use offworld_env_controller::episode::SpawnSampler;
-use offworld_env_controller::{Store, Task};
+use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::EnvId;
-use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig};
 
 const STEPS: usize = 300;
 const WARMUP: usize = 20;
-const ACTIONS: [(f64, f64, f64); 4] = [
-    (0.07, 1.25, 1.2),
-    (0.07, -1.25, 1.2),
-    (0.1, 0.0, 0.6),
-    (-0.1, 0.0, 0.6),
-];
 
 /// The `q`-quantile (0..=1) of `v`.
 fn quantile(v: &[f64], q: f64) -> f64 {
@@ -83,7 +77,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
         resolution: Some((w, h)),
         seed: 0,
     };
-    let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
+    let embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {
         channels: Channels::Rgbd,
         height: h,
@@ -99,20 +93,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
 
-    // The twin's compute alone, in-process, replaying the controller's
-    // episodes: the spawn for seed 0 and the same action stream (render
-    // cost depends on the pose, so the poses must match).
-    let task = Task::by_name("MonolithDiscrete")?;
-    let spawn = SpawnSampler::new(0).sample(&task).expect("spawn");
-    let spawn = PlanarPose {
-        x: spawn.x as f32,
-        y: spawn.y as f32,
-        yaw: spawn.yaw as f32,
-    };
-    let mut config = TwinConfig::builtin("monolith")?;
-    config.resolution = Some((w, h));
-    let mut twin = SimTwin::new(config)?;
-    twin.teleport(spawn)?;
+    let twin = &embedded.twins[0];
 
     for _ in 0..WARMUP {
         raw_round_trip().await?;
@@ -127,55 +108,61 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     let (mut raw, mut full, mut compute) = (Vec::new(), Vec::new(), Vec::new());
     for i in 0..STEPS {
         raw.push(raw_round_trip().await?);
+        let before = twin.stats();
         let start = Instant::now();
         let r = gym
             .step(Action::Discrete((i % 4) as i64))
             .await
             .map_err(|e| anyhow::anyhow!(e))?;
         full.push(start.elapsed().as_secs_f64() * 1e6);
+        let after = twin.stats();
         anyhow::ensure!(r.observation.data.len() == obs_bytes);
-        let (v, a, d) = ACTIONS[i % 4];
-        let start = Instant::now();
-        twin.execute(v, a, d)?;
-        twin.render();
-        compute.push(start.elapsed().as_secs_f64() * 1e6);
+        anyhow::ensure!(
+            after.answered == before.answered + 1,
+            "the twin answered {} commands in one step",
+            after.answered - before.answered
+        );
+        compute.push((after.compute - before.compute).as_secs_f64() * 1e6);
         if r.terminated || r.truncated {
             gym.reset(Seed::Fixed(0))
                 .await
                 .map_err(|e| anyhow::anyhow!(e))?;
-            twin.teleport(spawn)?;
         }
     }
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     server_task.abort();
 
     let median = |v: &[f64]| quantile(v, 0.5);
-    let (hot, raw_m) = (median(&raw_hot), median(&raw));
-    let (compute_m, full_m) = (median(&compute), median(&full));
-    let overhead = full_m - compute_m;
+    let overhead: Vec<f64> = (0..STEPS).map(|i| full[i] - compute[i]).collect();
+    let (hot, raw_m, overhead_m) = (median(&raw_hot), median(&raw), median(&overhead));
     println!("step overhead at {w}x{h} RGBD uint8 ({obs_bytes} B observations), loopback TCP, medians of {STEPS}:");
     println!("  floor: raw zenoh get/reply, tight loop      : {hot:8.0} µs");
     println!("  floor: raw zenoh get/reply, between steps   : {raw_m:8.0} µs");
-    println!("  full step via controller + twin             : {full_m:8.0} µs");
-    println!("  twin compute (physics + render), in-process : {compute_m:8.0} µs");
-    println!("  controller + zenoh overhead = full − compute: {overhead:8.0} µs");
+    println!(
+        "  full step via controller + twin             : {:8.0} µs",
+        median(&full)
+    );
+    println!(
+        "  twin compute (physics + render), in the twin: {:8.0} µs",
+        median(&compute)
+    );
+    println!("  controller + zenoh overhead = full − compute: {overhead_m:8.0} µs");
     for (name, floor) in [("tight-loop", hot), ("between-steps", raw_m)] {
         println!(
             "    vs the {name} floor: {:.2}×, {:.0} µs above it",
-            overhead / floor,
-            overhead - floor
+            overhead_m / floor,
+            overhead_m - floor
         );
     }
-    // Paired per step (step i's compute replays step i's pose, its floor
-    // ran just before it): a slow spell then hits both sides of a pair.
-    let pairs = |f: fn(f64, f64, f64) -> f64| -> Vec<f64> {
-        (0..STEPS).map(|i| f(full[i], compute[i], raw[i])).collect()
+    // Against the floor run just before each step: a slow spell then hits
+    // both sides of a pair.
+    let paired = |f: fn(f64, f64) -> f64| -> Vec<f64> {
+        (0..STEPS).map(|i| f(overhead[i], raw[i])).collect()
     };
-    let paired = median(&pairs(|f, c, _| f - c));
-    let ratio = median(&pairs(|f, c, r| (f - c) / r));
-    let above = median(&pairs(|f, c, r| f - c - r));
     println!(
-        "  paired per step: overhead {paired:.0} µs, {ratio:.2}× its between-steps floor, {above:.0} µs above it"
+        "  paired per step: {:.2}× its between-steps floor, {:.0} µs above it",
+        median(&paired(|o, r| o / r)),
+        median(&paired(|o, r| o - r))
     );
     Ok(())
 }

@@ -31,7 +31,7 @@ pub mod twin;
 
 pub use enclosure::{EmulatedEnclosure, EnclosureConfig};
 pub use error::SimError;
-pub use node::{Clock, TwinNode};
+pub use node::{Clock, TwinNode, TwinStats};
 /// World definitions live in the contract (shared with the controller and agents).
 pub use offworld_runtime::world;
 pub use offworld_runtime::WorldSpec;

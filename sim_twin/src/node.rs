@@ -14,7 +14,9 @@
 //! and publishes tracker poses at the tracker rate (behaves like hardware).
 //! The simulation runs on its own named thread; Zenoh callbacks only enqueue.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
+use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -61,10 +63,47 @@ pub const OVERHEAD_CAMERA: &str = "top";
 /// Bound of the event queue (commands arrive one per step).
 const QUEUE: usize = 256;
 
+/// What a twin node's simulation thread has done so far.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TwinStats {
+    /// Commands answered with a frame.
+    pub answered: u64,
+    /// Time spent computing those answers: simulating the command (lockstep
+    /// clock only; the real-time clock paces physics by the wall) and
+    /// rendering its frame. Publishing is not included. A step's time minus
+    /// this is what Zenoh and the controller add.
+    pub compute: Duration,
+}
+
+/// [`TwinStats`] shared with the simulation thread.
+#[derive(Debug, Default)]
+struct StatCounters {
+    answered: AtomicU64,
+    compute_ns: AtomicU64,
+}
+
+impl StatCounters {
+    fn record(&self, compute: Duration) {
+        let ns = u64::try_from(compute.as_nanos()).unwrap_or(u64::MAX);
+        self.compute_ns.fetch_add(ns, Ordering::Relaxed);
+        // Release: whoever sees the count also sees its compute time.
+        self.answered.fetch_add(1, Ordering::Release);
+    }
+
+    fn read(&self) -> TwinStats {
+        let answered = self.answered.load(Ordering::Acquire);
+        TwinStats {
+            answered,
+            compute: Duration::from_nanos(self.compute_ns.load(Ordering::Relaxed)),
+        }
+    }
+}
+
 /// A running twin node; stops when dropped.
 pub struct TwinNode {
     env: EnvId,
     events: SyncSender<Event>,
+    stats: Arc<StatCounters>,
     thread: Option<JoinHandle<()>>,
     _declarations: Declarations,
 }
@@ -131,7 +170,8 @@ impl TwinNode {
             .declare_token(env.alive_key(Component::SimTwin))
             .wait()
             .map_err(zerr)?;
-        let worker = Worker::new(session.clone(), env.clone(), twin, clock)?;
+        let stats = Arc::new(StatCounters::default());
+        let worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
         let thread = std::thread::Builder::new()
             .name(format!("sim_twin/{env}"))
             .spawn(move || worker.run(rx))
@@ -139,6 +179,7 @@ impl TwinNode {
         Ok(Self {
             env,
             events: tx,
+            stats,
             thread: Some(thread),
             _declarations: Declarations {
                 _cmd: cmd,
@@ -153,6 +194,13 @@ impl TwinNode {
     /// The env served.
     pub fn env(&self) -> &EnvId {
         &self.env
+    }
+
+    /// What the simulation thread has done so far. Counted before the
+    /// answer is published: once a command's frame has been received, its
+    /// compute time is in here.
+    pub fn stats(&self) -> TwinStats {
+        self.stats.read()
     }
 }
 
@@ -209,6 +257,7 @@ struct Worker {
     frames: FramePayloads,
     rejected: u64,
     overhead: Option<OverheadStream>,
+    stats: Arc<StatCounters>,
 }
 
 /// Declared once: a declared publisher skips the per-put key resolution.
@@ -222,7 +271,13 @@ struct Publishers {
 }
 
 impl Worker {
-    fn new(session: Session, env: EnvId, twin: SimTwin, clock: Clock) -> Result<Self, SimError> {
+    fn new(
+        session: Session,
+        env: EnvId,
+        twin: SimTwin,
+        clock: Clock,
+        stats: Arc<StatCounters>,
+    ) -> Result<Self, SimError> {
         let declare = |topic: Topic, delivery: Delivery| {
             wire::publisher(&session, env.key(topic), delivery)
                 .wait()
@@ -248,6 +303,7 @@ impl Worker {
             publishers,
             frames: FramePayloads::new(),
             rejected: 0,
+            stats,
         })
     }
 
@@ -265,12 +321,13 @@ impl Worker {
             match event {
                 Event::Command(sample) => {
                     if let Some(cmd) = self.decode_command(&sample) {
+                        let started = Instant::now();
                         let (v, w) = self.allowed(&cmd);
                         if let Err(e) = self.twin.execute(v, w, cmd.duration_s) {
                             self.reject(&e);
                             continue;
                         }
-                        self.answer(cmd.seq);
+                        self.answer(cmd.seq, started);
                     }
                 }
                 Event::Goto(query) => self.goto(&query),
@@ -341,7 +398,7 @@ impl Worker {
                 if self.twin.physics().time() - sim_start >= m.drive_until && stopped {
                     let seq = m.seq;
                     motion = None;
-                    self.answer(seq);
+                    self.answer(seq, Instant::now());
                 }
             }
             if now >= next_pose {
@@ -426,15 +483,18 @@ impl Worker {
     }
 
     /// Publishes the pose and the camera frames answering `seq`, then the
-    /// odometry (the controller waits for the first two only).
-    fn answer(&mut self, seq: u64) {
+    /// odometry (the controller waits for the first two only). The compute
+    /// for it began at `compute_started`.
+    fn answer(&mut self, seq: u64, compute_started: Instant) {
         let stamp = Time::now();
         let tag = SeqTag { seq };
         let pose = ros_out::world_pose(&self.twin.tracker_reading(), Time::now());
-        publish(&self.publishers.pose, &pose, tag);
         // Rendered into its payload: a local controller reads these very
         // bytes, and hands the buffer back when done.
-        match self.frames.render(&mut self.twin, seq, stamp) {
+        let frame = self.frames.render(&mut self.twin, seq, stamp);
+        self.stats.record(compute_started.elapsed());
+        publish(&self.publishers.pose, &pose, tag);
+        match frame {
             Ok(payload) => {
                 if let Err(e) = self.publishers.obs.put(payload).wait() {
                     tracing::warn!("obs put failed: {e}");

@@ -141,8 +141,9 @@ fn planar(p: &PoseStamped) -> (f64, f64, f64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn commands_in_frames_and_poses_out_with_matching_seq() {
-    let (_node, client, _server) = setup("monolith", (64, 48)).await;
+    let (node, client, _server) = setup("monolith", (64, 48)).await;
     let (frame, pose0, _) = client.connect().await;
+    let connected = node.stats();
     assert_eq!((frame.color.width, frame.color.height), (64, 48));
     assert_eq!(frame.color.validate(), Ok(PixelEncoding::Rgb8));
     assert_eq!(frame.depth.validate(), Ok(PixelEncoding::Depth32FC1));
@@ -170,6 +171,11 @@ async fn commands_in_frames_and_poses_out_with_matching_seq() {
     let (_, pose, _) = client.answer(8).await.expect("answer to seq 8");
     let turned = pose.pose.orientation.yaw() - yaw0;
     assert!((turned - 1.5).abs() < 0.1, "turned {turned}");
+    // Both answers were counted before they were published, with the time
+    // spent simulating and rendering them.
+    let stats = node.stats();
+    assert_eq!(stats.answered, connected.answered + 2);
+    assert!(stats.compute > connected.compute);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -199,8 +205,9 @@ async fn an_overhead_view_is_streamed_for_spectators() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
-    let (_node, client, _server) = setup("monolith_obstacle", (32, 24)).await;
+    let (node, client, _server) = setup("monolith_obstacle", (32, 24)).await;
     client.connect().await;
+    let connected = node.stats();
     let goto_key = client.env.key(Topic::Goto);
     let request = GotoRequest {
         seq: 3,
@@ -266,6 +273,8 @@ async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
         (x - 0.5).abs() < 0.01 && (y + 0.6).abs() < 0.01,
         "nothing moved the robot"
     );
+    // Only seq 11 was answered: gotos and rejected commands are not counted.
+    assert_eq!(node.stats().answered, connected.answered + 1);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
