@@ -14,13 +14,14 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
+use offworld_runtime::zenoh::query::Query;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
 use rand::Rng;
 use tokio::sync::Mutex as AsyncMutex;
 
-use crate::episode::{judge, EndReason, SpawnSampler};
-use crate::link::{Answer, LinkTimeouts, ObservationRequest, RobotLink};
+use crate::episode::{judge, EndReason, Outcome, SpawnSampler};
+use crate::link::{Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink};
 use crate::observation::{shape, validate_options};
 use crate::store::{
     now_ms, BookingRules, EpisodeRecord, Experiment, SlotAt, Store, User, ANONYMOUS,
@@ -93,7 +94,8 @@ struct State {
 /// One env: its task, robot link, state and store.
 pub struct EnvServer {
     env: EnvId,
-    task: Task,
+    /// Shared with the replies sent where a step's frame is received.
+    task: Arc<Task>,
     options: EnvOptions,
     session: Session,
     /// Episode events for spectators, published on every step.
@@ -131,7 +133,7 @@ impl EnvServer {
             .map_err(|e| crate::ControllerError::Zenoh(e.to_string()))?;
         Ok(Self {
             env,
-            task,
+            task: Arc::new(task),
             options,
             events,
             session: session.clone(),
@@ -431,14 +433,16 @@ impl EnvServer {
             duration_s: 0.0,
         };
         let obs = self.holder(&mut state, &req.session_id)?.obs;
-        let answer = self
+        let answered = self
             .link
-            .execute(&observe, self.observation_request(obs))
+            .execute(&observe, self.observation_request(obs), None)
+            .await?
+            .complete()
             .await?;
         let lease = self.holder(&mut state, &req.session_id)?;
         let index = lease.experiment.episodes;
         let experiment = lease.experiment.name.clone();
-        let achieved = answer.pose.planar();
+        let achieved = answered.pose().planar();
         tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, "reset");
         state.episode = Some(Episode {
             index,
@@ -457,20 +461,11 @@ impl EnvServer {
             },
             observation: shape(&obs),
         };
-        let reply = Self::observe(&reply, answer).await?;
+        let reply = with_observation(&reply, answered)?
+            .ok_or_else(|| WireError::internal("a reset was replied where its frame arrived"))?;
         self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
             .await;
         Ok(reply)
-    }
-
-    /// Encodes `reply` with the observation built from the answer's frame
-    /// as its last field.
-    async fn observe<T: serde::Serialize>(
-        reply: &T,
-        answer: Answer,
-    ) -> Result<Encoded<T>, WireError> {
-        let data = answer.observation().await?;
-        codec::encode_with_tail(reply, data).map_err(|e| WireError::internal(e.to_string()))
     }
 
     /// What to build from the frames answering the lease holder's commands.
@@ -481,8 +476,15 @@ impl EnvServer {
         }
     }
 
-    /// `step`: act, observe, judge.
-    pub async fn step(&self, req: StepRequest) -> Result<Encoded<StepReply>, WireError> {
+    /// `step`: act, observe, judge. Given its `query`, the reply is sent
+    /// from where the robot's answer is received when it can be (not for
+    /// an episode's last step, which is recorded first), and this returns
+    /// `None`; otherwise the reply to send.
+    pub async fn step(
+        &self,
+        req: StepRequest,
+        query: Option<Query>,
+    ) -> Result<Option<Encoded<StepReply>>, WireError> {
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
         let lease = self.holder(&mut state, &req.session_id)?;
@@ -490,47 +492,48 @@ impl EnvServer {
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!("in maintenance: {message}")));
         }
-        match &state.episode {
+        let (index, step) = match &state.episode {
             None => return Err(WireError::invalid_state("call reset() before step()")),
             Some(e) if e.over => {
                 return Err(WireError::invalid_state(
                     "the episode has ended; call reset()",
                 ))
             }
-            Some(_) => {}
-        }
+            Some(e) => (e.index, e.steps + 1),
+        };
         let motion = self.task.motion(&req.action, state.seq + 1)?;
         state.seq += 1;
         let request = self.observation_request(obs);
-        let answer = match self.link.execute(&motion, request).await {
+        let judged = JudgedStep {
+            task: self.task.clone(),
+            seq: req.seq,
+            episode_id: index,
+            step,
+            obs,
+        };
+        let reply_here = query.map(|query| judged.clone().reply_where_received(query));
+        let answered = match self.link.execute(&motion, request, reply_here).await {
+            Ok(answer) => answer.complete().await,
+            Err(e) => Err(e),
+        };
+        let answered = match answered {
             Ok(a) => a,
             Err(e) => {
-                // The robot is stopped by the link; the episode cannot be scored.
+                // The step cannot be scored, so neither can the episode (a
+                // robot that did not answer has been stopped by the link).
                 self.abort_episode(&mut state, &format!("aborted: {}", e.message))
                     .await;
                 return Err(e);
             }
         };
-        let pose = answer.pose.planar();
+        let (outcome, reply) = judged.judge(&answered.pose().planar());
         let Some(episode) = state.episode.as_mut() else {
             return Err(WireError::internal("episode vanished"));
         };
-        episode.steps += 1;
-        let outcome = judge(&self.task, pose.x, pose.y, episode.steps);
+        episode.steps = step;
         episode.episode_return += outcome.reward;
-        let (index, steps, ret) = (episode.index, episode.steps, episode.episode_return);
-        let reply = StepReply {
-            seq: req.seq,
-            reward: outcome.reward,
-            terminated: outcome.terminated,
-            truncated: outcome.truncated,
-            info: StepInfo {
-                episode_id: index,
-                step: steps,
-            },
-            observation: shape(&obs),
-        };
-        let reply = Self::observe(&reply, answer).await?;
+        let (steps, ret) = (episode.steps, episode.episode_return);
+        let reply = with_observation(&reply, answered)?;
         self.publish_event(
             &experiment,
             index,
@@ -780,6 +783,72 @@ impl EnvServer {
         if let Err(e) = wire::publish(&self.events, &event) {
             tracing::warn!("reward publish failed: {e}");
         }
+    }
+}
+
+/// Encodes `reply` with the observation as its last field; `None` if the
+/// reply was already sent where the frame was received.
+fn with_observation<T: serde::Serialize>(
+    reply: &T,
+    answered: Answered,
+) -> Result<Option<Encoded<T>>, WireError> {
+    match answered {
+        Answered::Observation { data, .. } => codec::encode_with_tail(reply, data)
+            .map(Some)
+            .map_err(|e| WireError::internal(e.to_string())),
+        Answered::Replied { .. } => Ok(None),
+    }
+}
+
+/// What a step's reply says, given the pose it reached: one definition for
+/// the reply sent from the step's task and the one sent where its frame is
+/// received.
+#[derive(Clone)]
+struct JudgedStep {
+    task: Arc<Task>,
+    /// The client's request number.
+    seq: u64,
+    episode_id: u64,
+    /// This step's number in the episode (1-based).
+    step: u32,
+    obs: ObsOptions,
+}
+
+impl JudgedStep {
+    fn judge(&self, pose: &Pose2D) -> (Outcome, StepReply) {
+        let outcome = judge(&self.task, pose.x, pose.y, self.step);
+        let reply = StepReply {
+            seq: self.seq,
+            reward: outcome.reward,
+            terminated: outcome.terminated,
+            truncated: outcome.truncated,
+            info: StepInfo {
+                episode_id: self.episode_id,
+                step: self.step,
+            },
+            observation: shape(&self.obs),
+        };
+        (outcome, reply)
+    }
+
+    /// Replies to `query` where the frame is received, unless the episode
+    /// ends (its record is written before the reply).
+    fn reply_where_received(self, query: Query) -> ReplyWhereReceived {
+        Box::new(move |pose, data| {
+            let (outcome, reply) = self.judge(&pose.planar());
+            if outcome.end.is_some() {
+                return Err(data);
+            }
+            match codec::encode_with_tail(&reply, data.clone()) {
+                Ok(encoded) => {
+                    if let Err(e) = wire::reply_encoded_now(&query, Ok(encoded)) {
+                        tracing::warn!(key = %query.key_expr(), "step reply failed: {e}");
+                    }
+                    Ok(())
+                }
+                Err(_) => Err(data),
+            }
+        })
     }
 }
 

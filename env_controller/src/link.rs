@@ -103,35 +103,118 @@ pub struct ObservationRequest {
     pub depth_max_m: f32,
 }
 
+/// Sends the reply to a command's request from the thread that receives the
+/// command's frame, given the pose tagged with the command and the built
+/// observation; gives the observation back to leave the reply to the caller.
+/// Saves the caller's task a wake-up on the way to the client.
+pub type ReplyWhereReceived = Box<dyn FnOnce(&PoseSample, ZBytes) -> Result<(), ZBytes> + Send>;
+
 /// A command's observation, built where its frame is received.
 struct PendingObservation {
     seq: u64,
     request: ObservationRequest,
-    built: oneshot::Sender<Result<ZBytes, WireError>>,
+    reply: Option<ReplyWhereReceived>,
+    built: oneshot::Sender<Built>,
+}
+
+/// What the frame's thread did with a command's observation.
+enum Built {
+    /// Built (or failed to): the caller replies.
+    Observation(Result<ZBytes, WireError>),
+    /// Built and sent as the reply, judged from this pose.
+    Replied(PoseSample),
+}
+
+impl PendingObservation {
+    /// Builds the observation from `frame`; replies with it too if the
+    /// caller asked to and the pose tagged with this command is in (a
+    /// tracker's untagged poses come after the frame: never here).
+    fn complete(
+        self,
+        frame: &Frame,
+        buffers: &BufferPool,
+        pose: Option<PoseSample>,
+        tracking_lost: bool,
+    ) {
+        let built = frame.build(&self.request, buffers);
+        let outcome = match (built, self.reply, pose) {
+            (Ok(data), Some(reply), Some(pose)) if pose.seq == Some(self.seq) && !tracking_lost => {
+                match reply(&pose, data) {
+                    Ok(()) => Built::Replied(pose),
+                    Err(data) => Built::Observation(Ok(data)),
+                }
+            }
+            (built, _, _) => Built::Observation(built),
+        };
+        // The step may have given up: nobody to tell.
+        let _ = self.built.send(outcome);
+    }
 }
 
 /// The command waiting for its observation, if any.
 type Pending = Arc<std::sync::Mutex<Option<PendingObservation>>>;
 
-/// What answered a command.
+/// Locks the pending slot; a panic elsewhere while it was held leaves
+/// nothing half-done in it (it is only ever replaced or taken).
+fn lock(pending: &Pending) -> std::sync::MutexGuard<'_, Option<PendingObservation>> {
+    pending
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// What answered a command: its pose, and its observation once built.
 pub struct Answer {
-    /// The camera frames captured after the motion.
-    pub frame: Arc<Frame>,
+    pose: PoseSample,
+    built: oneshot::Receiver<Built>,
+    /// To build the observation here if the frame's thread did not; `None`
+    /// once that thread has taken the request.
+    fallback: Option<(Arc<Frame>, ObservationRequest, BufferPool)>,
+}
+
+/// A command's answer, complete.
+pub enum Answered {
+    /// The observation, for the caller to reply with.
+    Observation {
+        /// The robot's pose after the motion.
+        pose: PoseSample,
+        /// The observation's data.
+        data: ZBytes,
+    },
+    /// Already replied where the frame was received (see
+    /// [`ReplyWhereReceived`]), judged from this pose.
+    Replied {
+        /// The robot's pose after the motion.
+        pose: PoseSample,
+    },
+}
+
+impl Answered {
     /// The robot's pose after the motion.
-    pub pose: PoseSample,
-    request: ObservationRequest,
-    observation: oneshot::Receiver<Result<ZBytes, WireError>>,
-    buffers: BufferPool,
+    pub fn pose(&self) -> &PoseSample {
+        match self {
+            Self::Observation { pose, .. } | Self::Replied { pose } => pose,
+        }
+    }
 }
 
 impl Answer {
-    /// The observation data built from the frame (see [`RobotLink::execute`]).
-    pub async fn observation(self) -> Result<ZBytes, WireError> {
-        match self.observation.await {
-            Ok(built) => built,
+    /// Waits for the observation (see [`RobotLink::execute`]).
+    pub async fn complete(self) -> Result<Answered, WireError> {
+        match self.built.await {
+            Ok(Built::Observation(data)) => Ok(Answered::Observation {
+                pose: self.pose,
+                data: data?,
+            }),
+            Ok(Built::Replied(pose)) => Ok(Answered::Replied { pose }),
             // Never built where received (cannot happen while one command
             // is in flight): build it here.
-            Err(_) => self.frame.build(&self.request, &self.buffers),
+            Err(_) => match self.fallback {
+                Some((frame, request, buffers)) => Ok(Answered::Observation {
+                    data: frame.build(&request, &buffers)?,
+                    pose: self.pose,
+                }),
+                None => Err(WireError::internal("the observation was never built")),
+            },
         }
     }
 }
@@ -188,24 +271,37 @@ impl RobotLink {
         let building = pending.clone();
         let observations = BufferPool::new();
         let buffers = observations.clone();
+        let (pose_tx, poses) = watch::channel(None::<PoseSample>);
+        let latest_pose = poses.clone();
+        let tracking_lost = Arc::new(AtomicBool::new(false));
+        let lost = tracking_lost.clone();
+        // The observation is built here, from the frame just received (still
+        // in this thread's cache; for a local twin, the very thread that
+        // rendered it).
         let obs = session
             .declare_subscriber(env.key(Topic::Obs))
             .callback(
                 move |sample: Sample| match Frame::accept(sample.payload()) {
                     Ok(frame) => {
                         let frame = Arc::new(frame);
-                        // The step wakes first and reads the pose while this
-                        // thread builds the observation from the frame it has
-                        // just received (still in its cache; for a local twin,
-                        // the very thread that rendered it).
-                        frame_tx.send_replace(Some(frame.clone()));
-                        let waiting = building
-                            .lock()
-                            .ok()
-                            .and_then(|mut p| p.take_if(|p| p.seq == frame.seq()));
-                        if let Some(p) = waiting {
-                            // The step may have given up: nobody to tell.
-                            let _ = p.built.send(frame.build(&p.request, &buffers));
+                        let waiting = lock(&building).take_if(|p| p.seq == frame.seq());
+                        match waiting {
+                            // Replied from here: the step learns it once the
+                            // reply is on its way.
+                            Some(p) if p.reply.is_some() => {
+                                let pose = latest_pose.borrow().clone();
+                                p.complete(&frame, &buffers, pose, lost.load(Ordering::SeqCst));
+                                frame_tx.send_replace(Some(frame));
+                            }
+                            // The step wakes first and reads the pose while
+                            // this thread builds.
+                            Some(p) => {
+                                frame_tx.send_replace(Some(frame.clone()));
+                                p.complete(&frame, &buffers, None, false);
+                            }
+                            None => {
+                                frame_tx.send_replace(Some(frame));
+                            }
                         }
                     }
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
@@ -219,7 +315,6 @@ impl RobotLink {
         })
         .await
         .map_err(zerr)?;
-        let (pose_tx, poses) = watch::channel(None);
         let pose = subscribe_decoded(
             session,
             env.key(Topic::Pose),
@@ -235,7 +330,6 @@ impl RobotLink {
         )
         .await
         .map_err(zerr)?;
-        let tracking_lost = Arc::new(AtomicBool::new(false));
         let lost = tracking_lost.clone();
         let tracking = subscribe_decoded(
             session,
@@ -310,11 +404,13 @@ impl RobotLink {
 
     /// Sends `cmd` and waits for the frame and pose answering it; the
     /// observation `request` asks for is built from that frame as it is
-    /// received, while the caller goes on ([`Answer::observation`]).
+    /// received, while the caller goes on ([`Answer::complete`]). With
+    /// `reply`, the reply is sent from there too when it can be.
     pub async fn execute(
         &self,
         cmd: &MotionCommand,
         request: ObservationRequest,
+        reply: Option<ReplyWhereReceived>,
     ) -> Result<Answer, WireError> {
         if self.tracking_lost.load(Ordering::SeqCst) {
             self.stop().await;
@@ -322,31 +418,51 @@ impl RobotLink {
                 "tracking lost: the robot's pose is unknown",
             ));
         }
-        let (built, observation) = oneshot::channel();
-        self.expect(Some(PendingObservation {
+        let (sender, built) = oneshot::channel();
+        self.expect(PendingObservation {
             seq: cmd.seq,
             request,
-            built,
-        }));
-        let answer = self.await_answer(cmd).await;
-        if answer.is_err() {
-            self.expect(None);
+            reply,
+            built: sender,
+        });
+        match self.await_answer(cmd).await {
+            Ok((frame, pose)) => Ok(Answer {
+                pose,
+                built,
+                fallback: Some((frame, request, self.observations.clone())),
+            }),
+            Err(e) => {
+                if self.take_expected(cmd.seq) {
+                    return Err(e);
+                }
+                // The frame arrived as this gave up (a timeout or a tracking
+                // loss racing it): if its thread replied, the client has
+                // the step, so the step stands.
+                match built.await {
+                    Ok(Built::Replied(pose)) => {
+                        let (sender, built) = oneshot::channel();
+                        let _ = sender.send(Built::Replied(pose.clone()));
+                        Ok(Answer {
+                            pose,
+                            built,
+                            fallback: None,
+                        })
+                    }
+                    _ => Err(e),
+                }
+            }
         }
-        let (frame, pose) = answer?;
-        Ok(Answer {
-            frame,
-            pose,
-            request,
-            observation,
-            buffers: self.observations.clone(),
-        })
+    }
+
+    /// Withdraws the request for `seq`'s observation; false if the frame's
+    /// thread has already taken it.
+    fn take_expected(&self, seq: u64) -> bool {
+        lock(&self.pending).take_if(|p| p.seq == seq).is_some()
     }
 
     /// Sets the observation to build from the next matching frame.
-    fn expect(&self, pending: Option<PendingObservation>) {
-        if let Ok(mut slot) = self.pending.lock() {
-            *slot = pending;
-        }
+    fn expect(&self, pending: PendingObservation) {
+        *lock(&self.pending) = Some(pending);
     }
 
     async fn await_answer(

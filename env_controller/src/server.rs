@@ -191,8 +191,9 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
             .await
         }
         Topic::Step => {
-            respond_encoded(query, async {
-                server.step(wire::decode_query::<StepRequest>(query)?).await
+            respond_unless_sent(query, async {
+                let req = wire::decode_query::<StepRequest>(query)?;
+                server.step(req, Some(query.clone())).await
             })
             .await
         }
@@ -242,9 +243,21 @@ async fn respond_encoded<T>(
     query: &Query,
     work: impl std::future::Future<Output = Result<Encoded<T>, WireError>>,
 ) -> Result<(), offworld_runtime::RequestError> {
-    let result = work.await;
-    if let Err(e) = &result {
-        tracing::debug!(key = %query.key_expr(), "request refused: {e}");
-    }
+    respond_unless_sent(query, async { work.await.map(Some) }).await
+}
+
+/// [`respond_encoded`] for a handler that may have replied itself (`None`).
+async fn respond_unless_sent<T>(
+    query: &Query,
+    work: impl std::future::Future<Output = Result<Option<Encoded<T>>, WireError>>,
+) -> Result<(), offworld_runtime::RequestError> {
+    let result = match work.await {
+        Ok(None) => return Ok(()),
+        Ok(Some(reply)) => Ok(reply),
+        Err(e) => {
+            tracing::debug!(key = %query.key_expr(), "request refused: {e}");
+            Err(e)
+        }
+    };
     wire::reply_encoded(query, result).await
 }

@@ -4,9 +4,13 @@
 //! faults of other commands and malformed faults are ignored; the
 //! observation is built from the command's own frame, never a stale one.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
-use offworld_env_controller::link::{Answer, LinkTimeouts, ObservationRequest, RobotLink};
+use offworld_env_controller::link::{
+    Answer, Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink,
+};
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, Channels, DepthFormat, Header, Image, MotionCommand, MotionFault, ObsOptions,
@@ -57,7 +61,7 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
     );
 
     // The link keeps serving: the next command fails with its own fault.
-    let Err(err) = link.execute(&command(50, 0.1, 0.5), rgbd(2, 2)).await else {
+    let Err(err) = link.execute(&command(50, 0.1, 0.5), rgbd(2, 2), None).await else {
         panic!("command 50 was answered")
     };
     assert_eq!(err.code, ErrorCode::Unavailable);
@@ -115,13 +119,12 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
         .expect("robot's cmd subscriber");
 
     let (seq, answer) = first_heard(&link, 10, 0.0, 0.0).await;
-    let answer = answer.expect("answered");
-    assert_eq!(answer.frame.seq(), seq);
-    assert_eq!(answer.pose.seq, Some(seq));
+    let (pose, data) = observation(answer.expect("answered")).await;
+    assert_eq!(pose, Some(seq));
     let c = seq as u8;
     // 1 m of 0–5 m is level 51; no return is 0.
     assert_eq!(
-        answer.observation().await.expect("observation").to_bytes(),
+        data,
         [c, c, c, 51, c, c, c, 51, c, c, c, 0, c, c, c, 51].as_slice()
     );
 
@@ -129,18 +132,142 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
     let mut depth_only = rgbd(1, 1);
     depth_only.options.channels = Channels::DepthOnly;
     let answer = link
-        .execute(&command(seq + 1, 0.0, 0.0), depth_only)
+        .execute(&command(seq + 1, 0.0, 0.0), depth_only, None)
         .await
         .expect("answered");
-    assert_eq!(answer.frame.seq(), seq + 1);
     // Sampled at the source pixel nearest the centre: (1, 1).
-    let observation = answer.observation().await.expect("observation");
-    assert_eq!(observation.to_bytes(), [51].as_slice());
+    assert_eq!(observation(answer).await, (Some(seq + 1), vec![51]));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_reply_is_sent_where_the_frame_arrives_only_with_a_tagged_pose() {
+    let (link, controller, robot, env) = connect_with_session("reply-link").await;
+
+    // The robot: commands below 100 get a pose tagged with them, then their
+    // frame (a twin); the others their frame, then untagged poses at 50 Hz
+    // (a robot and its tracker).
+    let obs = wire::publisher(&robot, env.key(Topic::Obs), Delivery::Every)
+        .await
+        .expect("obs publisher");
+    let pose = Arc::new(
+        wire::publisher(&robot, env.key(Topic::Pose), Delivery::Every)
+            .await
+            .expect("pose publisher"),
+    );
+    let _robot_cmd = robot
+        .declare_subscriber(env.key(Topic::Cmd))
+        .callback(move |sample: Sample| {
+            let Ok(cmd) = codec::decode_payload::<MotionCommand>(sample.payload()) else {
+                return;
+            };
+            if cmd.seq < 100 {
+                let tag = SeqTag { seq: cmd.seq };
+                let _ = wire::publish_tagged(&pose, &PoseStamped::default(), tag);
+                let _ = wire::publish(&obs, &frame(cmd.seq));
+            } else {
+                let _ = wire::publish(&obs, &frame(cmd.seq));
+                let tracker = pose.clone();
+                std::thread::spawn(move || {
+                    for _ in 0..10 {
+                        std::thread::sleep(Duration::from_millis(20));
+                        let _ = wire::publish(&tracker, &PoseStamped::default());
+                    }
+                });
+            }
+        })
+        .await
+        .expect("robot's cmd subscriber");
+    let (seq, answer) = first_heard(&link, 20, 0.0, 0.0).await;
+    answer.expect("answered");
+
+    // A client's request, answered from the thread that gets the frame: the
+    // client receives the observation, the caller learns the pose used.
+    let step_key = env.key(Topic::Step);
+    let queries = controller
+        .declare_queryable(&step_key)
+        .await
+        .expect("queryable");
+    // Until the queryable is known to the client's session, a get matches
+    // nothing: bounded attempts.
+    let mut attempt = None;
+    for _ in 0..50 {
+        let replies = robot.get(&step_key).await.expect("get");
+        let arrived = tokio::time::timeout(Duration::from_millis(100), queries.recv_async());
+        if let Ok(Ok(query)) = arrived.await {
+            attempt = Some((replies, query));
+            break;
+        }
+    }
+    let (replies, query) = attempt.expect("the query never arrived");
+    let reply: ReplyWhereReceived = Box::new(move |_pose, data| {
+        query
+            .reply(query.key_expr().clone(), data)
+            .wait()
+            .expect("reply");
+        Ok(())
+    });
+    let answer = link
+        .execute(&command(seq + 1, 0.0, 0.0), rgbd(2, 2), Some(reply))
+        .await
+        .expect("answered");
+    match answer.complete().await.expect("complete") {
+        Answered::Replied { pose } => assert_eq!(pose.seq, Some(seq + 1)),
+        Answered::Observation { .. } => panic!("not replied where the frame arrived"),
+    }
+    let received = tokio::time::timeout(Duration::from_secs(5), replies.recv_async())
+        .await
+        .expect("reply in time")
+        .expect("reply");
+    let c = (seq + 1) as u8;
+    assert_eq!(
+        received.result().expect("ok").payload().to_bytes(),
+        [c, c, c, 51, c, c, c, 51, c, c, c, 0, c, c, c, 51].as_slice()
+    );
+    drop(queries);
+
+    // A reply that declines leaves the observation to the caller.
+    let declined: ReplyWhereReceived = Box::new(|_pose, data| Err(data));
+    let answer = link
+        .execute(&command(seq + 2, 0.0, 0.0), rgbd(1, 1), Some(declined))
+        .await
+        .expect("answered");
+    assert_eq!(
+        observation(answer).await,
+        (Some(seq + 2), vec![c + 1, c + 1, c + 1, 51])
+    );
+
+    // Without a pose tagged with the command, the reply is never attempted.
+    let attempted = Arc::new(AtomicBool::new(false));
+    let flag = attempted.clone();
+    let untagged: ReplyWhereReceived = Box::new(move |_pose, _data| {
+        flag.store(true, Ordering::SeqCst);
+        Ok(())
+    });
+    let answer = link
+        .execute(&command(100, 0.0, 0.0), rgbd(1, 1), Some(untagged))
+        .await
+        .expect("answered");
+    assert_eq!(observation(answer).await, (None, vec![100, 100, 100, 51]));
+    assert!(!attempted.load(Ordering::SeqCst));
+}
+
+/// The pose's tag and the observation's bytes of an answer not replied yet.
+async fn observation(answer: Answer) -> (Option<u64>, Vec<u8>) {
+    match answer.complete().await.expect("observation") {
+        Answered::Observation { pose, data } => (pose.seq, data.to_bytes().into_owned()),
+        Answered::Replied { .. } => panic!("replied without being asked to"),
+    }
 }
 
 /// A link to env `name` and the session that plays its robot. The answer
 /// margin is far beyond the tests: a timeout would be its own error code.
 async fn connect(name: &str) -> (RobotLink, Session, EnvId) {
+    let (link, _controller, robot, env) = connect_with_session(name).await;
+    (link, robot, env)
+}
+
+/// [`connect`], with the link's own session.
+async fn connect_with_session(name: &str) -> (RobotLink, Session, Session, EnvId) {
     let (controller, robot) = loopback_pair().await.expect("loopback sessions");
     let env = EnvId::real(name).expect("env id");
     let timeouts = LinkTimeouts {
@@ -150,7 +277,7 @@ async fn connect(name: &str) -> (RobotLink, Session, EnvId) {
     let link = RobotLink::connect(&controller, &env, timeouts)
         .await
         .expect("link");
-    (link, robot, env)
+    (link, controller, robot, env)
 }
 
 /// Command `seq`: straight ahead at `linear_x` for `duration_s`.
@@ -175,7 +302,7 @@ async fn first_heard(
 ) -> (u64, Result<Answer, WireError>) {
     for seq in first..first + 5 {
         let cmd = command(seq, linear_x, duration_s);
-        let attempt = link.execute(&cmd, rgbd(2, 2));
+        let attempt = link.execute(&cmd, rgbd(2, 2), None);
         if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
             return (seq, result);
         }

@@ -250,12 +250,21 @@ pub async fn reply<T: Serialize>(
     query: &Query,
     result: Result<&T, WireError>,
 ) -> Result<(), RequestError> {
+    reply_now(query, result)
+}
+
+/// [`reply`] from a thread that is not async (a Zenoh callback, a
+/// simulation thread). Zenoh sends a reply synchronously either way.
+pub fn reply_now<T: Serialize>(
+    query: &Query,
+    result: Result<&T, WireError>,
+) -> Result<(), RequestError> {
     let encoded = match result.map(codec::encode) {
         Ok(Ok(bytes)) => Ok(bytes.into()),
         Ok(Err(e)) => Err(WireError::internal(e.to_string())),
         Err(err) => Err(err),
     };
-    reply_payload(query, encoded).await
+    reply_payload(query, encoded)
 }
 
 /// Like [`reply`] with a message already encoded (see
@@ -264,26 +273,27 @@ pub async fn reply_encoded<T>(
     query: &Query,
     result: Result<codec::Encoded<T>, WireError>,
 ) -> Result<(), RequestError> {
-    reply_payload(query, result.map(codec::Encoded::into_payload)).await
+    reply_encoded_now(query, result)
 }
 
-async fn reply_payload(
+/// [`reply_encoded`] from a thread that is not async (a Zenoh callback).
+pub fn reply_encoded_now<T>(
     query: &Query,
-    result: Result<ZBytes, WireError>,
+    result: Result<codec::Encoded<T>, WireError>,
 ) -> Result<(), RequestError> {
+    reply_payload(query, result.map(codec::Encoded::into_payload))
+}
+
+fn reply_payload(query: &Query, result: Result<ZBytes, WireError>) -> Result<(), RequestError> {
     let outcome = match result {
-        Ok(payload) => {
-            query
-                .reply(query.key_expr().clone(), payload)
-                .encoding(Encoding::APPLICATION_CDR)
-                .await
-        }
-        Err(err) => {
-            query
-                .reply_err(codec::encode(&err)?)
-                .encoding(Encoding::APPLICATION_CDR)
-                .await
-        }
+        Ok(payload) => query
+            .reply(query.key_expr().clone(), payload)
+            .encoding(Encoding::APPLICATION_CDR)
+            .wait(),
+        Err(err) => query
+            .reply_err(codec::encode(&err)?)
+            .encoding(Encoding::APPLICATION_CDR)
+            .wait(),
     };
     outcome.map_err(|e| RequestError::Zenoh(e.to_string()))
 }

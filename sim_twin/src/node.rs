@@ -24,7 +24,6 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{EStop, GotoReply, GotoRequest, MotionCommand, Pose2D, SeqTag, Time};
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::bytes::Encoding;
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
 use offworld_runtime::zenoh::query::{Query, Queryable};
@@ -215,25 +214,7 @@ impl Drop for TwinNode {
 }
 
 fn reply_blocking<T: serde::Serialize>(query: &Query, result: Result<&T, WireError>) {
-    let payload = match result.map(codec::encode) {
-        Ok(Ok(bytes)) => Ok(bytes),
-        Ok(Err(e)) => Err(WireError::internal(e.to_string())),
-        Err(e) => Err(e),
-    };
-    let outcome = match payload {
-        Ok(bytes) => query
-            .reply(query.key_expr().clone(), bytes)
-            .encoding(Encoding::APPLICATION_CDR)
-            .wait(),
-        Err(err) => match codec::encode(&err) {
-            Ok(bytes) => query
-                .reply_err(bytes)
-                .encoding(Encoding::APPLICATION_CDR)
-                .wait(),
-            Err(e) => Err(e.to_string().into()),
-        },
-    };
-    if let Err(e) = outcome {
+    if let Err(e) = wire::reply_now(query, result) {
         tracing::warn!("reply failed: {e}");
     }
 }
