@@ -770,8 +770,9 @@ impl<H: RobotHardware> Agent<H> {
         Activity::Navigating(nav)
     }
 
-    /// Publishes the frames (and odometry) answering `seq` once colour and
-    /// depth captured after `after` are both there.
+    /// Publishes the odometry and then the frames answering `seq` (the
+    /// frame completes an answer) once colour and depth captured after
+    /// `after` are both there.
     async fn answer(&mut self, seq: u64, after: Time) -> bool {
         let (frame, odom) = {
             let sensors = self.sensors.borrow();
@@ -788,13 +789,13 @@ impl<H: RobotHardware> Agent<H> {
                 _ => return false,
             }
         };
-        if let Err(e) = wire::publish(&self.answers.obs, &frame) {
-            tracing::warn!("obs put failed: {e}");
-        }
         if let Some(odom) = odom {
             if let Err(e) = wire::publish_tagged(&self.answers.odom, &*odom, SeqTag { seq }) {
                 tracing::warn!("odom put failed: {e}");
             }
+        }
+        if let Err(e) = wire::publish(&self.answers.obs, &frame) {
+            tracing::warn!("obs put failed: {e}");
         }
         true
     }

@@ -463,9 +463,10 @@ impl Worker {
         }
     }
 
-    /// Publishes the pose and the camera frames answering `seq`, then the
-    /// odometry (the controller waits for the first two only). The compute
-    /// for it began at `compute_started`.
+    /// Publishes the pose and the odometry answering `seq`, then its camera
+    /// frames: the frame completes an answer, so whoever has it has the
+    /// rest (the controller may reply to the client on receiving it). The
+    /// compute for it began at `compute_started`.
     fn answer(&mut self, seq: u64, compute_started: Instant) {
         let stamp = Time::now();
         let tag = SeqTag { seq };
@@ -475,6 +476,8 @@ impl Worker {
         let frame = self.frames.render(&mut self.twin, seq, stamp);
         self.stats.record(compute_started.elapsed());
         publish(&self.publishers.pose, &pose, tag);
+        let odom = ros_out::odometry(&self.twin, stamp);
+        publish(&self.publishers.odom, &odom, tag);
         match frame {
             Ok(payload) => {
                 if let Err(e) = self.publishers.obs.put(payload).wait() {
@@ -483,8 +486,6 @@ impl Worker {
             }
             Err(e) => tracing::error!("cannot encode frame: {e}"),
         }
-        let odom = ros_out::odometry(&self.twin, stamp);
-        publish(&self.publishers.odom, &odom, tag);
         // After the answer: the step never waits for the spectators' view.
         self.publish_overhead();
     }
