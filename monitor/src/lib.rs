@@ -57,7 +57,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::str::FromStr;
 use std::sync::Arc;
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use offworld_runtime::keys::{all_alive_selector, all_envs_selector, global_estop_key};
 use offworld_runtime::{Component, EnvId};
@@ -370,8 +370,10 @@ impl Monitor {
                 ));
             }
         };
+        let callbacks = Arc::new(());
         let mut handle = MonitorHandle {
             inner: Some(Inner {
+                callbacks: callbacks.clone(),
                 subscribers: Vec::new(),
                 tokens: Vec::new(),
                 shared: shared.clone(),
@@ -383,10 +385,11 @@ impl Monitor {
         // From here on, an error drops `handle`, which stops the worker.
         let mut subscribers = Vec::new();
         for key in config.scope.data_keys() {
-            let shared = shared.clone();
+            let (shared, running) = (shared.clone(), callbacks.clone());
             let sub = session
                 .declare_subscriber(key.as_str())
                 .callback(move |sample: Sample| {
+                    let _running = &running;
                     let lane = lane_of(sample.key_expr().as_str());
                     let wall = SystemTime::now();
                     shared.queue.push(lane, Event::Sample { sample, wall });
@@ -396,12 +399,13 @@ impl Monitor {
             subscribers.push(sub);
         }
         for key in config.scope.alive_keys() {
-            let shared = shared.clone();
+            let (shared, running) = (shared.clone(), callbacks.clone());
             let sub = session
                 .liveliness()
                 .declare_subscriber(key.as_str())
                 .history(true)
                 .callback(move |sample: Sample| {
+                    let _running = &running;
                     shared.queue.push(
                         Lane::Message,
                         Event::Alive {
@@ -437,6 +441,10 @@ impl Monitor {
 /// Niceness of the monitor's threads (Linux: per thread; 0 is normal, 19
 /// the lowest priority).
 const MONITOR_NICENESS: libc::c_int = 10;
+
+/// How long shutdown waits for callbacks still running after their
+/// subscriber was undeclared.
+const CALLBACKS_FINISH: Duration = Duration::from_secs(1);
 
 /// Gives the calling thread (and the threads it starts) a lower scheduling
 /// priority. Best effort: without it the monitor still works, it just
@@ -492,6 +500,9 @@ fn open_sink(config: &MonitorConfig) -> Result<rerun::RecordingStream, MonitorEr
 }
 
 struct Inner {
+    /// Held by every subscriber callback: Zenoh drops a callback once it
+    /// is undeclared and no longer running.
+    callbacks: Arc<()>,
     subscribers: Vec<Subscriber<()>>,
     /// `alive/monitor` of each watched env.
     tokens: Vec<LivelinessToken>,
@@ -541,6 +552,13 @@ impl MonitorHandle {
             if let Err(e) = token.undeclare().wait() {
                 first_error.get_or_insert(MonitorError::Zenoh(e.to_string()));
             }
+        }
+        // A publisher's thread may be delivering a sample to a callback
+        // right now (say, a frame whose step the client has already been
+        // answered for): wait for it, so that sample is recorded too.
+        let deadline = Instant::now() + CALLBACKS_FINISH;
+        while Arc::strong_count(&inner.callbacks) > 1 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_micros(200));
         }
         inner.shared.queue.close();
         if inner.thread.join().is_err() {

@@ -692,3 +692,40 @@ async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Resu
     std::fs::remove_file(&path).ok();
     Ok(())
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_being_delivered_at_shutdown_is_still_recorded() -> anyhow::Result<()> {
+    // One session: a put runs the subscribers' callbacks one after the
+    // other. A slow one holds the frame while the monitor is shut down; the
+    // monitor's callback runs after that began. (Zenoh 1.10 runs the one
+    // declared last first; checked: without the wait in `shutdown` the
+    // frame is lost, `frames: 0`.)
+    let session = SessionConfig::isolated().open().await?;
+    let env = unique_env("in-flight")?;
+    let path = temp_rrd("in-flight");
+    let monitor = Monitor::spawn(
+        &session,
+        MonitorConfig::new(Sink::File(path.clone())).scope(Scope::env(env.clone())),
+    )?;
+    let (entered_tx, entered_rx) = std::sync::mpsc::sync_channel::<()>(1);
+    let _slow = session
+        .declare_subscriber(env.key(Topic::Obs))
+        .callback(move |_| {
+            let _ = entered_tx.try_send(());
+            std::thread::sleep(Duration::from_millis(300));
+        })
+        .await
+        .map_err(|e| anyhow!(e))?;
+    let bytes = encode(&camera_frame(1))?;
+    let (publisher, key) = (session.clone(), env.key(Topic::Obs));
+    let put = std::thread::spawn(move || {
+        use zenoh::Wait;
+        publisher.put(key, bytes).wait().map_err(|e| anyhow!(e))
+    });
+    tokio::task::spawn_blocking(move || entered_rx.recv_timeout(Duration::from_secs(10))).await??;
+    let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
+    put.join().map_err(|_| anyhow!("the put panicked"))??;
+    assert_eq!((stats.frames, stats.dropped_frames), (1, 0), "{stats:?}");
+    std::fs::remove_file(&path).ok();
+    Ok(())
+}
