@@ -285,17 +285,26 @@ impl RobotLink {
                     Ok(frame) => {
                         let frame = Arc::new(frame);
                         let waiting = lock(&building).take_if(|p| p.seq == frame.seq());
-                        match waiting {
+                        // The pose tagged with this command, if it is in.
+                        let tagged = |p: &PendingObservation| {
+                            latest_pose
+                                .borrow()
+                                .clone()
+                                .filter(|pose| pose.seq == Some(p.seq))
+                                .filter(|_| !lost.load(Ordering::SeqCst))
+                        };
+                        match waiting.map(|p| (tagged(&p), p)) {
                             // Replied from here: the step learns it once the
                             // reply is on its way.
-                            Some(p) if p.reply.is_some() => {
-                                let pose = latest_pose.borrow().clone();
-                                p.complete(&frame, &buffers, pose, lost.load(Ordering::SeqCst));
+                            Some((Some(pose), p)) if p.reply.is_some() => {
+                                p.complete(&frame, &buffers, Some(pose), false);
                                 frame_tx.send_replace(Some(frame));
                             }
                             // The step wakes first and reads the pose while
-                            // this thread builds.
-                            Some(p) => {
+                            // this thread builds (a tracker's pose comes after
+                            // the frame: the sooner the step sees the frame,
+                            // the sooner it accepts that pose).
+                            Some((_, p)) => {
                                 frame_tx.send_replace(Some(frame.clone()));
                                 p.complete(&frame, &buffers, None, false);
                             }

@@ -65,7 +65,8 @@ const QUEUE: usize = 256;
 /// What a twin node's simulation thread has done so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct TwinStats {
-    /// Commands answered with a frame.
+    /// Commands answered: counted once their frame is rendered, before it
+    /// is published (a failed publish is logged, not uncounted).
     pub answered: u64,
     /// Time spent computing those answers: simulating the command (lockstep
     /// clock only; the real-time clock paces physics by the wall) and
