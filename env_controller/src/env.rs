@@ -21,6 +21,7 @@ use rand::Rng;
 use tokio::sync::Mutex as AsyncMutex;
 
 use crate::episode::{judge, EndReason, Outcome, SpawnSampler};
+use crate::estops::EnvEStops;
 use crate::link::{Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink};
 use crate::observation::{shape, validate_options};
 use crate::store::{
@@ -88,7 +89,7 @@ struct State {
     episode: Option<Episode>,
     sampler: SpawnSampler,
     seq: u64,
-    last_status: Option<EnvState>,
+    last_status: Option<EnvStatus>,
 }
 
 /// One env: its task, robot link, state and store.
@@ -101,6 +102,8 @@ pub struct EnvServer {
     /// Episode events for spectators, published on every step.
     events: Publisher<'static>,
     link: RobotLink,
+    /// The site and env e-stop latches: motion refused while engaged.
+    estops: EnvEStops,
     store: Arc<Mutex<Store>>,
     state: AsyncMutex<State>,
     /// The last booking answer, valid until its `until_ms`: a step never
@@ -127,6 +130,7 @@ impl EnvServer {
         store: Arc<Mutex<Store>>,
     ) -> Result<Self, crate::ControllerError> {
         let link = RobotLink::connect(session, &env, options.timeouts).await?;
+        let estops = EnvEStops::follow(session, &env).await?;
         // Spectators' view: a slow one must never stall a step.
         let events = wire::publisher(session, env.key(Topic::Reward), Delivery::Latest)
             .await
@@ -138,6 +142,7 @@ impl EnvServer {
             events,
             session: session.clone(),
             link,
+            estops,
             store,
             slots: Mutex::new(None),
             state: AsyncMutex::new(State {
@@ -229,25 +234,26 @@ impl EnvServer {
         }
     }
 
-    /// Current status.
-    pub async fn status(&self) -> EnvStatus {
-        let state = self.state.lock().await;
+    fn status_of(&self, state: &State) -> EnvStatus {
         EnvStatus {
             env_id: self.env.to_string(),
-            state: self.state_of(&state),
+            state: self.state_of(state),
+            estop: self.estops.state(),
         }
     }
 
+    /// Current status.
+    pub async fn status(&self) -> EnvStatus {
+        let state = self.state.lock().await;
+        self.status_of(&state)
+    }
+
     async fn publish_status(&self, state: &mut State) {
-        let current = self.state_of(state);
-        if state.last_status.as_ref() == Some(&current) {
+        let status = self.status_of(state);
+        if state.last_status.as_ref() == Some(&status) {
             return;
         }
-        state.last_status = Some(current.clone());
-        let status = EnvStatus {
-            env_id: self.env.to_string(),
-            state: current,
-        };
+        state.last_status = Some(status.clone());
         if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Status), &status).await {
             tracing::warn!("status publish failed: {e}");
         }
@@ -410,6 +416,10 @@ impl EnvServer {
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!("in maintenance: {message}")));
         }
+        if let Err(refused) = self.estops.refuse_motion() {
+            self.abort_episode(&mut state, &refused.message).await;
+            return Err(refused);
+        }
         self.abort_episode(&mut state, "reset before the episode ended")
             .await;
         let seed = match req.seed {
@@ -491,6 +501,12 @@ impl EnvServer {
         let (obs, experiment) = (lease.obs, lease.experiment.name.clone());
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!("in maintenance: {message}")));
+        }
+        if let Err(refused) = self.estops.refuse_motion() {
+            // Whatever stopped the robot may have moved it: the episode
+            // cannot go on from here.
+            self.abort_episode(&mut state, &refused.message).await;
+            return Err(refused);
         }
         let (index, step) = match &state.episode {
             None => return Err(WireError::invalid_state("call reset() before step()")),
@@ -588,10 +604,7 @@ impl EnvServer {
             AdminRequest::ClearMaintenance { .. } => state.maintenance = None,
         }
         self.publish_status(&mut state).await;
-        Ok(EnvStatus {
-            env_id: self.env.to_string(),
-            state: self.state_of(&state),
-        })
+        Ok(self.status_of(&state))
     }
 
     /// Ends the lease of `session_id` when its booked slot is over or

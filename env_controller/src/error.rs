@@ -26,6 +26,14 @@ pub enum ControllerError {
     /// Not allowed for this user.
     #[error("{0}")]
     Unauthorized(String),
+    /// An e-stop some present robot or twin did not acknowledge in time.
+    #[error("{message}")]
+    Unacknowledged {
+        /// What to tell the operator.
+        message: String,
+        /// Who did acknowledge, and who not.
+        report: crate::operator::PressReport,
+    },
 }
 
 impl From<ControllerError> for WireError {
@@ -36,6 +44,7 @@ impl From<ControllerError> for WireError {
             ControllerError::Config(m) => WireError::bad_request(m),
             ControllerError::Busy(m) => WireError::busy(m),
             ControllerError::Unauthorized(m) => WireError::unauthorized(m),
+            ControllerError::Unacknowledged { message, .. } => WireError::unavailable(message),
             // Store and Zenoh details stay in the server log.
             ControllerError::Store(m) => {
                 tracing::error!("store failure: {m}");

@@ -8,7 +8,9 @@
 //! - [`task`]: the four tasks as data; action validation and mapping.
 //! - [`episode`]: reward/termination rules and the seeded spawn sampler.
 //! - [`observation`]: client observations from camera frames.
-//! - [`link`]: commands out, frames and poses back.
+//! - [`link`]: commands out, frames and poses back; fails fast when the
+//!   robot, its tracker or the way to them is gone.
+//! - [`estops`]: the site and env e-stop latches each env obeys.
 //! - [`store`]: users, experiments, episodes, leaderboard.
 //! - [`env`]: one env's sessions, leases and request handlers.
 //! - [`server`]: many envs served over Zenoh.
@@ -20,6 +22,7 @@ pub mod embedded;
 pub mod env;
 pub mod episode;
 mod error;
+pub mod estops;
 pub mod link;
 pub mod observation;
 pub mod operator;

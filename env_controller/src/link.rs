@@ -3,7 +3,6 @@
 //! commands and waits for the frame and the pose that answer them. It never
 //! knows which embodiment it drives.
 
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -251,7 +250,9 @@ pub struct RobotLink {
     observations: BufferPool,
     faults: watch::Receiver<Option<MotionFault>>,
     poses: watch::Receiver<Option<PoseSample>>,
-    tracking_lost: Arc<AtomicBool>,
+    /// True while the tracker reports (or its vanished token means) that
+    /// tracking is lost; a step in flight wakes on it.
+    tracking_lost: Arc<watch::Sender<bool>>,
     embodiment_alive: watch::Receiver<bool>,
     timeouts: LinkTimeouts,
     _subscribers: Vec<Subscriber<()>>,
@@ -273,7 +274,7 @@ impl RobotLink {
         let buffers = observations.clone();
         let (pose_tx, poses) = watch::channel(None::<PoseSample>);
         let latest_pose = poses.clone();
-        let tracking_lost = Arc::new(AtomicBool::new(false));
+        let tracking_lost = Arc::new(watch::channel(false).0);
         let lost = tracking_lost.clone();
         // The observation is built here, from the frame just received (still
         // in this thread's cache; for a local twin, the very thread that
@@ -291,7 +292,7 @@ impl RobotLink {
                                 .borrow()
                                 .clone()
                                 .filter(|pose| pose.seq == Some(p.seq))
-                                .filter(|_| !lost.load(Ordering::SeqCst))
+                                .filter(|_| !*lost.borrow())
                         };
                         match waiting.map(|p| (tagged(&p), p)) {
                             // Replied from here: the step learns it once the
@@ -344,7 +345,9 @@ impl RobotLink {
             session,
             env.key(Topic::Tracking),
             "tracking status",
-            move |status: TrackingStatus, _| lost.store(!status.tracking, Ordering::SeqCst),
+            move |status: TrackingStatus, _| {
+                lost.send_replace(!status.tracking);
+            },
         )
         .await
         .map_err(zerr)?;
@@ -364,7 +367,7 @@ impl RobotLink {
             .callback(move |sample: Sample| {
                 let key = sample.key_expr().as_str().to_owned();
                 if key == tracker_key && sample.kind() == SampleKind::Delete {
-                    tracker_lost.store(true, Ordering::SeqCst);
+                    tracker_lost.send_replace(true);
                 }
                 if key != twin_key && key != robot_key {
                     return;
@@ -421,7 +424,10 @@ impl RobotLink {
         request: ObservationRequest,
         reply: Option<ReplyWhereReceived>,
     ) -> Result<Answer, WireError> {
-        if self.tracking_lost.load(Ordering::SeqCst) {
+        if !self.online() {
+            return Err(self.gone());
+        }
+        if *self.tracking_lost.borrow() {
             self.stop().await;
             return Err(WireError::unavailable(
                 "tracking lost: the robot's pose is unknown",
@@ -482,6 +488,10 @@ impl RobotLink {
         frames.mark_unchanged();
         let mut faults = self.faults.clone();
         faults.mark_unchanged();
+        let mut alive = self.embodiment_alive.clone();
+        alive.mark_unchanged();
+        let mut lost = self.tracking_lost.subscribe();
+        lost.mark_unchanged();
         wire::publish(&self.cmd, cmd)
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
@@ -500,8 +510,27 @@ impl RobotLink {
                     }
                     Ok(()) = faults.changed() => {
                         let fault = faults.borrow_and_update().clone();
-                        if let Some(fault) = fault.filter(|f| f.seq == seq) {
-                            return Some(Err(fault));
+                        let ours = |f: &MotionFault| f.seq == seq || f.seq == MotionFault::ANY_COMMAND;
+                        if let Some(fault) = fault.filter(ours) {
+                            return Some(Err(WireError::unavailable(format!(
+                                "the robot cannot answer command {seq}: {}",
+                                fault.reason
+                            ))));
+                        }
+                    }
+                    // Fail fast: what the controller knows is gone fails
+                    // the step now, not after the answer timeout.
+                    Ok(()) = alive.changed() => {
+                        if !*alive.borrow_and_update() {
+                            return Some(Err(self.gone()));
+                        }
+                    }
+                    Ok(()) = lost.changed() => {
+                        if *lost.borrow_and_update() {
+                            self.stop().await;
+                            return Some(Err(WireError::unavailable(format!(
+                                "tracking lost during command {seq}: the robot's pose is unknown"
+                            ))));
                         }
                     }
                 }
@@ -516,12 +545,7 @@ impl RobotLink {
                 limit.as_secs_f64()
             ))
         })?;
-        let frame = answer.map_err(|fault| {
-            WireError::unavailable(format!(
-                "the robot cannot answer command {seq}: {}",
-                fault.reason
-            ))
-        })?;
+        let frame = answer?;
         let arrived = Instant::now();
         // A tagged pose answers this command exactly; an untagged one (a
         // tracker streaming) must have arrived after the frame.
@@ -542,7 +566,7 @@ impl RobotLink {
                 self.timeouts.pose_wait.as_secs_f64()
             )));
         };
-        if self.tracking_lost.load(Ordering::SeqCst) {
+        if *self.tracking_lost.borrow() {
             self.stop().await;
             return Err(WireError::unavailable("tracking lost during the step"));
         }
@@ -556,19 +580,36 @@ impl RobotLink {
             target,
             timeout_s: self.timeouts.goto.as_secs_f64(),
         };
-        wire::request(
+        if !self.online() {
+            return Err(self.gone());
+        }
+        let mut alive = self.embodiment_alive.clone();
+        let key = self.env.key(Topic::Goto);
+        let drive = wire::request(
             &self.session,
-            &self.env.key(Topic::Goto),
+            &key,
             &request,
             self.timeouts.goto + Duration::from_secs(1),
-        )
-        .await
-        .map_err(|e| match e.into_wire() {
-            e if e.code == offworld_runtime::ErrorCode::NotFound => WireError::unavailable(
-                format!("no robot or twin serves {}: {}", self.env, e.message),
-            ),
-            e => e,
-        })
+        );
+        tokio::select! {
+            reply = drive => reply.map_err(|e| match e.into_wire() {
+                e if e.code == offworld_runtime::ErrorCode::NotFound => WireError::unavailable(
+                    format!("no robot or twin serves {}: {}", self.env, e.message),
+                ),
+                e => e,
+            }),
+            // A reset drive fails as soon as its robot is known to be gone.
+            _ = alive.wait_for(|a| !*a) => Err(self.gone()),
+        }
+    }
+
+    /// The error of a step or reset whose robot (or twin) vanished.
+    fn gone(&self) -> WireError {
+        WireError::unavailable(format!(
+            "the robot of {} is gone: its agent's (or twin's) liveliness token vanished \
+             (process stopped, or the link to it is cut)",
+            self.env
+        ))
     }
 
     /// Commands zero velocity at once (best effort).

@@ -15,12 +15,11 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv};
 use offworld_env_controller::operator::{press_estop, EStopScope};
-use offworld_env_controller::{Controller, EnvOptions, Store, Task};
-use offworld_runtime::msg::EStop;
+use offworld_env_controller::{Controller, ControllerError, EnvOptions, Store, Task};
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
 #[derive(Parser)]
-#[command(about = "The OffWorld gym server")]
+#[command(version, about = "The OffWorld gym server")]
 struct Args {
     /// SQLite database of users, experiments and episodes.
     #[arg(
@@ -83,6 +82,10 @@ enum Command {
         /// How long to wait for a robot or twin to listen, s.
         #[arg(long, default_value_t = 5.0)]
         wait_s: f64,
+        /// Every robot agent and twin present must acknowledge within this
+        /// long, ms (else the command fails).
+        #[arg(long, default_value_t = 1000)]
+        ack_ms: u64,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -155,8 +158,10 @@ async fn main() -> anyhow::Result<()> {
                 }
                 Box::new(controller)
             };
-            tracing::info!("serving; Ctrl-C to stop");
-            tokio::signal::ctrl_c().await?;
+            tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
+            // Dropping the deployment stops the robots (liveliness) and
+            // closes the store cleanly.
+            offworld_runtime::shutdown::signalled().await?;
         }
         Command::Estop {
             env,
@@ -164,22 +169,36 @@ async fn main() -> anyhow::Result<()> {
             reason,
             release,
             wait_s,
+            ack_ms,
             common,
         } => {
             let scope = env.map_or(EStopScope::Site, EStopScope::Env);
             let wait = std::time::Duration::try_from_secs_f64(wait_s)
                 .context("--wait-s must be a non-negative number of seconds")?;
+            let ack_within = std::time::Duration::from_millis(ack_ms);
             let session = common.client_config().open().await?;
-            let stop = EStop {
-                engaged: !release,
-                reason,
-            };
-            press_estop(&session, &scope, &stop, wait).await?;
-            // Let the publication leave before the session closes.
-            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            let pressed = press_estop(&session, &scope, !release, &reason, wait, ack_within).await;
             session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
             let verb = if release { "released" } else { "engaged" };
+            let report = match &pressed {
+                Ok(report) => report,
+                Err(ControllerError::Unacknowledged { report, .. }) => report,
+                Err(_) => return Ok(pressed.map(drop)?),
+            };
             println!("e-stop {verb} on {}", scope.key());
+            for ack in &report.acknowledged {
+                println!(
+                    "  acknowledged by {} of {} in {} ms (e-stops now engaged: {})",
+                    ack.component,
+                    ack.env,
+                    ack.after.as_millis(),
+                    ack.state.summary()
+                );
+            }
+            for (env, component) in &report.silent {
+                println!("  NOT acknowledged by {component} of {env}");
+            }
+            pressed?;
         }
         Command::Users {
             command: UsersCommand::Add { name, operator },

@@ -1,14 +1,29 @@
 //! What an operator does to the enclosure outside the gym protocol: press
-//! and release the e-stops (one env's, or the whole site's).
+//! and release the e-stops (one env's, or the whole site's), and learn who
+//! obeyed.
+//!
+//! A press is published once (never dropped, at control priority); every
+//! robot agent and twin that receives it stops first, then acknowledges on
+//! its env's `estop_ack` with the press's id and the latches now in force.
+//! The operator waits for an acknowledgement from every robot agent and
+//! twin that declared itself under the scope, and a press that one of them
+//! did not acknowledge in time (dropped by a router's ACL, a cut link, a
+//! frozen agent) is an error, never a silent success.
 
-use std::time::Duration;
+use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
-use offworld_runtime::keys::{all_alive_selector, global_estop_key, Component, EnvId, Topic};
-use offworld_runtime::msg::EStop;
+use offworld_runtime::keys::{
+    all_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
+};
+use offworld_runtime::msg::{EStop, EStopAck, EStopState};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::Encoding;
+use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
+use rand::Rng;
+use tokio::sync::mpsc;
 
 use crate::error::ControllerError;
 
@@ -37,31 +52,94 @@ impl EStopScope {
             Self::Site => all_alive_selector(),
         }
     }
+
+    /// Where the obeying components acknowledge.
+    fn acks(&self) -> String {
+        match self {
+            Self::Env(env) => env.key(Topic::EStopAck),
+            Self::Site => topic_on_all_envs(Topic::EStopAck),
+        }
+    }
 }
 
-/// Publishes `stop` on `scope`'s key once a robot agent or a twin is
-/// present there (its liveliness token), waiting at most `wait` for one: a
-/// press nobody obeys is an error, not a silent success. The publication
-/// waits out a congested link instead of being dropped.
+/// A component that obeys e-stops: `(env, component)`, e.g.
+/// `("real/enclosure-a", "robot_agent")`.
+pub type Obeyer = (String, String);
+
+/// One component's acknowledgement of a press.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Acknowledgement {
+    /// The env it serves.
+    pub env: String,
+    /// `robot_agent` or `sim_twin`.
+    pub component: String,
+    /// From the publication to the acknowledgement's arrival.
+    pub after: Duration,
+    /// The latches in force there after the press.
+    pub state: EStopState,
+}
+
+/// Who obeyed a press, and who did not answer in time.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PressReport {
+    /// Acknowledgements, in arrival order.
+    pub acknowledged: Vec<Acknowledgement>,
+    /// Components present under the scope that did not acknowledge.
+    pub silent: Vec<Obeyer>,
+}
+
+/// Publishes an engage (`engaged`) or release of `scope` once a robot agent
+/// or a twin is present there (its liveliness token; waits at most
+/// `presence` for one: a press nobody obeys is `NotFound`), then waits at
+/// most `ack_within` for every one of them to acknowledge. Returns the
+/// report when all did; `Unavailable` naming the silent ones otherwise.
 pub async fn press_estop(
     session: &Session,
     scope: &EStopScope,
-    stop: &EStop,
-    wait: Duration,
-) -> Result<(), ControllerError> {
+    engaged: bool,
+    reason: &str,
+    presence: Duration,
+    ack_within: Duration,
+) -> Result<PressReport, ControllerError> {
     let zerr = |e: String| ControllerError::Zenoh(e);
     let key = scope.key();
-    let deadline = tokio::time::Instant::now() + wait;
-    while !embodiment_present(session, scope, deadline).await? {
+    let deadline = tokio::time::Instant::now() + presence;
+    let expected = loop {
+        let found = obeyers(session, scope, deadline).await?;
+        if !found.is_empty() {
+            break found;
+        }
         if tokio::time::Instant::now() >= deadline {
             return Err(ControllerError::NotFound(format!(
                 "no robot or twin listens on {key} (waited {:.1} s): the e-stop reached nobody",
-                wait.as_secs_f64()
+                presence.as_secs_f64()
             )));
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    let bytes = codec::encode(stop).map_err(|e| zerr(e.to_string()))?;
+    };
+    // Nonzero: 0 means "nobody waits for acknowledgements".
+    let press_id = rand::rng().random_range(1..u64::MAX);
+    let (tx, mut acks) = mpsc::unbounded_channel();
+    let _ack_sub = session
+        .declare_subscriber(scope.acks())
+        .callback(
+            move |s: Sample| match codec::decode_payload::<EStopAck>(s.payload()) {
+                Ok(ack) if ack.press_id == press_id => {
+                    let _ = tx.send((Instant::now(), ack));
+                }
+                Ok(_) => {}
+                Err(e) => tracing::warn!("ignored a malformed e-stop acknowledgement: {e}"),
+            },
+        )
+        .await
+        .map_err(|e| zerr(e.to_string()))?;
+    let stop = EStop {
+        engaged,
+        reason: reason.to_owned(),
+        press_id,
+    };
+    let bytes = codec::encode(&stop).map_err(|e| zerr(e.to_string()))?;
+    let sent = Instant::now();
     session
         .put(&key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
@@ -69,16 +147,49 @@ pub async fn press_estop(
         .priority(wire::CONTROL_PRIORITY)
         .await
         .map_err(|e| zerr(e.to_string()))?;
-    tracing::warn!(%key, engaged = stop.engaged, reason = %stop.reason, "e-stop published");
-    Ok(())
+    tracing::warn!(%key, engaged, %reason, "e-stop published");
+    let mut waiting: BTreeSet<Obeyer> = expected.into_iter().collect();
+    let mut report = PressReport::default();
+    let ack_deadline = tokio::time::Instant::now() + ack_within;
+    while !waiting.is_empty() {
+        let Ok(Some((at, ack))) = tokio::time::timeout_at(ack_deadline, acks.recv()).await else {
+            break;
+        };
+        waiting.remove(&(ack.env.clone(), ack.component.clone()));
+        report.acknowledged.push(Acknowledgement {
+            env: ack.env,
+            component: ack.component,
+            after: at.saturating_duration_since(sent),
+            state: ack.state,
+        });
+    }
+    report.silent = waiting.into_iter().collect();
+    if report.silent.is_empty() {
+        Ok(report)
+    } else {
+        let names: Vec<String> = report
+            .silent
+            .iter()
+            .map(|(env, component)| format!("{component} of {env}"))
+            .collect();
+        Err(ControllerError::Unacknowledged {
+            message: format!(
+                "the e-stop on {key} was not acknowledged within {} ms by {} (dropped by the \
+                 router's access control, a cut link, or a frozen component): check them in person",
+                ack_within.as_millis(),
+                names.join(", ")
+            ),
+            report,
+        })
+    }
 }
 
-/// Whether a robot agent or twin under `scope` declares itself alive.
-async fn embodiment_present(
+/// The robot agents and twins that declare themselves under `scope`.
+async fn obeyers(
     session: &Session,
     scope: &EStopScope,
     deadline: tokio::time::Instant,
-) -> Result<bool, ControllerError> {
+) -> Result<Vec<Obeyer>, ControllerError> {
     let left = deadline.saturating_duration_since(tokio::time::Instant::now());
     let replies = session
         .liveliness()
@@ -86,15 +197,21 @@ async fn embodiment_present(
         .timeout(left.max(Duration::from_millis(100)))
         .await
         .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
-    let obeys =
-        [Component::RobotAgent, Component::SimTwin].map(|c| format!("/alive/{}", c.as_str()));
+    let obeying = [Component::RobotAgent, Component::SimTwin];
+    let mut found = Vec::new();
     while let Ok(reply) = replies.recv_async().await {
-        if let Ok(sample) = reply.result() {
-            let token = sample.key_expr().as_str();
-            if obeys.iter().any(|suffix| token.ends_with(suffix.as_str())) {
-                return Ok(true);
+        let Ok(sample) = reply.result() else { continue };
+        let token = sample.key_expr().as_str();
+        let Ok(env) = EnvId::from_key(token) else {
+            continue;
+        };
+        for component in obeying {
+            if token == env.alive_key(component) {
+                found.push((env.to_string(), component.as_str().to_owned()));
             }
         }
     }
-    Ok(false)
+    found.sort();
+    found.dedup();
+    Ok(found)
 }

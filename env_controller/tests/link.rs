@@ -11,20 +11,21 @@ use std::time::Duration;
 use offworld_env_controller::link::{
     Answer, Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink,
 };
-use offworld_runtime::keys::{EnvId, Topic};
+use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, Channels, DepthFormat, Header, Image, MotionCommand, MotionFault, ObsOptions,
     PixelEncoding, PoseStamped, SeqTag,
 };
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, Delivery};
+use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::{Session, Wait};
 use offworld_runtime::{codec, ErrorCode, WireError};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reported_fault_fails_the_command_with_its_reason() {
-    let (link, robot, env) = connect("fault-link").await;
+    let (link, robot, env, _alive) = connect("fault-link").await;
 
     // The robot: every command gets a malformed fault, a fault of another
     // command, then its own.
@@ -93,7 +94,7 @@ fn frame(seq: u64) -> CameraFrame {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_observation_is_built_from_the_commands_own_frame() {
-    let (link, robot, env) = connect("obs-link").await;
+    let (link, robot, env, _alive) = connect("obs-link").await;
 
     // The robot: every command gets a malformed frame, a stale frame (of
     // the command before), then its pose and its own frame.
@@ -141,7 +142,7 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_reply_is_sent_where_the_frame_arrives_only_with_a_tagged_pose() {
-    let (link, controller, robot, env) = connect_with_session("reply-link").await;
+    let (link, controller, robot, env, _alive) = connect_with_session("reply-link").await;
 
     // The robot: commands below 100 get a pose tagged with them, then their
     // frame (a twin); the others their frame, then untagged poses at 50 Hz
@@ -261,13 +262,16 @@ async fn observation(answer: Answer) -> (Option<u64>, Vec<u8>) {
 
 /// A link to env `name` and the session that plays its robot. The answer
 /// margin is far beyond the tests: a timeout would be its own error code.
-async fn connect(name: &str) -> (RobotLink, Session, EnvId) {
-    let (link, _controller, robot, env) = connect_with_session(name).await;
-    (link, robot, env)
+/// A link to a robot played by the test on its own session; the robot
+/// declares itself as a robot agent does (its token: the link fails
+/// commands at once while no robot is there).
+async fn connect(name: &str) -> (RobotLink, Session, EnvId, LivelinessToken) {
+    let (link, _controller, robot, env, alive) = connect_with_session(name).await;
+    (link, robot, env, alive)
 }
 
 /// [`connect`], with the link's own session.
-async fn connect_with_session(name: &str) -> (RobotLink, Session, Session, EnvId) {
+async fn connect_with_session(name: &str) -> (RobotLink, Session, Session, EnvId, LivelinessToken) {
     let (controller, robot) = loopback_pair().await.expect("loopback sessions");
     let env = EnvId::real(name).expect("env id");
     let timeouts = LinkTimeouts {
@@ -277,7 +281,16 @@ async fn connect_with_session(name: &str) -> (RobotLink, Session, Session, EnvId
     let link = RobotLink::connect(&controller, &env, timeouts)
         .await
         .expect("link");
-    (link, controller, robot, env)
+    let alive = robot
+        .liveliness()
+        .declare_token(env.alive_key(Component::RobotAgent))
+        .await
+        .expect("robot token");
+    assert!(
+        link.wait_online(Duration::from_secs(10)).await,
+        "the link sees the robot's token"
+    );
+    (link, controller, robot, env, alive)
 }
 
 /// Command `seq`: straight ahead at `linear_x` for `duration_s`.
@@ -321,4 +334,66 @@ fn rgbd(width: u32, height: u32) -> ObservationRequest {
         },
         depth_max_m: 5.0,
     }
+}
+
+/// What the controller knows is gone fails the command in flight at once,
+/// not after its answer timeout (60 s here): the base guard's fault for
+/// whatever command is in flight, or the robot's token vanishing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vanished_robot_or_a_guard_stop_fails_the_command_in_flight_at_once() {
+    let (link, robot, env, alive) = connect("gone-link").await;
+    // The base guard stops the base: a fault for any command in flight
+    // (repeated: the link's subscription may still be propagating).
+    let seventh = command(7, 0.1, 30.0);
+    let guard = async {
+        loop {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            let fault = MotionFault {
+                seq: MotionFault::ANY_COMMAND,
+                reason: "the base guard stopped the base: test".into(),
+            };
+            wire::put(&robot, &env.key(Topic::Fault), &fault)
+                .await
+                .expect("fault");
+        }
+    };
+    let result = tokio::time::timeout(Duration::from_secs(10), async {
+        tokio::select! {
+            result = link.execute(&seventh, rgbd(2, 2), None) => result,
+            () = guard => unreachable!(),
+        }
+    })
+    .await
+    .expect("failed at once, not after the answer timeout");
+    let Err(err) = result else { panic!("answered") };
+    assert_eq!(err.code, ErrorCode::Unavailable);
+    assert_eq!(
+        err.message,
+        "the robot cannot answer command 7: the base guard stopped the base: test"
+    );
+
+    // The robot's token vanishes mid-command.
+    let eighth = command(8, 0.1, 30.0);
+    let vanish = async {
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        alive.undeclare().await.expect("undeclare");
+        std::future::pending::<()>().await;
+    };
+    let result = tokio::time::timeout(Duration::from_secs(10), async {
+        tokio::select! {
+            result = link.execute(&eighth, rgbd(2, 2), None) => result,
+            () = vanish => unreachable!(),
+        }
+    })
+    .await
+    .expect("failed at once, not after the answer timeout");
+    let Err(err) = result else { panic!("answered") };
+    assert_eq!(err.code, ErrorCode::Unavailable);
+    assert!(err.message.contains("is gone"), "{err}");
+    // And a new command fails before it is sent.
+    let ninth = command(9, 0.1, 1.0);
+    let Err(err) = link.execute(&ninth, rgbd(2, 2), None).await else {
+        panic!("answered without a robot")
+    };
+    assert!(err.message.contains("is gone"), "{err}");
 }

@@ -1,100 +1,179 @@
-//! The operator's e-stops over real Zenoh: pressed and released from the
-//! library and from the `env_controller estop` CLI, heard by a robot's
-//! subscription byte for byte; a press with no robot or twin present is a
-//! typed error.
+//! The operator's e-stops over real Zenoh, against real sim twins: pressed
+//! and released from the library and from the `env_controller estop` CLI,
+//! acknowledged by every twin under the scope with the latches now in
+//! force; a component present but silent (a frozen agent, an ACL that
+//! drops the press) fails the press naming it; a press nobody can hear is
+//! a typed error.
 
 use std::time::Duration;
 
 use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::ControllerError;
-use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
-use offworld_runtime::msg::EStop;
+use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
-use offworld_runtime::zenoh::handlers::FifoChannelHandler;
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
-use offworld_runtime::{codec, wire};
+use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
 
-const HEARD_WITHIN: Duration = Duration::from_secs(10);
+const PRESENCE: Duration = Duration::from_secs(10);
+/// Generous on a loaded machine; the CLI's default is 1 s.
+const ACK: Duration = Duration::from_secs(5);
 
-async fn next_estop(robot: &Subscriber<FifoChannelHandler<Sample>>) -> EStop {
-    let sample = tokio::time::timeout(HEARD_WITHIN, robot.recv_async())
-        .await
-        .expect("an e-stop within the bound")
-        .expect("subscriber open");
-    assert_eq!(sample.priority(), wire::CONTROL_PRIORITY);
-    codec::decode_payload(sample.payload()).expect("an EStop")
+fn twin(session: &Session, name: &str) -> TwinNode {
+    let mut config = TwinConfig::builtin("monolith").expect("world");
+    config.resolution = Some((8, 6));
+    TwinNode::spawn(
+        session,
+        EnvId::sim(name).expect("env"),
+        SimTwin::new(config).expect("twin"),
+        Clock::Lockstep,
+    )
+    .expect("twin node")
 }
 
-/// What an e-stop reaches and waits for: a robot agent or twin's
-/// subscription to the env's e-stop and, declared after it as the agents
-/// do, its liveliness token.
-async fn embodiment(
-    session: &Session,
-    env: &EnvId,
-    component: Component,
-) -> (LivelinessToken, Subscriber<FifoChannelHandler<Sample>>) {
-    let estop = session
-        .declare_subscriber(env.key(Topic::EStop))
-        .await
-        .expect("subscriber");
-    let token = session
-        .liveliness()
-        .declare_token(env.alive_key(component))
-        .await
-        .expect("token");
-    (token, estop)
+/// Waits (bounded) until `observer` sees the liveliness token `key`.
+async fn until_visible(observer: &Session, key: &str) {
+    for _ in 0..100 {
+        let replies = observer
+            .liveliness()
+            .get(key)
+            .timeout(Duration::from_millis(500))
+            .await
+            .expect("liveliness get");
+        if replies.recv_async().await.is_ok_and(|r| r.result().is_ok()) {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    panic!("{key} never became visible");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_env_and_the_site_estop_reach_the_robot_and_an_unheard_press_is_an_error() {
+async fn every_twin_under_the_scope_acknowledges_and_latches_stay_independent() {
     let (robot_side, operator) = loopback_pair().await.expect("sessions");
-    let env = EnvId::real("estop-0").expect("env");
-    let site = robot_side
-        .declare_subscriber(global_estop_key())
+    let _a = twin(&robot_side, "estop-a");
+    let _b = twin(&robot_side, "estop-b");
+    let a = EnvId::sim("estop-a").expect("env");
+    let b = EnvId::sim("estop-b").expect("env");
+    for env in [&a, &b] {
+        until_visible(&operator, &env.alive_key(Component::SimTwin)).await;
+    }
+
+    let report = press_estop(
+        &operator,
+        &EStopScope::Site,
+        true,
+        "fire alarm",
+        PRESENCE,
+        ACK,
+    )
+    .await
+    .expect("both twins acknowledge the site e-stop");
+    let mut who: Vec<(String, String)> = report
+        .acknowledged
+        .iter()
+        .map(|a| (a.env.clone(), a.component.clone()))
+        .collect();
+    who.sort();
+    assert_eq!(
+        who,
+        [
+            ("sim/estop-a".to_owned(), "sim_twin".to_owned()),
+            ("sim/estop-b".to_owned(), "sim_twin".to_owned())
+        ]
+    );
+    assert!(report
+        .acknowledged
+        .iter()
+        .all(|a| a.state.summary() == "site"));
+    assert!(report.silent.is_empty());
+
+    let env_scope = EStopScope::Env(a.clone());
+    let report = press_estop(&operator, &env_scope, true, "person inside", PRESENCE, ACK)
         .await
-        .expect("subscriber");
-    let (_alive, robot) = embodiment(&robot_side, &env, Component::RobotAgent).await;
-    let wait = HEARD_WITHIN;
-    let press = EStop {
-        engaged: true,
-        reason: "person in the enclosure".into(),
-    };
-    press_estop(&operator, &EStopScope::Env(env.clone()), &press, wait)
+        .expect("env press");
+    assert_eq!(report.acknowledged.len(), 1, "only the env's twin answers");
+    assert_eq!(report.acknowledged[0].state.summary(), "site+env");
+    // Releasing the env leaves the site latch engaged.
+    let report = press_estop(&operator, &env_scope, false, "person out", PRESENCE, ACK)
         .await
-        .expect("pressed");
-    assert_eq!(next_estop(&robot).await, press);
-    let release = EStop {
-        engaged: false,
-        reason: "clear".into(),
-    };
-    press_estop(&operator, &EStopScope::Env(env.clone()), &release, wait)
+        .expect("env release");
+    assert_eq!(report.acknowledged[0].state.summary(), "site");
+    assert_eq!(report.acknowledged[0].state.site.reason, "fire alarm");
+    let report = press_estop(
+        &operator,
+        &EStopScope::Site,
+        false,
+        "all clear",
+        PRESENCE,
+        ACK,
+    )
+    .await
+    .expect("site release");
+    assert!(report
+        .acknowledged
+        .iter()
+        .all(|a| a.state.summary() == "none"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_component_fails_the_press_and_an_unheard_press_is_an_error() {
+    let (robot_side, operator) = loopback_pair().await.expect("sessions");
+    let _a = twin(&robot_side, "estop-c");
+    // A robot agent that declares itself but never acknowledges (frozen,
+    // or its router drops the press).
+    let frozen = EnvId::real("estop-frozen").expect("env");
+    let _token = robot_side
+        .liveliness()
+        .declare_token(frozen.alive_key(Component::RobotAgent))
         .await
-        .expect("released");
-    assert_eq!(next_estop(&robot).await, release);
-    press_estop(&operator, &EStopScope::Site, &press, wait)
-        .await
-        .expect("site pressed");
-    assert_eq!(next_estop(&site).await, press);
+        .expect("token");
+    until_visible(&operator, &frozen.alive_key(Component::RobotAgent)).await;
+    until_visible(
+        &operator,
+        &EnvId::sim("estop-c")
+            .expect("env")
+            .alive_key(Component::SimTwin),
+    )
+    .await;
+    let error = press_estop(
+        &operator,
+        &EStopScope::Site,
+        true,
+        "drill",
+        PRESENCE,
+        Duration::from_millis(1500),
+    )
+    .await
+    .expect_err("the frozen agent did not acknowledge");
+    match error {
+        ControllerError::Unacknowledged { message, report } => {
+            assert_eq!(
+                report.silent,
+                [("real/estop-frozen".to_owned(), "robot_agent".to_owned())]
+            );
+            assert_eq!(report.acknowledged.len(), 1, "the twin did");
+            assert!(
+                message.contains("robot_agent of real/estop-frozen"),
+                "{message}"
+            );
+        }
+        other => panic!("expected Unacknowledged, got {other:?}"),
+    }
 
     // No robot or twin for this env (a subscriber alone is no robot): a
     // typed error naming the key.
+    let nobody = EnvId::real("estop-unwatched").expect("env");
     let _bystander = robot_side
-        .declare_subscriber(
-            EnvId::real("estop-unwatched")
-                .expect("env")
-                .key(Topic::EStop),
-        )
+        .declare_subscriber(nobody.key(Topic::EStop))
         .await
         .expect("subscriber");
-    let nobody = EnvId::real("estop-unwatched").expect("env");
     let error = press_estop(
         &operator,
         &EStopScope::Env(nobody.clone()),
-        &press,
+        true,
+        "drill",
         Duration::from_millis(300),
+        ACK,
     )
     .await
     .expect_err("nobody heard it");
@@ -107,45 +186,87 @@ async fn an_env_and_the_site_estop_reach_the_robot_and_an_unheard_press_is_an_er
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_cli_presses_and_releases_an_env_estop() {
+async fn the_cli_prints_who_acknowledged_and_fails_when_someone_did_not() {
     let endpoint = loopback_endpoint().expect("endpoint");
     let robot_side = SessionConfig::listening(&endpoint)
         .open()
         .await
         .expect("session");
-    let env = EnvId::real("estop-cli").expect("env");
-    let (_alive, robot) = embodiment(&robot_side, &env, Component::SimTwin).await;
-    for (extra, engaged) in [(None, true), (Some("--release"), false)] {
+    let _twin = twin(&robot_side, "estop-cli");
+    let env = EnvId::sim("estop-cli").expect("env");
+    let cli = |args: Vec<String>| async move {
         let mut cli = std::process::Command::new(env!("CARGO_BIN_EXE_env_controller"));
-        cli.args(["estop", "--env", &env.to_string(), "--reason", "drill"])
-            .args(["--connect", &endpoint, "--wait-s", "5"])
-            .args(extra);
-        // The CLI's own waits are bounded (--wait-s); so is this one.
-        let out = tokio::time::timeout(
-            HEARD_WITHIN,
+        cli.args(args);
+        // The CLI's own waits are bounded (--wait-s, --ack-ms); so is this one.
+        tokio::time::timeout(
+            Duration::from_secs(30),
             tokio::task::spawn_blocking(move || cli.output()),
         )
         .await
         .expect("the CLI exits within the bound")
         .expect("join")
-        .expect("the CLI runs");
+        .expect("the CLI runs")
+    };
+    let base = |extra: &[&str]| {
+        let mut args: Vec<String> = ["estop", "--env", &env.to_string(), "--reason", "drill"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        args.extend(
+            ["--connect", &endpoint, "--wait-s", "5", "--ack-ms", "5000"].map(String::from),
+        );
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args
+    };
+    for (extra, verb, now) in [
+        (&[][..], "engaged", "env"),
+        (&["--release"][..], "released", "none"),
+    ] {
+        let out = cli(base(extra)).await;
+        let stdout = String::from_utf8_lossy(&out.stdout);
         assert!(
             out.status.success(),
-            "{}",
+            "{stdout}{}",
             String::from_utf8_lossy(&out.stderr)
         );
-        let verb = if engaged { "engaged" } else { "released" };
+        let lines: Vec<&str> = stdout.lines().collect();
         assert_eq!(
-            String::from_utf8_lossy(&out.stdout).trim(),
+            lines[0],
             format!("e-stop {verb} on {}", env.key(Topic::EStop))
         );
-        let heard = next_estop(&robot).await;
-        assert_eq!(
-            heard,
-            EStop {
-                engaged,
-                reason: "drill".into()
-            }
+        assert!(
+            lines[1].starts_with("  acknowledged by sim_twin of sim/estop-cli in ")
+                && lines[1].ends_with(&format!(" ms (e-stops now engaged: {now})")),
+            "{stdout}"
         );
+        assert_eq!(lines.len(), 2, "{stdout}");
     }
+
+    // A second, frozen component under the env: the CLI names it and
+    // exits non-zero.
+    let _token = robot_side
+        .liveliness()
+        .declare_token(env.alive_key(Component::RobotAgent))
+        .await
+        .expect("token");
+    let watcher = SessionConfig::connecting(&endpoint)
+        .open()
+        .await
+        .expect("session");
+    until_visible(&watcher, &env.alive_key(Component::RobotAgent)).await;
+    let mut args = base(&[]);
+    let ack = args.iter().position(|a| a == "5000").expect("--ack-ms");
+    args[ack] = "1000".into();
+    let out = cli(args).await;
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(!out.status.success(), "{stdout}");
+    assert!(
+        stdout.contains("  NOT acknowledged by robot_agent of sim/estop-cli"),
+        "{stdout}"
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("was not acknowledged within 1000 ms"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -106,7 +106,7 @@ async fn main() -> anyhow::Result<()> {
                 tokio::time::sleep(Duration::from_secs_f64(secs)).await;
             }
             _ => {
-                let _ = tokio::signal::ctrl_c().await;
+                let _ = offworld_runtime::shutdown::signalled().await;
             }
         }
     };

@@ -61,6 +61,7 @@ async fn wait_for_route(
     let status = EnvStatus {
         env_id: env.to_string(),
         state: EnvState::Free,
+        estop: Default::default(),
     };
     let deadline = Instant::now() + Duration::from_secs(20);
     while monitor.stats().statuses == 0 {

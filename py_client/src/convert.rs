@@ -157,6 +157,14 @@ pub fn listing<'py>(
         bookings.append(booking(py, b)?)?;
     }
     dict.set_item("bookings", bookings)?;
+    // Engaged e-stop latches only: `{"site": reason, "env": reason}`.
+    let estops = PyDict::new(py);
+    for (latch, state) in [("site", &listing.estop.site), ("env", &listing.estop.env)] {
+        if state.engaged {
+            estops.set_item(latch, &state.reason)?;
+        }
+    }
+    dict.set_item("estops", estops)?;
     Ok(dict)
 }
 

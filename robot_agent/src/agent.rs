@@ -10,10 +10,11 @@
 use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
+use offworld_runtime::estop::{self, Latch};
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrame, EStop, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, PoseStamped,
-    SeqTag, Time, TrackingStatus,
+    CameraFrame, EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault,
+    Pose2D, PoseStamped, SeqTag, Time, TrackingStatus,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
@@ -43,13 +44,16 @@ const MAX_GOTO_S: f64 = 300.0;
 const ZERO_TAIL: Duration = Duration::from_millis(500);
 /// Event queue bound.
 const QUEUE: usize = 256;
+/// How long a starting agent asks the network for the e-stop latches.
+const RECALL: Duration = Duration::from_millis(500);
 
 /// Everything that reaches the agent from the network.
 enum Event {
     Command(MotionCommand),
     Heartbeat,
-    EStop(EStop),
+    EStop(Latch, EStop),
     ControllerPresent(bool),
+    GuardPresent(bool),
     Tracking(bool),
     Goto(Query),
 }
@@ -90,24 +94,34 @@ pub async fn spawn<H: RobotHardware>(
     config.validate()?;
     let grid = OccupancyGrid::from_world(&config.world_spec()?, &config.nav)
         .map_err(|e| AgentError::Config(format!("navigation map: {e}")))?;
+    let latch = config.estop_latch.clone().map(EStopLatch::new);
+    let estops = recall_estops(session, &env, latch.as_ref()).await;
+    let (estop_tx, estop_rx) = watch::channel(estops.clone());
     let (tx, events) = mpsc::channel::<Event>(QUEUE);
     let (pose_tx, poses) = watch::channel(None);
-    let declarations = Declarations::declare(session, &env, tx, pose_tx).await?;
+    let declarations = Declarations::declare(session, &env, tx, pose_tx, estop_rx).await?;
     let agent = Agent {
         answers: Answers::declare(session, &env).await?,
         env,
-        watchdog: Watchdog::new(config.watchdog()),
+        watchdog: if config.require_base_guard {
+            Watchdog::new(config.watchdog()).require_guard()
+        } else {
+            Watchdog::new(config.watchdog())
+        },
         limiter: VelocityLimiter::new(config.limits),
         sensors: robot.sensors(),
         robot,
         grid,
         poses,
-        latch: config.estop_latch.clone().map(EStopLatch::new),
+        latch,
         config,
-        estop: None,
+        estops,
+        estop_tx,
         tracking: true,
         activity: Activity::Idle,
         last_motion: None,
+        last_tick: Instant::now(),
+        watch_camera_from: Instant::now(),
         _declarations: declarations,
     };
     let (shutdown, stop) = oneshot::channel();
@@ -122,6 +136,7 @@ pub async fn spawn<H: RobotHardware>(
 struct Declarations {
     _subscribers: Vec<Subscriber<()>>,
     _goto: Queryable<()>,
+    _estop_state: Queryable<()>,
     _token: LivelinessToken,
 }
 
@@ -131,6 +146,7 @@ impl Declarations {
         env: &EnvId,
         tx: mpsc::Sender<Event>,
         pose_tx: watch::Sender<Option<(Pose2D, Instant)>>,
+        estops: watch::Receiver<EStopState>,
     ) -> Result<Self, AgentError> {
         let enqueue = |tx: &mpsc::Sender<Event>, event: Event| {
             if tx.try_send(event).is_err() {
@@ -157,7 +173,10 @@ impl Declarations {
                 .callback(move |_: Sample| enqueue(&t, Event::Heartbeat))
                 .await?,
         );
-        for key in [env.key(Topic::EStop), global_estop_key()] {
+        for (key, latch) in [
+            (env.key(Topic::EStop), Latch::Env),
+            (global_estop_key(), Latch::Site),
+        ] {
             let t = tx.clone();
             subscribers.push(
                 session
@@ -165,15 +184,12 @@ impl Declarations {
                     .callback(move |s: Sample| {
                         let stop = codec::decode_payload::<EStop>(s.payload()).unwrap_or_else(
                             // A garbled e-stop engages: safety first.
-                            |e| EStop {
-                                engaged: true,
-                                reason: format!("malformed e-stop ({e})"),
-                            },
+                            |e| EStop::new(true, format!("malformed e-stop ({e})")),
                         );
                         // Never dropped: an e-stop must get through.
                         let t = t.clone();
                         tokio::spawn(async move {
-                            let _ = t.send(Event::EStop(stop)).await;
+                            let _ = t.send(Event::EStop(latch, stop)).await;
                         });
                     })
                     .await?,
@@ -226,6 +242,21 @@ impl Declarations {
                 })
                 .await?,
         );
+        let t = tx.clone();
+        subscribers.push(
+            session
+                .liveliness()
+                .declare_subscriber(env.alive_key(Component::BaseGuard))
+                .history(true)
+                .callback(move |s: Sample| {
+                    let present = s.kind() == SampleKind::Put;
+                    let t = t.clone();
+                    tokio::spawn(async move {
+                        let _ = t.send(Event::GuardPresent(present)).await;
+                    });
+                })
+                .await?,
+        );
         let t = tx;
         let goto = session
             .declare_queryable(env.key(Topic::Goto))
@@ -240,6 +271,15 @@ impl Declarations {
                 }
             })
             .await?;
+        let estop_state = session
+            .declare_queryable(env.key(Topic::EStopState))
+            .callback(move |q: Query| {
+                let state = estops.borrow().clone();
+                if let Err(e) = wire::reply_now(&q, Ok(&state)) {
+                    tracing::warn!("e-stop state reply failed: {e}");
+                }
+            })
+            .await?;
         let token = session
             .liveliness()
             .declare_token(env.alive_key(Component::RobotAgent))
@@ -247,6 +287,7 @@ impl Declarations {
         Ok(Self {
             _subscribers: subscribers,
             _goto: goto,
+            _estop_state: estop_state,
             _token: token,
         })
     }
@@ -258,6 +299,7 @@ struct Answers {
     obs: Publisher<'static>,
     odom: Publisher<'static>,
     fault: Publisher<'static>,
+    estop_ack: Publisher<'static>,
 }
 
 impl Answers {
@@ -266,6 +308,7 @@ impl Answers {
             obs: wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?,
             odom: wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?,
             fault: wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?,
+            estop_ack: wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?,
         })
     }
 }
@@ -325,22 +368,29 @@ struct Agent<H: RobotHardware> {
     poses: watch::Receiver<Option<(Pose2D, Instant)>>,
     watchdog: Watchdog,
     limiter: VelocityLimiter,
-    estop: Option<String>,
-    /// Where an engaged e-stop is remembered across restarts.
+    /// The site and env e-stop latches in force.
+    estops: EStopState,
+    /// What the `estop_state` queryable answers.
+    estop_tx: watch::Sender<EStopState>,
+    /// Where the latches are remembered across restarts.
     latch: Option<EStopLatch>,
     tracking: bool,
     activity: Activity,
     /// When a non-zero velocity was last sent.
     last_motion: Option<Instant>,
+    /// The previous control tick (a long gap: the agent itself stalled).
+    last_tick: Instant,
+    /// Camera silence counts from here (reset after the agent's own stall:
+    /// silence it did not watch is no evidence against the camera).
+    watch_camera_from: Instant,
     _declarations: Declarations,
 }
 
 impl<H: RobotHardware> Agent<H> {
     async fn run(mut self, mut events: mpsc::Receiver<Event>, mut stop: oneshot::Receiver<()>) {
         tracing::info!(env = %self.env, graph = %self.config.graph().map(|g| g.to_string()).unwrap_or_default(), "robot agent serving");
-        if let Some(reason) = self.latch.as_ref().and_then(EStopLatch::engaged) {
+        if let Some(reason) = self.estops.refusal() {
             tracing::warn!(env = %self.env, %reason, "E-STOP engaged before this start: motion refused until an operator releases it");
-            self.estop = Some(reason);
         }
         let period = Duration::from_secs_f64(1.0 / self.config.control_hz);
         let mut tick = tokio::time::interval(period);
@@ -371,28 +421,17 @@ impl<H: RobotHardware> Agent<H> {
                 // Check at once: a vanished controller stops the robot now.
                 self.check_watchdog(now).await;
             }
-            Event::Tracking(tracking) => self.tracking = tracking,
-            Event::EStop(stop) => {
-                if stop.engaged {
-                    tracing::warn!(env = %self.env, reason = %stop.reason, "E-STOP engaged");
-                    self.estop = Some(stop.reason.clone());
-                    self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
-                        .await;
-                    if let Some(latch) = &self.latch {
-                        if let Err(e) = latch.engage(&stop.reason) {
-                            tracing::error!(path = %latch.path().display(), "cannot latch the e-stop: {e}");
-                        }
-                    }
+            Event::GuardPresent(present) => {
+                if present {
+                    tracing::info!(env = %self.env, "base guard present");
                 } else {
-                    tracing::warn!(env = %self.env, reason = %stop.reason, "e-stop released");
-                    self.estop = None;
-                    if let Some(latch) = &self.latch {
-                        if let Err(e) = latch.release() {
-                            tracing::error!(path = %latch.path().display(), "cannot clear the e-stop latch (it engages again at the next start): {e}");
-                        }
-                    }
+                    tracing::error!(env = %self.env, "the base guard is gone: motion refused until it is back");
                 }
+                self.watchdog.guard_present(present);
+                self.check_watchdog(now).await;
             }
+            Event::Tracking(tracking) => self.tracking = tracking,
+            Event::EStop(latch, stop) => self.estop(latch, stop).await,
             Event::Command(cmd) => {
                 self.watchdog.sign_of_life(now);
                 self.check_watchdog(now).await;
@@ -405,10 +444,38 @@ impl<H: RobotHardware> Agent<H> {
         }
     }
 
+    /// Applies an e-stop to its latch: stops the robot first, then
+    /// remembers the latches on disk, then acknowledges.
+    async fn estop(&mut self, latch: Latch, stop: EStop) {
+        self.estops.apply(latch, &stop, Time::now());
+        if stop.engaged {
+            tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, "E-STOP engaged");
+            self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
+                .await;
+        } else {
+            tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, still = self.estops.summary(), "e-stop released");
+        }
+        if let Some(file) = &self.latch {
+            if let Err(e) = file.store(&self.estops) {
+                tracing::error!(path = %file.path().display(), "cannot write the e-stop latch: {e}");
+            }
+        }
+        self.estop_tx.send_replace(self.estops.clone());
+        let ack = EStopAck {
+            press_id: stop.press_id,
+            component: Component::RobotAgent.as_str().to_owned(),
+            env: self.env.to_string(),
+            state: self.estops.clone(),
+        };
+        if let Err(e) = wire::publish(&self.answers.estop_ack, &ack) {
+            tracing::warn!("cannot acknowledge the e-stop: {e}");
+        }
+    }
+
     /// Why motion is refused right now, if it is.
     fn refusal(&self, now: Instant) -> Option<String> {
-        if let Some(reason) = &self.estop {
-            return Some(format!("e-stop engaged: {reason}"));
+        if let Some(reason) = self.estops.refusal() {
+            return Some(reason);
         }
         if !self.watchdog.armed() {
             return Some(format!(
@@ -453,10 +520,25 @@ impl<H: RobotHardware> Agent<H> {
             );
         }
         self.abandon("preempted by a motion command").await;
+        let moves = cmd.duration_s > 0.0 && !target.is_zero();
         if let Some(reason) = self.refusal(now) {
+            if moves {
+                // Not answered as if it had moved: the controller fails the
+                // step with this reason at once.
+                let fault = MotionFault {
+                    seq: cmd.seq,
+                    reason: format!("motion refused: {reason}"),
+                };
+                tracing::warn!(seq = cmd.seq, "{}", fault.reason);
+                if let Err(e) = wire::publish(&self.answers.fault, &fault) {
+                    tracing::warn!("cannot report the refusal: {e}");
+                }
+                self.activity = Activity::Idle;
+                return;
+            }
             tracing::warn!(
                 seq = cmd.seq,
-                "motion refused ({reason}); answering without moving"
+                "motion refused ({reason}); answering the observation request"
             );
             self.activity = Activity::Settling {
                 seq: cmd.seq,
@@ -464,7 +546,7 @@ impl<H: RobotHardware> Agent<H> {
             };
             return;
         }
-        self.activity = if cmd.duration_s > 0.0 && !target.is_zero() {
+        self.activity = if moves {
             Activity::Driving {
                 seq: cmd.seq,
                 target,
@@ -492,9 +574,8 @@ impl<H: RobotHardware> Agent<H> {
             Ok(r) => r,
             Err(e) => return reply_goto(&query, Err(e)).await,
         };
-        if let Some(reason) = &self.estop {
-            let err = WireError::invalid_state(format!("e-stop engaged: {reason}"));
-            return reply_goto(&query, Err(err)).await;
+        if let Some(reason) = self.estops.refusal() {
+            return reply_goto(&query, Err(WireError::invalid_state(reason))).await;
         }
         if let Some(reason) = self.refusal(now) {
             return reply_goto(&query, Err(WireError::unavailable(reason))).await;
@@ -589,6 +670,7 @@ impl<H: RobotHardware> Agent<H> {
     async fn tick(&mut self, dt: f64) {
         let now = Instant::now();
         self.check_watchdog(now).await;
+        self.check_camera(now).await;
         let settle = Duration::from_millis(self.config.settle_ms);
         let still = self.limiter.current().is_zero();
         let mut target = Velocity::ZERO;
@@ -672,6 +754,43 @@ impl<H: RobotHardware> Agent<H> {
             .is_some_and(|t| now.saturating_duration_since(t) < ZERO_TAIL);
         if !velocity.is_zero() || recently_moved || !matches!(self.activity, Activity::Idle) {
             self.send(velocity).await;
+        }
+    }
+
+    /// Fails the command in progress at once when the camera went silent
+    /// (hardware, driver or robot computer down): the controller learns it
+    /// now, not after the answer timeouts.
+    async fn check_camera(&mut self, now: Instant) {
+        let stale = Duration::from_millis(self.config.camera_stale_ms);
+        if now.saturating_duration_since(self.last_tick) > stale / 2 {
+            self.watch_camera_from = now;
+        }
+        self.last_tick = now;
+        let seq = match &self.activity {
+            Activity::Driving { seq, .. }
+            | Activity::Settling { seq, .. }
+            | Activity::Capturing { seq, .. } => *seq,
+            Activity::Idle | Activity::Navigating(_) => return,
+        };
+        let newest = self.sensors.borrow().color.as_ref().map(|c| c.at);
+        let since = newest.map_or(self.watch_camera_from, |t| t.max(self.watch_camera_from));
+        let silent = now.saturating_duration_since(since);
+        if silent <= stale {
+            return;
+        }
+        let fault = MotionFault {
+            seq,
+            reason: format!(
+                "the robot's camera is silent for {} ms (limit {} ms): camera, driver or robot computer down",
+                silent.as_millis(),
+                stale.as_millis()
+            ),
+        };
+        tracing::error!(seq, "{}: command failed", fault.reason);
+        self.halt(&fault.reason, OnHalt::Abandon).await;
+        self.activity = Activity::Idle;
+        if let Err(e) = wire::publish(&self.answers.fault, &fault) {
+            tracing::warn!("cannot report the fault: {e}");
         }
     }
 
@@ -814,4 +933,15 @@ async fn reply_goto(query: &Query, result: Result<&GotoReply, WireError>) {
     if let Err(e) = wire::reply(query, result).await {
         tracing::warn!("goto reply failed: {e}");
     }
+}
+
+/// The latches kept on disk merged with what the network remembers (the
+/// newer report per latch wins).
+async fn recall_estops(session: &Session, env: &EnvId, latch: Option<&EStopLatch>) -> EStopState {
+    let mut state = latch.and_then(EStopLatch::load).unwrap_or_default();
+    let network = estop::recall(session, env, RECALL).await;
+    if state.merge(&network) {
+        tracing::warn!(env = %env, now = state.summary(), "e-stop latches updated from the network");
+    }
+    state
 }

@@ -10,6 +10,7 @@ use offworld_runtime::WorldSpec;
 use serde::{Deserialize, Serialize};
 
 use crate::error::AgentError;
+use crate::guard::GuardConfig;
 use crate::nav::NavConfig;
 
 /// Velocity and acceleration limits enforced on every command.
@@ -57,6 +58,10 @@ pub struct AgentConfig {
     pub settle_ms: u64,
     /// Give up on camera frames after this long, ms.
     pub frame_timeout_ms: u64,
+    /// A command in progress fails at once when no camera frame arrived
+    /// for this long (the camera, its driver or the robot's computer is
+    /// down), ms.
+    pub camera_stale_ms: u64,
     /// Velocity commands per second while moving.
     pub control_hz: f64,
     /// A tracker pose older than this cannot steer navigation, ms.
@@ -74,6 +79,15 @@ pub struct AgentConfig {
     /// File that remembers an engaged e-stop across agent restarts (see
     /// [`crate::latch`]); `None`: an e-stop lasts as long as the process.
     pub estop_latch: Option<PathBuf>,
+    /// Refuse to move until the robot's independent base guard
+    /// ([`crate::guard`], the `base_guard` process) declares itself: without
+    /// it, a killed or frozen agent leaves a base without its own command
+    /// timeout driving at its last velocity. `false` only for a base whose
+    /// own command timeout (e.g. ros2_control's `cmd_vel_timeout`) was
+    /// verified.
+    pub require_base_guard: bool,
+    /// The base guard's timings (read by `base_guard`).
+    pub guard: GuardConfig,
 }
 
 impl Default for AgentConfig {
@@ -86,12 +100,15 @@ impl Default for AgentConfig {
             watchdog_ms: 200,
             settle_ms: 250,
             frame_timeout_ms: 2000,
+            camera_stale_ms: 500,
             control_hz: 50.0,
             pose_stale_ms: 500,
             nav_hold_ms: 3000,
             world: "monolith".into(),
             nav: NavConfig::default(),
             estop_latch: None,
+            require_base_guard: true,
+            guard: GuardConfig::default(),
         }
     }
 }
@@ -134,12 +151,19 @@ impl AgentConfig {
                 self.watchdog_ms
             )));
         }
+        if !(50..=10_000).contains(&self.camera_stale_ms) {
+            return Err(AgentError::Config(format!(
+                "camera_stale_ms must be in 50..=10000, got {}",
+                self.camera_stale_ms
+            )));
+        }
         if self.nav_hold_ms == 0 || self.nav_hold_ms > 60_000 {
             return Err(AgentError::Config(format!(
                 "nav_hold_ms must be in 1..=60000, got {}",
                 self.nav_hold_ms
             )));
         }
+        self.guard.validate()?;
         self.graph()?;
         Ok(())
     }

@@ -1,14 +1,17 @@
-//! The e-stop latch: an engaged e-stop written to the robot's disk, so a
-//! robot agent restarted (crash, reboot, update) while e-stopped comes back
-//! e-stopped. Only an operator's release clears it. E-stops travel as
-//! plain publications that nobody repeats, so without the latch a restart
-//! would silently forget one.
+//! The e-stop latch on the robot's disk: the site and env latches
+//! ([`EStopState`]) written on every change, so a robot agent restarted
+//! (crash, reboot, update) while e-stopped comes back e-stopped. On start
+//! the agent merges it with what the network remembers (the newer report
+//! per latch wins, see [`offworld_runtime::estop`]).
 //!
-//! The file holds the reason; its presence is what counts. A latch file
-//! that cannot be read still engages (fail safe).
+//! The file is TOML (`[site]` and `[env]`, each `engaged`, `reason`,
+//! `changed`). A file that cannot be read or parsed engages both latches
+//! (fail safe), stamped "now" so the network cannot silently outvote it.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+
+use offworld_runtime::msg::{EStopState, LatchState, Time};
 
 /// Where the e-stop state is remembered.
 #[derive(Debug, Clone)]
@@ -17,7 +20,7 @@ pub struct EStopLatch {
 }
 
 impl EStopLatch {
-    /// A latch kept in `path` (its directory is created on first engage).
+    /// A latch kept in `path` (its directory is created on first write).
     pub fn new(path: impl Into<PathBuf>) -> Self {
         Self { path: path.into() }
     }
@@ -27,46 +30,67 @@ impl EStopLatch {
         &self.path
     }
 
-    /// The reason of an e-stop engaged before this start, if any.
-    pub fn engaged(&self) -> Option<String> {
-        match std::fs::read(&self.path) {
-            Ok(bytes) => Some(String::from_utf8_lossy(&bytes).trim().to_owned()),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-            Err(e) => Some(format!(
-                "unreadable e-stop latch {}: {e}",
-                self.path.display()
-            )),
-        }
+    /// The state written before this start (`None`: never written).
+    pub fn load(&self) -> Option<EStopState> {
+        let text = match std::fs::read_to_string(&self.path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return None,
+            Err(e) => {
+                return Some(both_engaged(format!(
+                    "unreadable e-stop latch {}: {e}",
+                    self.path.display()
+                )))
+            }
+        };
+        Some(toml::from_str(&text).unwrap_or_else(|e| {
+            both_engaged(format!(
+                "unparsable e-stop latch {}: {}",
+                self.path.display(),
+                e.message()
+            ))
+        }))
     }
 
-    /// Remembers an engaged e-stop (written whole, then renamed into place,
-    /// so a crash mid-write never leaves a half latch).
-    pub fn engage(&self, reason: &str) -> std::io::Result<()> {
-        if let Some(dir) = self.path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)?;
-        }
+    /// Writes `state` (whole, synced, renamed into place, directory synced:
+    /// a crash or power cut leaves the old state or the new one).
+    pub fn store(&self, state: &EStopState) -> std::io::Result<()> {
+        let dir = self
+            .path
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        std::fs::create_dir_all(dir)?;
+        let text = toml::to_string(state).map_err(std::io::Error::other)?;
         let mut staging = self.path.clone().into_os_string();
         staging.push(".tmp");
         let staging = PathBuf::from(staging);
         {
             let mut file = std::fs::File::create(&staging)?;
-            file.write_all(reason.as_bytes())?;
+            file.write_all(text.as_bytes())?;
             file.sync_all()?;
         }
-        std::fs::rename(&staging, &self.path)
+        std::fs::rename(&staging, &self.path)?;
+        std::fs::File::open(dir)?.sync_all()
     }
+}
 
-    /// Forgets the e-stop (an operator released it).
-    pub fn release(&self) -> std::io::Result<()> {
-        match std::fs::remove_file(&self.path) {
-            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
-            _ => Ok(()),
-        }
+fn both_engaged(reason: String) -> EStopState {
+    let latch = LatchState {
+        engaged: true,
+        reason,
+        changed: Time::now(),
+    };
+    EStopState {
+        site: latch.clone(),
+        env: latch,
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use offworld_runtime::estop::Latch;
+    use offworld_runtime::msg::EStop;
+
     use super::*;
 
     fn scratch(name: &str) -> PathBuf {
@@ -77,31 +101,47 @@ mod tests {
     }
 
     #[test]
-    fn remembers_an_engaged_estop_until_released() -> std::io::Result<()> {
+    fn remembers_both_latches_exactly() -> std::io::Result<()> {
         let dir = scratch("cycle");
         let latch = EStopLatch::new(dir.join("nested/estop"));
-        assert_eq!(latch.engaged(), None, "never engaged");
-        latch.engage("operator: boulder moved")?;
-        assert_eq!(
-            EStopLatch::new(latch.path()).engaged().as_deref(),
-            Some("operator: boulder moved"),
-            "a new agent reads it back"
-        );
-        latch.engage("second press")?;
-        assert_eq!(latch.engaged().as_deref(), Some("second press"));
-        latch.release()?;
-        assert_eq!(latch.engaged(), None);
-        latch.release()?;
+        assert_eq!(latch.load(), None, "never written");
+        let mut state = EStopState::default();
+        let t = Time {
+            sec: 1_700_000_000,
+            nanosec: 5,
+        };
+        state.apply(Latch::Site, &EStop::new(true, "operator: boulder moved"), t);
+        latch.store(&state)?;
+        assert_eq!(EStopLatch::new(latch.path()).load(), Some(state.clone()));
+        state.apply(Latch::Env, &EStop::new(true, "second press"), t);
+        state.apply(Latch::Site, &EStop::new(false, "site clear"), t);
+        latch.store(&state)?;
+        let back = latch.load().expect("written");
+        assert_eq!(back, state);
+        assert!(!back.site.engaged && back.env.engaged);
         std::fs::remove_dir_all(dir)
     }
 
     #[test]
-    fn an_unreadable_latch_engages() -> std::io::Result<()> {
+    fn an_unreadable_or_garbled_latch_engages_both() -> std::io::Result<()> {
         let dir = scratch("unreadable");
         // A directory where the file should be cannot be read as one.
         std::fs::create_dir_all(&dir)?;
-        let reason = EStopLatch::new(&dir).engaged().unwrap_or_default();
-        assert!(reason.starts_with("unreadable e-stop latch"), "{reason}");
+        let state = EStopLatch::new(&dir).load().expect("engaged");
+        assert!(state.site.engaged && state.env.engaged);
+        assert!(
+            state.env.reason.starts_with("unreadable e-stop latch"),
+            "{state:?}"
+        );
+        // An older agent's latch held just the reason.
+        let old = dir.join("old.estop");
+        std::fs::write(&old, "operator: person inside")?;
+        let state = EStopLatch::new(&old).load().expect("engaged");
+        assert!(state.site.engaged && state.env.engaged);
+        assert!(
+            state.env.reason.starts_with("unparsable e-stop latch"),
+            "{state:?}"
+        );
         std::fs::remove_dir_all(dir)
     }
 }

@@ -17,12 +17,18 @@
 //!   localization with an A* plan over the known map and a path follower,
 //!   with a timeout and typed failures.
 //!
+//! - Defence in depth ([`guard`]): the `base_guard` process, separate from
+//!   the agent, zeroes the base when the agent dies, freezes or goes silent
+//!   mid-motion; the agent refuses to move until it is there
+//!   (`require_base_guard`).
+//!
 //! The hardware sits behind [`hardware::RobotHardware`]; [`agent::spawn`]
 //! runs the node.
 
 pub mod agent;
 pub mod config;
 mod error;
+pub mod guard;
 pub mod hardware;
 pub mod latch;
 pub mod limiter;
@@ -33,4 +39,5 @@ pub mod watchdog;
 pub use agent::{spawn, AgentHandle};
 pub use config::{AgentConfig, Limits};
 pub use error::AgentError;
-pub use ros2::Ros2Robot;
+pub use guard::GuardConfig;
+pub use ros2::{CmdVelPublisher, Ros2Robot};

@@ -1,24 +1,29 @@
 //! `robot_agent`: serve a real enclosure's robot.
 //!
-//! `robot_agent --env real/enclosure-a --config robot.toml` connects to
-//! tcp/127.0.0.1:7447 unless endpoints are given; without `--config` it
+//! `robot_agent --env real/enclosure-a --robot-config robot.toml` connects to
+//! tcp/127.0.0.1:7447 unless endpoints are given; without `--robot-config` it
 //! drives a ROSbot on rmw_zenoh domain 0 in the root namespace.
 
 use std::path::PathBuf;
 
 use clap::Parser;
 use offworld_robot_agent::{AgentConfig, Ros2Robot};
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
 #[derive(Parser)]
-#[command(about = "Run the OffWorld robot agent (ROS 2 robot over Zenoh)")]
+#[command(
+    version,
+    about = "Run the OffWorld robot agent (ROS 2 robot over Zenoh)"
+)]
 struct Args {
     /// Env id served (under `real/`).
     #[arg(long, default_value = "real/enclosure-0")]
     env: EnvId,
-    /// Agent configuration (TOML); defaults fit a ROSbot on rmw_zenoh.
-    #[arg(long)]
-    config: Option<PathBuf>,
+    /// Agent configuration (TOML, see robot.example.toml); defaults fit a
+    /// ROSbot on rmw_zenoh. The Zenoh configuration is `--zenoh-config`.
+    #[arg(long, value_name = "TOML")]
+    robot_config: Option<PathBuf>,
     /// Enclosure layout for reset navigation (overrides the config).
     #[arg(long)]
     world: Option<String>,
@@ -38,12 +43,14 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
+    // Installed first: a SIGTERM during start-up must still zero the base.
+    let mut signals = ShutdownSignals::install()?;
     anyhow::ensure!(
         args.env.realm() == Realm::Real,
         "the robot agent serves `real/…` envs, not {}",
         args.env
     );
-    let mut config = match &args.config {
+    let mut config = match &args.robot_config {
         Some(path) => AgentConfig::load(path)?,
         None => AgentConfig::default(),
     };
@@ -59,27 +66,29 @@ async fn main() -> anyhow::Result<()> {
     if config.estop_latch.is_none() {
         config.estop_latch = default_latch(&args.env);
     }
-    match &config.estop_latch {
-        Some(path) => tracing::info!(path = %path.display(), "e-stop latch"),
-        None => tracing::warn!("no state directory: an e-stop will not survive a restart"),
+    if let Some(path) = &config.estop_latch {
+        tracing::info!(path = %path.display(), "e-stop latch");
     }
     config.validate()?;
     let session = args.common.client_config().open().await?;
     let robot = Ros2Robot::connect(&session, &config.graph()?, &config.topics).await?;
     let agent = offworld_robot_agent::spawn(&session, args.env.clone(), config, robot).await?;
-    tracing::info!(env = %args.env, "robot agent ready; Ctrl-C to stop");
-    tokio::signal::ctrl_c().await?;
+    tracing::info!(env = %args.env, "robot agent ready; Ctrl-C, SIGTERM or SIGHUP to stop");
+    let signal = signals.recv().await;
+    tracing::info!(%signal, "stopping the robot and exiting");
     agent.shutdown().await;
     Ok(())
 }
 
-/// `<state dir>/offworld/robot_agent/<env>.estop`, the env's `/` as `+`.
+/// `<state dir>/offworld/robot_agent/<env>.estop`, the env's `/` as `+`;
+/// the state dir is `$XDG_STATE_HOME`, else `~/.local/state`, else (a
+/// systemd unit without `HOME`, a container) `/var/lib`: never none, an
+/// agent without a latch would forget an e-stop on restart.
 fn default_latch(env: &EnvId) -> Option<PathBuf> {
     let state = std::env::var_os("XDG_STATE_HOME")
         .map(PathBuf::from)
-        .or_else(|| {
-            std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".local/state"))
-        })?;
+        .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".local/state")))
+        .unwrap_or_else(|| PathBuf::from("/var/lib"));
     let file = format!("{}.estop", env.to_string().replace('/', "+"));
     Some(state.join("offworld/robot_agent").join(file))
 }

@@ -23,10 +23,7 @@ use crate::limiter::Velocity;
 
 /// A ROS 2 robot over Zenoh.
 pub struct Ros2Robot {
-    session: Session,
-    cmd_vel_key: String,
-    publisher: RmwPublisherId,
-    rmw: bool,
+    cmd_vel: CmdVelPublisher,
     sensors: watch::Receiver<Sensors>,
     rejected: Arc<AtomicU64>,
     _subscribers: Vec<Subscriber<()>>,
@@ -93,10 +90,7 @@ impl Ros2Robot {
             .await?;
         subscribers.push(odom);
         Ok(Self {
-            session: session.clone(),
-            cmd_vel_key: graph.publication_key(&topics.cmd_vel, RosType::Twist)?,
-            publisher: RmwPublisherId::random(),
-            rmw: matches!(graph.style(), KeyStyle::RmwZenoh { .. }),
+            cmd_vel: CmdVelPublisher::new(session, graph, topics)?,
             sensors,
             rejected,
             _subscribers: subscribers,
@@ -117,11 +111,45 @@ enum Slot {
 
 impl RobotHardware for Ros2Robot {
     async fn drive(&self, velocity: Velocity) -> Result<(), AgentError> {
+        self.cmd_vel.send(velocity).await
+    }
+
+    fn sensors(&self) -> watch::Receiver<Sensors> {
+        self.sensors.clone()
+    }
+}
+
+/// The base's velocity topic as a ROS 2 publisher would write it: the
+/// agent drives through it, and the base guard zeroes through it.
+pub struct CmdVelPublisher {
+    session: Session,
+    key: String,
+    publisher: RmwPublisherId,
+    rmw: bool,
+}
+
+impl CmdVelPublisher {
+    /// A publisher on `topics.cmd_vel` of `graph`.
+    pub fn new(
+        session: &Session,
+        graph: &RosGraph,
+        topics: &RobotTopics,
+    ) -> Result<Self, AgentError> {
+        Ok(Self {
+            session: session.clone(),
+            key: graph.publication_key(&topics.cmd_vel, RosType::Twist)?,
+            publisher: RmwPublisherId::random(),
+            rmw: matches!(graph.style(), KeyStyle::RmwZenoh { .. }),
+        })
+    }
+
+    /// Commands `velocity` once (the base holds it, or times it out).
+    pub async fn send(&self, velocity: Velocity) -> Result<(), AgentError> {
         let twist = Twist::planar(velocity.linear, velocity.angular);
         let bytes = codec::encode(&twist).map_err(|e| AgentError::Encode(e.to_string()))?;
         let mut put = self
             .session
-            .put(&self.cmd_vel_key, bytes)
+            .put(&self.key, bytes)
             .encoding(Encoding::APPLICATION_CDR)
             // The watchdog's stop rides here: never dropped, never queued
             // behind the camera stream on the robot's router.
@@ -133,9 +161,5 @@ impl RobotHardware for Ros2Robot {
         }
         put.await?;
         Ok(())
-    }
-
-    fn sensors(&self) -> watch::Receiver<Sensors> {
-        self.sensors.clone()
     }
 }

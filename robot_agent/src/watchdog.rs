@@ -21,6 +21,8 @@ pub struct Watchdog {
     window: Duration,
     last_sign_of_life: Option<Instant>,
     controller_present: bool,
+    /// `None`: no base guard required; else whether one is there.
+    guard_present: Option<bool>,
     armed: bool,
 }
 
@@ -31,7 +33,21 @@ impl Watchdog {
             window,
             last_sign_of_life: None,
             controller_present: false,
+            guard_present: None,
             armed: false,
+        }
+    }
+
+    /// Motion also needs the robot's base guard to be there.
+    pub fn require_guard(mut self) -> Self {
+        self.guard_present = Some(false);
+        self
+    }
+
+    /// The base guard's liveliness token appeared or vanished.
+    pub fn guard_present(&mut self, present: bool) {
+        if self.guard_present.is_some() {
+            self.guard_present = Some(present);
         }
     }
 
@@ -58,6 +74,13 @@ impl Watchdog {
 
     /// Why motion is not allowed now, if it is not.
     pub fn fault(&self, now: Instant) -> Option<String> {
+        if self.guard_present == Some(false) {
+            return Some(
+                "no base guard on the robot: start `base_guard` for this env (or set \
+                 require_base_guard = false for a base with a verified command timeout)"
+                    .into(),
+            );
+        }
         if !self.controller_present {
             return Some("the controller's liveliness token is gone".into());
         }
@@ -112,6 +135,20 @@ mod tests {
         assert_eq!(dog.check(t0 + ms(300)), None, "trips once");
         dog.sign_of_life(t0 + ms(400));
         assert_eq!(dog.check(t0 + ms(400)), Some(Transition::Rearmed));
+    }
+
+    #[test]
+    fn a_required_guard_gates_arming_and_its_loss_trips() {
+        let t0 = Instant::now();
+        let mut dog = Watchdog::new(Duration::from_millis(200)).require_guard();
+        dog.sign_of_life(t0);
+        dog.controller_present(true);
+        assert_eq!(dog.check(t0), None, "no guard yet: stays disarmed");
+        assert!(dog.fault(t0).is_some_and(|f| f.contains("base_guard")));
+        dog.guard_present(true);
+        assert_eq!(dog.check(t0), Some(Transition::Rearmed));
+        dog.guard_present(false);
+        assert!(matches!(dog.check(t0), Some(Transition::Tripped(r)) if r.contains("base guard")));
     }
 
     #[test]

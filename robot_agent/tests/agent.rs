@@ -11,13 +11,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use offworld_robot_agent::hardware::{Received, RobotHardware, Sensors};
+use offworld_robot_agent::latch::EStopLatch;
 use offworld_robot_agent::limiter::Velocity;
 use offworld_robot_agent::nav::NavConfig;
 use offworld_robot_agent::{AgentConfig, AgentError, AgentHandle, Limits};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    CameraFrame, EStop, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
+    CameraFrame, EStop, EStopAck, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
     MotionFault, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
 };
 use offworld_runtime::session::loopback_pair;
@@ -43,9 +44,12 @@ const PROMPTLY: Duration = Duration::from_secs(1);
 /// The agent's defaults with a 1 s watchdog window: nine rigs run at once
 /// on 2 cores, and a heartbeat delayed past the real 200 ms window would
 /// rightly brake tests that are not about the watchdog (which has its own).
+/// The hardware double has no base to guard, so no base guard is required
+/// (its own test requires one).
 fn config() -> AgentConfig {
     AgentConfig {
         watchdog_ms: 1_000,
+        require_base_guard: false,
         ..AgentConfig::default()
     }
 }
@@ -192,8 +196,12 @@ struct Rig {
     frames: mpsc::UnboundedReceiver<CameraFrame>,
     /// Sequence numbers of every answer received, in order.
     seen: Vec<u64>,
+    /// Every fault (refused or unanswerable command) received, in order.
+    faults: mpsc::UnboundedReceiver<MotionFault>,
+    /// Every e-stop acknowledgement received, in order.
+    acks: mpsc::UnboundedReceiver<EStopAck>,
     tasks: Vec<JoinHandle<()>>,
-    _obs: Subscriber<()>,
+    _subscribers: [Subscriber<()>; 3],
 }
 
 impl Rig {
@@ -225,6 +233,22 @@ impl Rig {
             })
             .await
             .expect("obs subscriber");
+        let (tx, faults) = mpsc::unbounded_channel();
+        let fault = ctl
+            .declare_subscriber(env.key(Topic::Fault))
+            .callback(move |s: Sample| {
+                let _ = tx.send(codec::decode_payload(s.payload()).expect("MotionFault"));
+            })
+            .await
+            .expect("fault subscriber");
+        let (tx, acks) = mpsc::unbounded_channel();
+        let ack = ctl
+            .declare_subscriber(env.key(Topic::EStopAck))
+            .callback(move |s: Sample| {
+                let _ = tx.send(codec::decode_payload(s.payload()).expect("EStopAck"));
+            })
+            .await
+            .expect("ack subscriber");
         let token = ctl
             .liveliness()
             .declare_token(env.alive_key(Component::Controller))
@@ -256,8 +280,10 @@ impl Rig {
             tracking: Arc::new(AtomicBool::new(true)),
             frames,
             seen: Vec::new(),
+            faults,
+            acks,
             tasks,
-            _obs: obs,
+            _subscribers: [obs, fault, ack],
         }
     }
 
@@ -303,11 +329,48 @@ impl Rig {
     }
 
     async fn estop(&self, key: &str, engaged: bool) {
+        let reason = format!("test ({})", if engaged { "engage" } else { "release" });
+        wire::put(&self.ctl, key, &EStop::new(engaged, reason))
+            .await
+            .expect("put estop");
+    }
+
+    /// Presses `stop` with `press_id` and returns its acknowledgement.
+    async fn estop_acked(
+        &mut self,
+        key: &str,
+        engaged: bool,
+        reason: &str,
+        press_id: u64,
+    ) -> EStopAck {
         let stop = EStop {
             engaged,
-            reason: format!("test ({})", if engaged { "engage" } else { "release" }),
+            reason: reason.to_owned(),
+            press_id,
         };
         wire::put(&self.ctl, key, &stop).await.expect("put estop");
+        loop {
+            let ack = tokio::time::timeout(ANSWER, self.acks.recv())
+                .await
+                .expect("an acknowledgement within the answer bound")
+                .expect("ack channel");
+            if ack.press_id == press_id {
+                return ack;
+            }
+        }
+    }
+
+    /// The fault reported for `seq` (earlier faults are skipped).
+    async fn fault(&mut self, seq: u64) -> MotionFault {
+        loop {
+            let fault = tokio::time::timeout(ANSWER, self.faults.recv())
+                .await
+                .unwrap_or_else(|_| panic!("no fault for command {seq} within {ANSWER:?}"))
+                .expect("fault channel");
+            if fault.seq == seq {
+                return fault;
+            }
+        }
     }
 
     /// The answer to `seq`, if it arrives within `timeout`.
@@ -634,8 +697,9 @@ async fn commands_beyond_the_limits_are_clamped_and_ramped() {
 }
 
 /// The env e-stop brakes mid-motion at once; the interrupted command is
-/// still answered; while engaged, commands are answered without moving and
-/// `goto` is refused (InvalidState); a release lets the robot move again.
+/// still answered; while engaged, a command that would move is refused on
+/// `fault` (naming the e-stop) and `goto` is refused (InvalidState); a
+/// release lets the robot move again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
     let mut rig = Rig::start("estop", config()).await;
@@ -653,9 +717,12 @@ async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
     );
     let stopped = assert_braked(&rig.robot.sent(), engaged, cruise, "env e-stop");
 
-    // Engaged: answered, never moved.
+    // Engaged: refused, never moved.
     rig.cmd(11, CRUISE, 0.5, 0.5).await;
-    assert_eq!(rig.answer(11).await.seq, 11);
+    assert_eq!(
+        rig.fault(11).await.reason,
+        "motion refused: e-stop engaged: env (test (engage))"
+    );
     let request = goto_request(1, pose(0.5, 0.5, 0.0), 10.0);
     let refused = rig.goto(&request, Duration::from_secs(5)).await;
     assert_code(refused, ErrorCode::InvalidState, "goto under e-stop");
@@ -663,7 +730,7 @@ async fn estop_brakes_at_once_refuses_motion_and_release_restores_it() {
         !moved(&rig.robot.sent_since(stopped)),
         "no motion while engaged"
     );
-    assert_eq!(rig.seen, vec![10, 11]);
+    assert_eq!(rig.seen, vec![10]);
 
     // Released: motion again. (The release and the next command travel
     // different internal paths, so give the release a head start.)
@@ -692,18 +759,15 @@ async fn site_wide_and_malformed_estops_engage() {
     assert_eq!(rig.answer(20).await.seq, 20);
     let stopped = assert_braked(&rig.robot.sent(), engaged, cruise, "site-wide e-stop");
     rig.cmd(21, CRUISE, 0.0, 0.5).await;
-    assert_eq!(rig.answer(21).await.seq, 21);
+    let refused = rig.fault(21).await.reason;
+    assert!(refused.contains("site (test (engage))"), "{refused}");
     assert!(!moved(&rig.robot.sent_since(stopped)));
     rig.estop(&global_estop_key(), false).await;
     tokio::time::sleep(Duration::from_millis(300)).await;
 
     // Malformed payloads: garbage on the env key, truncated CDR on the
     // site-wide key.
-    let valid = codec::encode(&EStop {
-        engaged: false,
-        reason: "a release cut short".into(),
-    })
-    .expect("encode");
+    let valid = codec::encode(&EStop::new(false, "a release cut short")).expect("encode");
     let malformed = [
         (
             rig.env.key(Topic::EStop),
@@ -725,7 +789,8 @@ async fn site_wide_and_malformed_estops_engage() {
             &format!("malformed {key}"),
         );
         rig.cmd(seq + 1, CRUISE, 0.0, 0.5).await;
-        assert_eq!(rig.answer(seq + 1).await.seq, seq + 1);
+        let refused = rig.fault(seq + 1).await.reason;
+        assert!(refused.contains("malformed e-stop"), "{refused}");
         assert!(
             !moved(&rig.robot.sent_since(stopped)),
             "malformed e-stop holds"
@@ -733,7 +798,7 @@ async fn site_wide_and_malformed_estops_engage() {
         rig.estop(&key, false).await;
         tokio::time::sleep(Duration::from_millis(300)).await;
     }
-    assert_eq!(rig.seen, vec![20, 21, 22, 23, 32, 33]);
+    assert_eq!(rig.seen, vec![20, 22, 32]);
     rig.finish().await;
 }
 
@@ -748,7 +813,7 @@ async fn watchdog_brakes_when_heartbeats_stop_and_rearms_when_they_resume() {
     // delayed by a starved CI machine does not cut the re-armed motion.
     let config = AgentConfig {
         watchdog_ms: 500,
-        ..AgentConfig::default()
+        ..config()
     };
     let mut rig = Rig::start("watchdog", config).await;
     let cruise = v(CRUISE, 0.0);
@@ -797,8 +862,8 @@ async fn watchdog_brakes_when_heartbeats_stop_and_rearms_when_they_resume() {
 }
 
 /// The controller's liveliness token vanishes mid-motion (heartbeats keep
-/// coming): the robot brakes at once; commands are answered without
-/// motion until the token is back.
+/// coming): the robot brakes at once; commands are refused on `fault`
+/// until the token is back.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn losing_the_controller_token_brakes_and_refuses_motion() {
     let mut rig = Rig::start("token", config()).await;
@@ -817,12 +882,13 @@ async fn losing_the_controller_token_brakes_and_refuses_motion() {
     let stopped = assert_braked(&rig.robot.sent(), gone, cruise, "controller token gone");
 
     rig.cmd(51, CRUISE, 0.0, 1.0).await;
-    assert_eq!(rig.answer(51).await.seq, 51);
+    let refused = rig.fault(51).await.reason;
+    assert!(refused.contains("liveliness token is gone"), "{refused}");
     assert!(
         !moved(&rig.robot.sent_since(stopped)),
         "no motion without the token"
     );
-    assert_eq!(rig.seen, vec![50, 51]);
+    assert_eq!(rig.seen, vec![50]);
 
     rig.token = Some(
         rig.ctl
@@ -1096,9 +1162,9 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
 }
 
 /// An e-stop engaged before the agent restarts (crash, reboot, update) is
-/// still engaged after it: commands are answered without motion and
-/// `goto` is refused, naming the reason, until an operator releases it;
-/// the release clears the latch file.
+/// still engaged after it: commands are refused and `goto` is refused,
+/// naming the reason, until an operator releases it; the release is
+/// written to the latch file.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_estop_survives_an_agent_restart() {
     let dir = std::env::temp_dir().join(format!(
@@ -1112,7 +1178,8 @@ async fn an_estop_survives_an_agent_restart() {
     let rig = Rig::start("estop-latch", config.clone()).await;
     let estop_key = rig.env.key(Topic::EStop);
     rig.estop(&estop_key, true).await;
-    let latched = wait_until(PROMPTLY * 5, || dir.join("estop").exists()).await;
+    let latch = EStopLatch::new(dir.join("estop"));
+    let latched = wait_until(PROMPTLY * 5, || latch.load().is_some_and(|s| s.env.engaged)).await;
     assert!(latched, "the engaged e-stop is on disk");
     rig.finish().await;
 
@@ -1120,13 +1187,11 @@ async fn an_estop_survives_an_agent_restart() {
     let mut rig = Rig::launch("estop-latch", config).await;
     let deadline = Instant::now() + Duration::from_secs(15);
     for probe in 2_000_000u64.. {
-        assert!(Instant::now() < deadline, "no probe was answered");
+        assert!(Instant::now() < deadline, "no probe was refused");
         rig.cmd(probe, CRUISE, 0.0, 0.3).await;
-        if rig
-            .try_answer(probe, Duration::from_millis(1500))
-            .await
-            .is_some()
-        {
+        let refused = tokio::time::timeout(Duration::from_millis(1500), rig.faults.recv()).await;
+        if let Ok(Some(fault)) = refused {
+            assert!(fault.reason.contains("env (test (engage))"), "{fault:?}");
             break;
         }
     }
@@ -1143,7 +1208,11 @@ async fn an_estop_survives_an_agent_restart() {
     // The operator's release restores motion and clears the latch.
     rig.estop(&estop_key, false).await;
     rig.until_motion_allowed().await;
-    assert!(!dir.join("estop").exists(), "the latch is cleared");
+    let after = latch.load().expect("still written");
+    assert!(
+        !after.env.engaged && !after.site.engaged,
+        "released on disk: {after:?}"
+    );
     rig.finish().await;
     std::fs::remove_dir_all(dir).expect("scratch");
 }
@@ -1155,28 +1224,17 @@ async fn an_estop_survives_an_agent_restart() {
 async fn a_silent_camera_is_reported_as_a_fault_of_the_command() {
     let config = AgentConfig {
         frame_timeout_ms: 600,
+        // Only the frame timeout here; the silence limit has its own test.
+        camera_stale_ms: 10_000,
         ..config()
     };
     let mut rig = Rig::start("camera-silent", config).await;
-    let (tx, mut faults) = mpsc::unbounded_channel();
-    let _fault_sub = rig
-        .ctl
-        .declare_subscriber(rig.env.key(Topic::Fault))
-        .callback(move |s: Sample| {
-            let _ = tx.send(codec::decode_payload::<MotionFault>(s.payload()));
-        })
-        .await
-        .expect("fault subscriber");
     let camera = rig.tasks.remove(0);
     camera.abort();
     let _ = camera.await;
     // Frames already captured before the motion ends are too old to answer.
     rig.cmd(70, CRUISE, 0.0, 0.3).await;
-    let fault = tokio::time::timeout(ANSWER, faults.recv())
-        .await
-        .expect("a fault within the answer bound")
-        .expect("fault channel")
-        .expect("a well-formed fault");
+    let fault = rig.fault(70).await;
     assert_eq!(
         fault,
         MotionFault {
@@ -1190,5 +1248,166 @@ async fn a_silent_camera_is_reported_as_a_fault_of_the_command() {
             .is_none(),
         "no frame answers it"
     );
+    rig.finish().await;
+}
+
+/// The site and env latches are independent (releasing one never clears
+/// the other; motion resumes only when both are released), and every
+/// e-stop is acknowledged with its press id and the latches now in force,
+/// after the robot has braked.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() {
+    let mut rig = Rig::start("estop-scopes", config()).await;
+    let (env_key, site_key) = (rig.env.key(Topic::EStop), global_estop_key());
+    let cruise = v(CRUISE, 0.0);
+
+    rig.cmd(80, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(cruise).await;
+    let engaged = Instant::now();
+    let ack = rig.estop_acked(&site_key, true, "fire alarm", 501).await;
+    assert_eq!(
+        (ack.component.as_str(), ack.env.as_str()),
+        ("robot_agent", "real/estop-scopes")
+    );
+    assert!(ack.state.site.engaged && !ack.state.env.engaged);
+    assert_eq!(ack.state.site.reason, "fire alarm");
+    assert_braked(&rig.robot.sent(), engaged, cruise, "site e-stop");
+    assert_eq!(
+        rig.robot.last(),
+        Velocity::ZERO,
+        "braked before the acknowledgement"
+    );
+    assert_eq!(rig.answer(80).await.seq, 80);
+
+    let ack = rig.estop_acked(&env_key, true, "person inside", 502).await;
+    assert_eq!(ack.state.summary(), "site+env");
+    // The env release leaves the site latch: still refused.
+    let ack = rig.estop_acked(&env_key, false, "person out", 503).await;
+    assert_eq!(ack.state.summary(), "site");
+    rig.cmd(81, CRUISE, 0.0, 0.5).await;
+    assert_eq!(
+        rig.fault(81).await.reason,
+        "motion refused: e-stop engaged: site (fire alarm)"
+    );
+    // Engage the env again, release the site: still refused, by the env.
+    rig.estop_acked(&env_key, true, "maintenance", 504).await;
+    let ack = rig.estop_acked(&site_key, false, "all clear", 505).await;
+    assert_eq!(ack.state.summary(), "env");
+    rig.cmd(82, CRUISE, 0.0, 0.5).await;
+    assert_eq!(
+        rig.fault(82).await.reason,
+        "motion refused: e-stop engaged: env (maintenance)"
+    );
+    assert!(!moved(
+        &rig.robot.sent_since(engaged + Duration::from_millis(500))
+    ));
+    // Both released: motion again.
+    let ack = rig.estop_acked(&env_key, false, "done", 506).await;
+    assert_eq!(ack.state.summary(), "none");
+    rig.until_motion_allowed().await;
+    rig.finish().await;
+}
+
+/// A starting agent without a latch file learns the site latch from the
+/// network: another agent of the site answers `estop_state`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_starting_agent_learns_the_site_estop_from_the_network() {
+    let mut first = Rig::start("estop-net-a", config()).await;
+    first
+        .estop_acked(&global_estop_key(), true, "drill", 601)
+        .await;
+    // A second agent on the first one's network (its session), no latch.
+    let env = EnvId::real("estop-net-b").expect("env");
+    let robot = RecordingRobot::new();
+    let second = offworld_robot_agent::spawn(&first.ctl, env.clone(), config(), robot.clone())
+        .await
+        .expect("second agent");
+    let state: offworld_runtime::msg::EStopState = wire::request(
+        &first.ctl,
+        &env.key(Topic::EStopState),
+        &(),
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("the second agent answers its e-stop state");
+    assert!(state.site.engaged, "{state:?}");
+    assert_eq!(state.site.reason, "drill");
+    assert!(!state.env.engaged);
+    second.shutdown().await;
+    assert!(!moved(&robot.sent()));
+    first.estop(&global_estop_key(), false).await;
+    first.until_motion_allowed().await;
+    first.finish().await;
+}
+
+/// With `require_base_guard` (the default), the agent refuses motion until
+/// the robot's base guard declares itself, and again when it vanishes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn motion_needs_the_base_guard_when_required() {
+    let config = AgentConfig {
+        require_base_guard: true,
+        ..config()
+    };
+    let mut rig = Rig::launch("guarded", config).await;
+    // Probes until one is refused for the missing guard (the controller's
+    // token and first heartbeat must have arrived first).
+    let deadline = Instant::now() + Duration::from_secs(15);
+    for probe in 3_000_000u64.. {
+        assert!(
+            Instant::now() < deadline,
+            "never refused for the missing guard"
+        );
+        rig.cmd(probe, CRUISE, 0.0, 0.3).await;
+        if let Ok(Some(fault)) =
+            tokio::time::timeout(Duration::from_millis(1500), rig.faults.recv()).await
+        {
+            if fault.reason.contains("no base guard") {
+                break;
+            }
+        }
+    }
+    assert!(!moved(&rig.robot.sent()), "never moved without a guard");
+    let guard = rig
+        .ctl
+        .liveliness()
+        .declare_token(rig.env.alive_key(Component::BaseGuard))
+        .await
+        .expect("guard token");
+    rig.until_motion_allowed().await;
+
+    rig.cmd(90, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(v(CRUISE, 0.0)).await;
+    let gone = Instant::now();
+    guard.undeclare().await.expect("undeclare");
+    assert_eq!(rig.answer(90).await.seq, 90);
+    assert_braked(&rig.robot.sent(), gone, v(CRUISE, 0.0), "base guard gone");
+    rig.finish().await;
+}
+
+/// The camera stops mid-drive (hardware or driver down): the command fails
+/// on `fault` within the silence limit, long before its 5 s motion would
+/// end, and the robot brakes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_camera_silent_mid_drive_fails_the_command_at_once() {
+    let config = AgentConfig {
+        camera_stale_ms: 300,
+        ..config()
+    };
+    let mut rig = Rig::start("camera-dies", config).await;
+    let cruise = v(CRUISE, 0.0);
+    rig.cmd(71, CRUISE, 0.0, 5.0).await;
+    rig.until_driving_at(cruise).await;
+    let camera = rig.tasks.remove(0);
+    camera.abort();
+    let _ = camera.await;
+    let silenced = Instant::now();
+    let fault = rig.fault(71).await;
+    let after = silenced.elapsed();
+    assert!(fault.reason.contains("camera is silent"), "{fault:?}");
+    assert!(
+        after < Duration::from_secs(3),
+        "failed after {after:?}, not at the motion's end"
+    );
+    assert_braked(&rig.robot.sent(), silenced, cruise, "camera silent");
     rig.finish().await;
 }

@@ -150,6 +150,7 @@ impl EnvClient {
             self.timeouts.reset,
         )
         .await
+        .map_err(|e| controller_lost(e, &self.env))
     }
 
     /// Takes one step.
@@ -169,6 +170,7 @@ impl EnvClient {
             self.timeouts.step,
         )
         .await
+        .map_err(|e| controller_lost(e, &self.env))
     }
 
     /// Releases the lease; a second call returns the first call's reply.
@@ -186,9 +188,26 @@ impl EnvClient {
             &request,
             self.timeouts.control,
         )
-        .await?;
+        .await
+        .map_err(|e| controller_lost(e, &self.env))?;
         self.closed = Some(reply.clone());
         Ok(reply)
+    }
+}
+
+/// Within an open session the env was there: nobody answering now means
+/// its controller (or the way to it) went away, which is transient — the
+/// client's session reconnects by itself and the lease comes back within
+/// the controller's grace period — not the permanent "no such env"
+/// (`NotFound`) that discovery reports.
+fn controller_lost(e: WireError, env: &EnvId) -> WireError {
+    if e.code == ErrorCode::NotFound && e.message.starts_with(wire::NO_RESPONDER) {
+        WireError::unavailable(format!(
+            "the controller of {env} is unreachable (it stopped, restarted or the network to it \
+             is down): retry; the session resumes when it is back"
+        ))
+    } else {
+        e
     }
 }
 
@@ -271,6 +290,9 @@ pub struct EnvListing {
     /// Booked slots in progress or ahead, earliest first (empty when the
     /// controller did not answer).
     pub bookings: Vec<crate::msg::Booking>,
+    /// The e-stop latches in force as its controller knows them (default,
+    /// nothing engaged, when it did not answer).
+    pub estop: crate::msg::EStopState,
 }
 
 /// Lists the envs reachable through `session`: every env with a liveliness
@@ -305,7 +327,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
     }
     let listings = components.into_iter().map(|(env, alive)| async move {
         let has_controller = alive.contains(Component::Controller.as_str());
-        let (task, state, bookings) = if has_controller {
+        let (task, state, bookings, estop) = if has_controller {
             let now = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .unwrap_or_default();
@@ -319,13 +341,14 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
             );
             let bookings = booked.map(|b| b.bookings).unwrap_or_default();
             match (spec, status) {
-                (Ok(spec), Ok(status)) => (spec.task, status.state, bookings),
+                (Ok(spec), Ok(status)) => (spec.task, status.state, bookings, status.estop),
                 (_, Err(e)) | (Err(e), _) => (
                     String::new(),
                     EnvState::Offline {
                         reason: format!("the controller does not answer: {}", e.message),
                     },
                     bookings,
+                    Default::default(),
                 ),
             }
         } else {
@@ -335,6 +358,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
                     reason: "no controller serves it".into(),
                 },
                 Vec::new(),
+                Default::default(),
             )
         };
         EnvListing {
@@ -343,6 +367,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
             state,
             components: alive.into_iter().collect(),
             bookings,
+            estop,
         }
     });
     Ok(futures::future::join_all(listings).await)

@@ -181,6 +181,13 @@ pub enum Topic {
     Heartbeat,
     /// Operator/controller → robot: [`crate::msg::EStop`] (acts immediately).
     EStop,
+    /// Robot agent / twin → operators: [`crate::msg::EStopAck`], one per
+    /// e-stop received and applied.
+    EStopAck,
+    /// Queryable on robot agents, twins and the controller: () →
+    /// [`crate::msg::EStopState`], the latches in force for the env (how a
+    /// restarted component learns them from the network).
+    EStopState,
     /// Queryable on the twin/robot: [`crate::msg::GotoRequest`] → [`crate::msg::GotoReply`]
     /// (sim teleports, real navigates).
     Goto,
@@ -205,7 +212,7 @@ pub enum Topic {
 
 impl Topic {
     /// Every topic, in declaration order.
-    pub const ALL: [Topic; 19] = [
+    pub const ALL: [Topic; 21] = [
         Topic::Cmd,
         Topic::Obs,
         Topic::Odom,
@@ -216,6 +223,8 @@ impl Topic {
         Topic::Status,
         Topic::Heartbeat,
         Topic::EStop,
+        Topic::EStopAck,
+        Topic::EStopState,
         Topic::Goto,
         Topic::Open,
         Topic::Spec,
@@ -240,6 +249,8 @@ impl Topic {
             Topic::Status => "status",
             Topic::Heartbeat => "heartbeat",
             Topic::EStop => "estop",
+            Topic::EStopAck => "estop_ack",
+            Topic::EStopState => "estop_state",
             Topic::Goto => "goto",
             Topic::Open => "open",
             Topic::Spec => "spec",
@@ -266,6 +277,9 @@ pub enum Component {
     TrackerAgent,
     /// The rerun monitor.
     Monitor,
+    /// The robot's independent safety process: zeroes the base when the
+    /// robot agent dies, hangs or goes silent mid-motion.
+    BaseGuard,
 }
 
 impl Component {
@@ -277,6 +291,7 @@ impl Component {
             Component::RobotAgent => "robot_agent",
             Component::TrackerAgent => "tracker_agent",
             Component::Monitor => "monitor",
+            Component::BaseGuard => "base_guard",
         }
     }
 }

@@ -5,12 +5,14 @@
 //!   nothing else formats keys.
 //! - [`msg`]: message types — ROS 2 layouts where a ROS type exists, our own
 //!   request/reply types otherwise.
+//! - [`estop`]: the site and env e-stop latches, merged by age.
 //! - [`ros2`]: key expressions of a ROS 2 robot's topics (rmw_zenoh or
 //!   zenoh-bridge-ros2dds) and rmw_zenoh's attachment.
 //! - [`codec`]: little-endian CDR with the encapsulation header; decoding
 //!   untrusted bytes never panics.
 //! - [`wire`]: typed put / request / reply over a Zenoh session.
 //! - [`session`]: opening sessions from files, environment or flags.
+//! - [`shutdown`]: SIGINT, SIGTERM and SIGHUP as one "stop cleanly".
 //! - [`world`]: enclosure definitions (`runtime/worlds/*.toml`) every
 //!   component reads: geometry, task, robot, camera.
 //! - [`WireError`]: the one typed error every reply can carry.
@@ -18,11 +20,13 @@
 pub mod client;
 pub mod codec;
 mod error;
+pub mod estop;
 pub mod keys;
 pub mod msg;
 pub mod pool;
 pub mod ros2;
 pub mod session;
+pub mod shutdown;
 pub mod wire;
 pub mod world;
 

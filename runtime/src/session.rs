@@ -204,9 +204,11 @@ pub const PATIENT_DROP_US: u64 = 50_000;
 /// Session flags shared by every binary (flatten into a clap parser).
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct CommonArgs {
-    /// Zenoh JSON5 config file.
-    #[arg(short, long, env = ENV_CONFIG)]
-    pub config: Option<PathBuf>,
+    /// Zenoh JSON5 config file (a role file of `deploy/roles/`): TLS,
+    /// credentials, endpoints. The component's own settings have their own
+    /// flag (`--robot-config`, `--calibration`, …).
+    #[arg(short = 'c', long = "zenoh-config", env = ENV_CONFIG, value_name = "JSON5")]
+    pub zenoh_config: Option<PathBuf>,
     /// Session role.
     #[arg(short, long, value_enum, default_value_t = Mode::Peer)]
     pub mode: Mode,
@@ -231,7 +233,7 @@ pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
 
 impl CommonArgs {
     fn is_unset(&self) -> bool {
-        self.listen.is_empty() && self.connect.is_empty() && self.config.is_none()
+        self.listen.is_empty() && self.connect.is_empty() && self.zenoh_config.is_none()
     }
 
     /// The session of a serving process: listens on [`DEFAULT_ENDPOINT`]
@@ -256,7 +258,7 @@ impl CommonArgs {
 impl From<CommonArgs> for SessionConfig {
     fn from(args: CommonArgs) -> Self {
         Self {
-            config_file: args.config,
+            config_file: args.zenoh_config,
             mode: args.mode,
             connect: args.connect,
             listen: args.listen,

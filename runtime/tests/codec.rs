@@ -178,11 +178,7 @@ fn hostile_length_prefixes_fail_without_allocating() {
 
 #[test]
 fn invalid_values_are_typed() {
-    let mut bytes = encode(&EStop {
-        engaged: true,
-        reason: "x".into(),
-    })
-    .expect("estop");
+    let mut bytes = encode(&EStop::new(true, "x")).expect("estop");
     bytes[4] = 2; // bool must be 0 or 1
     assert!(matches!(
         decode::<EStop>(&bytes),

@@ -93,16 +93,7 @@ async fn every_published_message_crosses_loopback() {
     pub_sub(&a, &b, &env.key(Topic::Pose), &common::pose_stamped()).await;
     pub_sub(&a, &b, &env.key(Topic::Reward), &common::episode_event()).await;
     pub_sub(&a, &b, &env.key(Topic::Status), &common::env_status()).await;
-    pub_sub(
-        &a,
-        &b,
-        &env.key(Topic::EStop),
-        &EStop {
-            engaged: true,
-            reason: "t".into(),
-        },
-    )
-    .await;
+    pub_sub(&a, &b, &env.key(Topic::EStop), &EStop::new(true, "t")).await;
     pub_sub(
         &a,
         &b,

@@ -3,9 +3,11 @@
 //! env_controller under a `real/…` namespace) runs against it unchanged.
 //!
 //! In real time it:
-//! - takes `geometry_msgs/Twist` on the robot's velocity topic and holds the
-//!   last velocity until told otherwise (a base without its own timeout: the
-//!   worst case the robot agent's watchdog must cover);
+//! - takes `geometry_msgs/Twist` on the robot's velocity topic and either
+//!   holds the last velocity until told otherwise (`cmd_timeout: None`: a
+//!   base without its own timeout, the worst case every fault test runs
+//!   against) or stops when no command came for `cmd_timeout` (a correctly
+//!   configured base: ros2_control's `cmd_vel_timeout`);
 //! - publishes colour (`rgb8`), depth (`16UC1` mm, like an Astra driver) and
 //!   `nav_msgs/Odometry` on the robot's ROS 2 topics, with rmw_zenoh keys
 //!   and attachments;
@@ -72,6 +74,9 @@ pub struct EnclosureConfig {
     /// Where the site's overhead camera streams (an env's
     /// `overhead/<camera>` key), if anywhere.
     pub overhead_key: Option<String>,
+    /// The base stops when no velocity command came for this long; `None`
+    /// holds the last velocity forever (the worst case).
+    pub cmd_timeout: Option<Duration>,
 }
 
 impl EnclosureConfig {
@@ -91,6 +96,7 @@ impl EnclosureConfig {
             world_from_tracking: default_world_from_tracking(),
             depth_encoding: PixelEncoding::Depth16UC1,
             overhead_key: None,
+            cmd_timeout: None,
         })
     }
 }
@@ -334,17 +340,33 @@ impl Hardware {
         let mut camera = Every::new(self.config.camera_hz);
         let mut odom = Every::new(self.config.odom_hz);
         let mut tracker = Every::new(self.config.tracker_hz);
+        let mut last_twist = Instant::now();
+        let mut moving = false;
         loop {
             let now = start.elapsed().as_secs_f64();
             let next_step = self.twin.physics().time() - sim_start + f64::from(DT);
             let wake = next_step.min(camera.next).min(odom.next).min(tracker.next);
-            match events.recv_timeout(Duration::from_secs_f64((wake - now).max(0.0))) {
-                Ok(Event::Twist(t)) => self
-                    .twin
-                    .physics_mut()
-                    .set_targets(t.linear.x as f32, t.angular.z as f32),
+            let wait = Duration::from_secs_f64((wake - now).max(0.0));
+            match events.recv_timeout(wait) {
+                Ok(Event::Twist(t)) => {
+                    last_twist = Instant::now();
+                    moving = t.linear.x != 0.0 || t.angular.z != 0.0;
+                    self.twin
+                        .physics_mut()
+                        .set_targets(t.linear.x as f32, t.angular.z as f32);
+                }
                 Ok(Event::Shutdown) | Err(RecvTimeoutError::Disconnected) => return,
                 Err(RecvTimeoutError::Timeout) => {}
+            }
+            if let Some(timeout) = self.config.cmd_timeout {
+                if moving && last_twist.elapsed() > timeout {
+                    tracing::warn!(
+                        timeout_ms = timeout.as_millis() as u64,
+                        "emulated base: command timeout, stopping"
+                    );
+                    moving = false;
+                    self.twin.physics_mut().set_targets(0.0, 0.0);
+                }
             }
             let now = start.elapsed().as_secs_f64();
             while self.twin.physics().time() - sim_start + f64::from(DT) <= now {

@@ -12,6 +12,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
 use offworld_runtime::ros2::{KeyStyle, RosGraph};
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{CommonArgs, EnvId};
 use offworld_sim_twin::tracker::TrackerConfig;
 use offworld_sim_twin::{
@@ -28,7 +29,7 @@ enum ClockArg {
 }
 
 #[derive(Parser)]
-#[command(about = "Serve a simulated OffWorld enclosure over Zenoh")]
+#[command(version, about = "Serve a simulated OffWorld enclosure over Zenoh")]
 struct Args {
     /// Env id to serve (must be under `sim/`).
     #[arg(long, default_value = "sim/monolith-0")]
@@ -80,6 +81,11 @@ struct Args {
     /// Emulated camera frame rate, Hz (an Astra runs at 30).
     #[arg(long, default_value_t = 30.0)]
     camera_hz: f64,
+    /// The emulated base stops when no velocity command came for this long,
+    /// ms (a base with ros2_control's `cmd_vel_timeout`); 0 holds the last
+    /// velocity forever (the worst case, the default).
+    #[arg(long, default_value_t = 0)]
+    base_cmd_timeout_ms: u64,
     /// Where the emulated tracker streams its line protocol (TCP server).
     #[arg(long, default_value = "127.0.0.1:7600")]
     tracker_listen: std::net::SocketAddr,
@@ -98,6 +104,7 @@ fn parse_resolution(text: &str) -> anyhow::Result<(u32, u32)> {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
+    let mut signals = ShutdownSignals::install()?;
     anyhow::ensure!(
         args.emulate_hardware || args.env.realm() == offworld_runtime::Realm::Sim,
         "a sim twin serves only `sim/…` envs, not {}",
@@ -147,10 +154,12 @@ async fn main() -> anyhow::Result<()> {
             Some(env) => Some(env.overhead_key(offworld_sim_twin::node::OVERHEAD_CAMERA)?),
             None => None,
         };
+        enclosure.cmd_timeout = (args.base_cmd_timeout_ms > 0)
+            .then(|| std::time::Duration::from_millis(args.base_cmd_timeout_ms));
         let session = args.common.client_config().open().await?;
         let emulator = EmulatedEnclosure::spawn(&session, twin, enclosure)?;
-        tracing::info!(tracker = %emulator.tracker_addr(), "emulating the enclosure hardware; Ctrl-C to stop");
-        tokio::signal::ctrl_c().await?;
+        tracing::info!(tracker = %emulator.tracker_addr(), "emulating the enclosure hardware; Ctrl-C, SIGTERM or SIGHUP to stop");
+        signals.recv().await;
         drop(emulator);
         return Ok(());
     }
@@ -161,8 +170,8 @@ async fn main() -> anyhow::Result<()> {
     let twin = SimTwin::new(config)?;
     let session = args.common.client_config().open().await?;
     let node = TwinNode::spawn(&session, args.env.clone(), twin, clock)?;
-    tracing::info!(env = %node.env(), "ready; Ctrl-C to stop");
-    tokio::signal::ctrl_c().await?;
+    tracing::info!(env = %node.env(), "ready; Ctrl-C, SIGTERM or SIGHUP to stop");
+    signals.recv().await;
     drop(node);
     Ok(())
 }

@@ -5,8 +5,11 @@
 //!   `odom` (`nav_msgs/Odometry`), `pose` (`geometry_msgs/PoseStamped`, both
 //!   with a [`SeqTag`] attachment) and `obs` ([`CameraFrame`], same `seq`);
 //! - serves `goto` ([`GotoRequest`]): the sim teleports;
-//! - obeys `estop` (per env and site-wide): motion is refused, frames still
-//!   answer;
+//! - obeys `estop` (per env and site-wide, independent latches, see
+//!   [`offworld_runtime::estop`]): a command that would move is refused on
+//!   `fault` (a zero-length one is still answered), every e-stop received
+//!   is acknowledged on `estop_ack`, and `estop_state` answers the latches
+//!   (a restarted twin learns them from the network);
 //! - declares the liveliness token `alive/sim_twin`.
 //!
 //! Two clocks: [`Clock::Lockstep`] simulates a command's duration as fast as
@@ -16,13 +19,17 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
+use offworld_runtime::estop::{self, Latch};
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
-use offworld_runtime::msg::{EStop, GotoReply, GotoRequest, MotionCommand, Pose2D, SeqTag, Time};
+use offworld_runtime::msg::{
+    EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D,
+    SeqTag, Time,
+};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
@@ -52,7 +59,7 @@ pub enum Clock {
 enum Event {
     Command(Sample),
     Goto(Query),
-    EStop(Sample),
+    EStop(Latch, Sample),
     Shutdown,
 }
 
@@ -61,6 +68,8 @@ pub const OVERHEAD_CAMERA: &str = "top";
 
 /// Bound of the event queue (commands arrive one per step).
 const QUEUE: usize = 256;
+/// How long a starting twin asks the network for the e-stop latches.
+const RECALL: Duration = Duration::from_millis(300);
 
 /// What a twin node's simulation thread has done so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -113,6 +122,7 @@ struct Declarations {
     _estop: Subscriber<()>,
     _global_estop: Subscriber<()>,
     _goto: Queryable<()>,
+    _estop_state: Queryable<()>,
     _token: LivelinessToken,
 }
 
@@ -139,14 +149,34 @@ impl TwinNode {
             .callback(forward(&tx, Event::Command))
             .wait()
             .map_err(zerr)?;
-        let estop = session
-            .declare_subscriber(env.key(Topic::EStop))
-            .callback(forward(&tx, Event::EStop))
-            .wait()
-            .map_err(zerr)?;
-        let global_estop = session
-            .declare_subscriber(global_estop_key())
-            .callback(forward(&tx, Event::EStop))
+        let estop_subscriber = |key: String, latch: Latch| {
+            let tx = tx.clone();
+            session
+                .declare_subscriber(key)
+                .callback(move |sample: Sample| {
+                    // Never dropped: an e-stop waits for room in the queue.
+                    let _ = tx.send(Event::EStop(latch, sample));
+                })
+                .wait()
+                .map_err(zerr)
+        };
+        let estop = estop_subscriber(env.key(Topic::EStop), Latch::Env)?;
+        let global_estop = estop_subscriber(global_estop_key(), Latch::Site)?;
+        let estops = estop::recall_wait(session, &env, RECALL);
+        if let Some(reason) = estops.refusal() {
+            tracing::warn!(%env, %reason, "e-stop engaged before this start (from the network)");
+        }
+        let shared_estops = Arc::new(Mutex::new(estops.clone()));
+        let answered_estops = shared_estops.clone();
+        let estop_state = session
+            .declare_queryable(env.key(Topic::EStopState))
+            .callback(move |query: Query| {
+                let state = answered_estops
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .clone();
+                reply_blocking(&query, Ok(&state));
+            })
             .wait()
             .map_err(zerr)?;
         let goto_tx = tx.clone();
@@ -171,7 +201,9 @@ impl TwinNode {
             .wait()
             .map_err(zerr)?;
         let stats = Arc::new(StatCounters::default());
-        let worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
+        let mut worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
+        worker.estops = estops;
+        worker.shared_estops = shared_estops;
         let thread = std::thread::Builder::new()
             .name(format!("sim_twin/{env}"))
             .spawn(move || worker.run(rx))
@@ -186,6 +218,7 @@ impl TwinNode {
                 _estop: estop,
                 _global_estop: global_estop,
                 _goto: goto,
+                _estop_state: estop_state,
                 _token: token,
             },
         })
@@ -233,7 +266,10 @@ struct Worker {
     env: EnvId,
     twin: SimTwin,
     clock: Clock,
-    estopped: bool,
+    /// The site and env e-stop latches in force.
+    estops: EStopState,
+    /// What the `estop_state` queryable answers.
+    shared_estops: Arc<Mutex<EStopState>>,
     publishers: Publishers,
     /// Camera frame payloads (recycled).
     frames: FramePayloads,
@@ -250,6 +286,9 @@ struct Publishers {
     pose: Publisher<'static>,
     /// The tracker-rate pose stream between commands: the next supersedes.
     pose_stream: Publisher<'static>,
+    /// Commands refused (e-stop).
+    fault: Publisher<'static>,
+    estop_ack: Publisher<'static>,
 }
 
 impl Worker {
@@ -270,6 +309,8 @@ impl Worker {
             odom: declare(Topic::Odom, Delivery::Every)?,
             pose: declare(Topic::Pose, Delivery::Every)?,
             pose_stream: declare(Topic::Pose, Delivery::Latest)?,
+            fault: declare(Topic::Fault, Delivery::Every)?,
+            estop_ack: declare(Topic::EStopAck, Delivery::Every)?,
         };
         let overhead = env
             .overhead_key(OVERHEAD_CAMERA)
@@ -281,7 +322,8 @@ impl Worker {
             env,
             twin,
             clock,
-            estopped: false,
+            estops: EStopState::default(),
+            shared_estops: Arc::default(),
             publishers,
             frames: FramePayloads::new(),
             rejected: 0,
@@ -304,7 +346,9 @@ impl Worker {
                 Event::Command(sample) => {
                     if let Some(cmd) = self.decode_command(&sample) {
                         let started = Instant::now();
-                        let (v, w) = self.allowed(&cmd);
+                        let Some((v, w)) = self.allowed(&cmd) else {
+                            continue;
+                        };
                         if let Err(e) = self.twin.execute(v, w, cmd.duration_s) {
                             self.reject(&e);
                             continue;
@@ -313,7 +357,7 @@ impl Worker {
                     }
                 }
                 Event::Goto(query) => self.goto(&query),
-                Event::EStop(sample) => self.estop(&sample),
+                Event::EStop(latch, sample) => self.estop(latch, &sample),
                 Event::Shutdown => return,
             }
         }
@@ -340,7 +384,9 @@ impl Worker {
                             )));
                             continue;
                         }
-                        let (v, w) = self.allowed(&cmd);
+                        let Some((v, w)) = self.allowed(&cmd) else {
+                            continue;
+                        };
                         // A new command replaces the one in progress, as on hardware.
                         self.twin.physics_mut().set_targets(v as f32, w as f32);
                         // Timed on the simulated clock: a late thread catches up
@@ -353,9 +399,9 @@ impl Worker {
                     }
                 }
                 Ok(Event::Goto(query)) => self.goto(&query),
-                Ok(Event::EStop(sample)) => {
-                    self.estop(&sample);
-                    if self.estopped {
+                Ok(Event::EStop(latch, sample)) => {
+                    self.estop(latch, &sample);
+                    if self.estops.engaged() {
                         self.twin.physics_mut().set_targets(0.0, 0.0);
                     }
                 }
@@ -394,14 +440,28 @@ impl Worker {
         }
     }
 
-    /// The velocities actually allowed (zero while e-stopped).
-    fn allowed(&self, cmd: &MotionCommand) -> (f64, f64) {
-        if self.estopped {
-            tracing::warn!(seq = cmd.seq, "e-stop engaged: motion refused");
-            (0.0, 0.0)
-        } else {
-            (cmd.linear_x, cmd.angular_z)
+    /// The velocities to simulate, or `None` when the command would move
+    /// under an e-stop: refused on `fault` (as the robot agent does), so
+    /// the controller fails the step instead of scoring a motion that
+    /// never happened. A zero-length command (an observation request) is
+    /// still answered.
+    fn allowed(&mut self, cmd: &MotionCommand) -> Option<(f64, f64)> {
+        let Some(reason) = self.estops.refusal() else {
+            return Some((cmd.linear_x, cmd.angular_z));
+        };
+        let moves = cmd.duration_s > 0.0 && (cmd.linear_x != 0.0 || cmd.angular_z != 0.0);
+        if !moves {
+            return Some((0.0, 0.0));
         }
+        let fault = MotionFault {
+            seq: cmd.seq,
+            reason: format!("motion refused: {reason}"),
+        };
+        tracing::warn!(env = %self.env, seq = cmd.seq, "{}", fault.reason);
+        if let Err(e) = wire::publish(&self.publishers.fault, &fault) {
+            tracing::warn!("cannot report the refusal: {e}");
+        }
+        None
     }
 
     fn decode_command(&mut self, sample: &Sample) -> Option<MotionCommand> {
@@ -420,22 +480,37 @@ impl Worker {
         tracing::warn!(env = %self.env, "rejected a command: {e}");
     }
 
-    fn estop(&mut self, sample: &Sample) {
-        match codec::decode_payload::<EStop>(sample.payload()) {
-            Ok(stop) => {
-                tracing::warn!(env = %self.env, engaged = stop.engaged, reason = %stop.reason, "e-stop");
-                self.estopped = stop.engaged;
-            }
-            Err(e) => {
-                // A garbled e-stop is treated as engaged: safety first.
-                tracing::error!(env = %self.env, "malformed e-stop, engaging: {e}");
-                self.estopped = true;
-            }
+    /// Applies an e-stop to its latch and acknowledges it.
+    fn estop(&mut self, latch: Latch, sample: &Sample) {
+        let stop = codec::decode_payload::<EStop>(sample.payload()).unwrap_or_else(|e| {
+            // A garbled e-stop is treated as engaged: safety first.
+            tracing::error!(env = %self.env, "malformed e-stop, engaging: {e}");
+            EStop::new(true, format!("malformed e-stop ({e})"))
+        });
+        self.estops.apply(latch, &stop, Time::now());
+        tracing::warn!(env = %self.env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, now = self.estops.summary(), "e-stop");
+        *self
+            .shared_estops
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = self.estops.clone();
+        let ack = EStopAck {
+            press_id: stop.press_id,
+            component: Component::SimTwin.as_str().to_owned(),
+            env: self.env.to_string(),
+            state: self.estops.clone(),
+        };
+        if let Err(e) = wire::publish(&self.publishers.estop_ack, &ack) {
+            tracing::warn!("cannot acknowledge the e-stop: {e}");
         }
     }
 
     fn goto(&mut self, query: &Query) {
+        let refusal = self.estops.refusal();
         let result = wire::decode_query::<GotoRequest>(query).and_then(|req| {
+            // As the robot agent: a reset never moves an e-stopped robot.
+            if let Some(reason) = refusal {
+                return Err(WireError::invalid_state(reason));
+            }
             let target = PlanarPose {
                 x: req.target.x as f32,
                 y: req.target.y as f32,

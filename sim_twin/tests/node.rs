@@ -4,6 +4,7 @@
 use std::time::Duration;
 
 use offworld_runtime::codec;
+use offworld_runtime::keys::global_estop_key;
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
@@ -277,6 +278,10 @@ async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
     assert_eq!(node.stats().answered, connected.answered + 1);
 }
 
+/// Under an e-stop a command that would move is refused on `fault`
+/// (naming the latch) and a reset `goto` is refused `InvalidState`, as the
+/// robot agent does; an observation request is still answered; every
+/// e-stop is acknowledged; site and env latches are independent.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn estop_refuses_motion_and_liveliness_is_declared() {
     let (_node, client, _server) = setup("monolith", (32, 24)).await;
@@ -288,32 +293,105 @@ async fn estop_refuses_motion_and_liveliness_is_declared() {
         .await
         .expect("liveliness get");
     assert!(alive.recv_async().await.is_ok(), "sim twin token visible");
-
-    let stop = EStop {
-        engaged: true,
-        reason: "test".into(),
-    };
-    wire::put(&client.session, &client.env.key(Topic::EStop), &stop)
+    let faults = client
+        .session
+        .declare_subscriber(client.env.key(Topic::Fault))
         .await
-        .expect("estop");
-    tokio::time::sleep(Duration::from_millis(200)).await;
+        .expect("fault subscriber");
+    let acks = client
+        .session
+        .declare_subscriber(client.env.key(Topic::EStopAck))
+        .await
+        .expect("ack subscriber");
+    let press = |key: String, engaged: bool, reason: &'static str, press_id: u64| {
+        let session = client.session.clone();
+        let acks = &acks;
+        async move {
+            let stop = EStop {
+                engaged,
+                reason: reason.into(),
+                press_id,
+            };
+            wire::put(&session, &key, &stop).await.expect("estop");
+            loop {
+                let sample = tokio::time::timeout(Duration::from_secs(5), acks.recv_async())
+                    .await
+                    .expect("acknowledged")
+                    .expect("subscriber");
+                let ack: EStopAck = codec::decode_payload(sample.payload()).expect("ack");
+                if ack.press_id == press_id {
+                    assert_eq!(
+                        (ack.component.as_str(), ack.env.as_str()),
+                        ("sim_twin", "sim/node-test")
+                    );
+                    return ack.state;
+                }
+            }
+        }
+    };
+    let (env_key, site_key) = (client.env.key(Topic::EStop), global_estop_key());
+    assert_eq!(
+        press(site_key.clone(), true, "fire alarm", 1)
+            .await
+            .summary(),
+        "site"
+    );
+    assert_eq!(
+        press(env_key.clone(), true, "test", 2).await.summary(),
+        "site+env"
+    );
+    assert_eq!(
+        press(env_key.clone(), false, "clear", 3).await.summary(),
+        "site"
+    );
+
     client.command(20, 0.5, 0.0, 1.0).await;
-    let (_, pose, _) = client.answer(20).await.expect("frames still answer");
+    let sample = tokio::time::timeout(Duration::from_secs(5), faults.recv_async())
+        .await
+        .expect("refused on fault")
+        .expect("subscriber");
+    let fault: MotionFault = codec::decode_payload(sample.payload()).expect("fault");
+    assert_eq!(
+        fault,
+        MotionFault {
+            seq: 20,
+            reason: "motion refused: e-stop engaged: site (fire alarm)".into()
+        }
+    );
+    let request = GotoRequest {
+        seq: 3,
+        target: Pose2D {
+            x: 0.5,
+            y: 0.5,
+            yaw: 0.0,
+        },
+        timeout_s: 5.0,
+    };
+    let refused: Result<GotoReply, _> = wire::request(
+        &client.session,
+        &client.env.key(Topic::Goto),
+        &request,
+        Duration::from_secs(5),
+    )
+    .await;
+    match refused {
+        Err(RequestError::Remote(e)) => assert_eq!(e.code, ErrorCode::InvalidState, "{e}"),
+        other => panic!("goto under e-stop: {other:?}"),
+    }
+    // An observation request still answers, from where the robot stands.
+    client.command(21, 0.0, 0.0, 0.0).await;
+    let (_, pose, _) = client.answer(21).await.expect("observation answered");
     assert!(
         (planar(&pose).0 - planar(&before).0).abs() < 1e-3,
         "robot moved under e-stop"
     );
 
-    let release = EStop {
-        engaged: false,
-        reason: "clear".into(),
-    };
-    wire::put(&client.session, &client.env.key(Topic::EStop), &release)
-        .await
-        .expect("release");
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    client.command(21, 0.5, 0.0, 1.0).await;
-    let (_, pose, _) = client.answer(21).await.expect("answer");
+    assert_eq!(
+        press(site_key, false, "all clear", 4).await.summary(),
+        "none"
+    );
+    client.command(22, 0.5, 0.0, 1.0).await;
+    let (_, pose, _) = client.answer(22).await.expect("answer");
     assert!(
         planar(&pose).0 - planar(&before).0 > 0.3,
         "robot moves after release"

@@ -1,9 +1,19 @@
 //! The emulated enclosure deployment: the real stack (env_controller,
-//! robot_agent, tracker_agent) as separate processes under a `real/…`
-//! namespace, driving `sim_twin --emulate-hardware` as if it were the
-//! physical robot and lighthouse tracker. Used by the launcher binary
-//! `emulated_enclosure` and by the end-to-end tests.
+//! robot_agent, base_guard, tracker_agent) as separate processes under a
+//! `real/…` namespace, driving `sim_twin --emulate-hardware` as if it were
+//! the physical robot and lighthouse tracker. Used by the launcher binary
+//! `emulated_enclosure`, the end-to-end tests and the fault matrix.
+//!
+//! The robot computer is laid out as a ROSbot on rmw_zenoh is: a Zenoh
+//! router (`zenohd`, as `rmw_zenohd`) for discovery, and the nodes that
+//! move the robot — the base driver (the emulator), `robot_agent` and its
+//! independent `base_guard` — as Zenoh peers that talk to each other
+//! directly once discovered, so the router's death never cuts the agent
+//! or the guard off the base. The tracker agent is a client of the router;
+//! the controller a peer that reaches the robot through it and listens for
+//! gym clients.
 
+use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::PathBuf;
@@ -34,6 +44,13 @@ pub struct Options {
     pub pausable_tracker: bool,
     /// Robot agent watchdog window, ms.
     pub watchdog_ms: u64,
+    /// The emulated base stops after this long without a velocity command
+    /// (a base with a command timeout); `None` holds the last velocity
+    /// forever — the worst case, the default, what fault tests run against.
+    pub base_cmd_timeout_ms: Option<u64>,
+    /// Run the robot's `base_guard` (default). Without it the robot agent
+    /// is started with `require_base_guard = false`.
+    pub base_guard: bool,
     /// Log filter of the children (default: this process's `RUST_LOG`, else `warn`).
     pub log: String,
 }
@@ -47,6 +64,8 @@ impl Options {
             task: task.to_owned(),
             pausable_tracker: false,
             watchdog_ms: 200,
+            base_cmd_timeout_ms: None,
+            base_guard: true,
             log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
         })
     }
@@ -64,13 +83,58 @@ fn world_of(task: &str) -> &'static str {
     }
 }
 
+/// The processes of the deployment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Part {
+    /// The robot computer's Zenoh router (`zenohd`, as `rmw_zenohd`).
+    Router,
+    /// The emulated hardware: base driver, camera, lighthouse tracker.
+    Hardware,
+    /// The gym server.
+    Controller,
+    /// The robot agent.
+    RobotAgent,
+    /// The robot's independent base guard.
+    BaseGuard,
+    /// The tracker agent.
+    TrackerAgent,
+}
+
+impl Part {
+    /// Every part, in start order.
+    pub const ALL: [Part; 6] = [
+        Part::Router,
+        Part::Hardware,
+        Part::Controller,
+        Part::TrackerAgent,
+        Part::BaseGuard,
+        Part::RobotAgent,
+    ];
+
+    /// The part's name (its binary, but `router` for zenohd and `hardware`
+    /// for the emulator).
+    pub fn name(self) -> &'static str {
+        match self {
+            Part::Router => "router",
+            Part::Hardware => "hardware",
+            Part::Controller => "env_controller",
+            Part::RobotAgent => "robot_agent",
+            Part::BaseGuard => "base_guard",
+            Part::TrackerAgent => "tracker_agent",
+        }
+    }
+}
+
 /// A running emulated deployment; every process is killed when dropped.
 pub struct EmulatedEnclosure {
     /// The Zenoh endpoint the controller listens on (gym clients connect here).
     pub endpoint: String,
     /// The robot computer's Zenoh router (the ROS 2 side: `cmd_vel`,
-    /// camera, odometry; the agents are its clients).
+    /// camera, odometry).
     pub robot_endpoint: String,
+    /// Where the emulated hardware (a Zenoh peer) listens: an observer of
+    /// the base that must not depend on the router connects here too.
+    pub hardware_endpoint: String,
     /// The env served.
     pub env: EnvId,
     /// An access token of a registered user.
@@ -79,12 +143,14 @@ pub struct EmulatedEnclosure {
     pub dir: PathBuf,
     /// The tracker stream proxy, when requested.
     pub tracker_proxy: Option<LineProxy>,
-    controller: Option<Process>,
-    others: Vec<Process>,
+    options: Options,
+    tracker_listen: String,
+    processes: BTreeMap<Part, Process>,
 }
 
 impl EmulatedEnclosure {
-    /// Starts controller, emulator, tracker agent and robot agent.
+    /// Starts the router, emulator, controller, tracker agent, base guard
+    /// and robot agent.
     pub fn start(options: &Options) -> std::io::Result<Self> {
         let dir = std::env::temp_dir().join(format!(
             "offworld-emulated-{}-{}",
@@ -93,112 +159,131 @@ impl EmulatedEnclosure {
         ));
         std::fs::create_dir_all(&dir)?;
         let db = dir.join("gym.db");
-        let db_arg = db.to_string_lossy().into_owned();
-        let token = register_user(&db_arg, "researcher")?;
-        let endpoint = loopback_endpoint()?;
-        let robot_endpoint = loopback_endpoint()?;
-        let env = options.env.to_string();
-        let spawn = |binary: &str, args: &[&str]| Process::spawn_logged(binary, args, &options.log);
-        // The robot's computer: on a real ROSbot, rmw_zenoh's router runs
-        // there and the ROS nodes and robot_agent are its clients, so the
-        // agent always reaches the motors, whatever happens to the
-        // controller or the site network.
-        let tracker_listen = format!("127.0.0.1:{}", free_port()?);
-        let emulator = spawn(
-            "sim_twin",
-            &[
-                "--emulate-hardware",
-                "--world",
-                options.world(),
-                "--tracker-listen",
-                &tracker_listen,
-                "--overhead-env",
-                &env,
-                // Half the Astra's rate: the whole site shares 2 cores here.
-                "--camera-hz",
-                "15",
-                "--mode",
-                "router",
-                "--listen",
-                &robot_endpoint,
-            ],
+        let token = register_user(&db.to_string_lossy(), "researcher")?;
+        std::fs::write(
+            dir.join("tracker_calibration.toml"),
+            emulator_calibration_toml(),
         )?;
-        // Zenoh clients give up when their router is not there yet.
-        wait_until_listening(&robot_endpoint, Duration::from_secs(20))?;
-        let controller = spawn(
-            "env_controller",
-            &[
-                "--db",
-                &db_arg,
-                "serve",
-                "--env",
-                &format!("{env}={}", options.task),
-                "--listen",
-                &endpoint,
-                "--connect",
-                &robot_endpoint,
-            ],
-        )?;
-        wait_until_listening(&endpoint, Duration::from_secs(20))?;
-        let tracker_addr: SocketAddr = tracker_listen
-            .parse()
-            .map_err(|e| std::io::Error::other(format!("{e}")))?;
-        let tracker_proxy = if options.pausable_tracker {
-            Some(LineProxy::start(tracker_addr)?)
-        } else {
-            None
-        };
-        let source = match &tracker_proxy {
-            Some(proxy) => format!("tcp://{}", proxy.addr()),
-            None => format!("tcp://{tracker_listen}"),
-        };
-        let calibration = dir.join("tracker_calibration.toml");
-        std::fs::write(&calibration, emulator_calibration_toml())?;
-        let tracker = spawn(
-            "tracker_agent",
-            &[
-                "run",
-                "--env",
-                &env,
-                "--source",
-                &source,
-                "--calibration",
-                &calibration.to_string_lossy(),
-                // A Zenoh client of the robot's router.
-                "--mode",
-                "client",
-                "--connect",
-                &robot_endpoint,
-            ],
-        )?;
-        let robot = spawn(
-            "robot_agent",
-            &[
-                "--env",
-                &env,
-                "--world",
-                options.world(),
-                "--watchdog-ms",
-                &options.watchdog_ms.to_string(),
-                "--estop-latch",
-                &dir.join("robot_agent.estop").to_string_lossy(),
-                // A Zenoh client of the robot's router.
-                "--mode",
-                "client",
-                "--connect",
-                &robot_endpoint,
-            ],
-        )?;
-        Ok(Self {
-            endpoint,
-            robot_endpoint,
+        let mut deployment = Self {
+            endpoint: loopback_endpoint()?,
+            robot_endpoint: loopback_endpoint()?,
+            hardware_endpoint: loopback_endpoint()?,
             env: options.env.clone(),
             token,
             dir,
-            tracker_proxy,
-            controller: Some(controller),
-            others: vec![emulator, tracker, robot],
-        })
+            tracker_proxy: None,
+            options: options.clone(),
+            tracker_listen: format!("127.0.0.1:{}", free_port()?),
+            processes: BTreeMap::new(),
+        };
+        for part in Part::ALL {
+            deployment.start_part(part)?;
+            match part {
+                Part::Hardware if options.pausable_tracker => {
+                    let addr: SocketAddr = deployment
+                        .tracker_listen
+                        .parse()
+                        .map_err(|e| std::io::Error::other(format!("{e}")))?;
+                    deployment.tracker_proxy = Some(LineProxy::start(addr)?);
+                }
+                _ => {}
+            }
+        }
+        Ok(deployment)
+    }
+
+    /// Starts (or restarts) one part with the deployment's settings.
+    pub fn start_part(&mut self, part: Part) -> std::io::Result<()> {
+        let options = &self.options;
+        let env = self.env.to_string();
+        let robot = self.robot_endpoint.as_str();
+        // The robot's nodes are peers: they listen (loopback, any port) so
+        // the others reach them directly, not only through the router.
+        let peer = [
+            "--mode",
+            "peer",
+            "--connect",
+            robot,
+            "--listen",
+            "tcp/127.0.0.1:0",
+        ];
+        let mut args: Vec<String> = Vec::new();
+        let mut push = |items: &[&str]| args.extend(items.iter().map(|s| s.to_string()));
+        let binary = match part {
+            Part::Router => {
+                push(&["--listen", robot, "--no-multicast-scouting"]);
+                "zenohd"
+            }
+            Part::Hardware => {
+                push(&["--emulate-hardware", "--world", options.world()]);
+                push(&[
+                    "--tracker-listen",
+                    &self.tracker_listen,
+                    "--overhead-env",
+                    &env,
+                ]);
+                // Half the Astra's rate: the whole site shares 2 cores here.
+                push(&["--camera-hz", "15"]);
+                let timeout = options.base_cmd_timeout_ms.unwrap_or(0).to_string();
+                push(&["--base-cmd-timeout-ms", &timeout]);
+                push(&["--mode", "peer", "--connect", robot]);
+                push(&["--listen", &self.hardware_endpoint]);
+                "sim_twin"
+            }
+            Part::Controller => {
+                let db = self.dir.join("gym.db");
+                push(&["--db", &db.to_string_lossy(), "serve"]);
+                push(&["--env", &format!("{env}={}", options.task)]);
+                push(&["--listen", &self.endpoint, "--connect", robot]);
+                "env_controller"
+            }
+            Part::TrackerAgent => {
+                let source = match &self.tracker_proxy {
+                    Some(proxy) => format!("tcp://{}", proxy.addr()),
+                    None => format!("tcp://{}", self.tracker_listen),
+                };
+                let calibration = self.dir.join("tracker_calibration.toml");
+                push(&["run", "--env", &env, "--source", &source]);
+                push(&["--calibration", &calibration.to_string_lossy()]);
+                push(&["--mode", "client", "--connect", robot]);
+                "tracker_agent"
+            }
+            Part::BaseGuard => {
+                if !options.base_guard {
+                    return Ok(());
+                }
+                push(&["--env", &env]);
+                push(&peer);
+                "base_guard"
+            }
+            Part::RobotAgent => {
+                let config = self.dir.join("robot.toml");
+                std::fs::write(
+                    &config,
+                    format!("require_base_guard = {}\n", options.base_guard),
+                )?;
+                push(&["--env", &env, "--world", options.world()]);
+                push(&["--robot-config", &config.to_string_lossy()]);
+                push(&["--watchdog-ms", &options.watchdog_ms.to_string()]);
+                let latch = self.dir.join("robot_agent.estop");
+                push(&["--estop-latch", &latch.to_string_lossy()]);
+                push(&peer);
+                "robot_agent"
+            }
+        };
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let process = if part == Part::Router {
+            Process::spawn_from_path(binary, &args, &options.log)?
+        } else {
+            Process::spawn_logged(binary, &args, &options.log)?
+        };
+        self.processes.insert(part, process);
+        // Zenoh clients give up when their router is not there yet.
+        match part {
+            Part::Router => wait_until_listening(&self.robot_endpoint, Duration::from_secs(20)),
+            Part::Controller => wait_until_listening(&self.endpoint, Duration::from_secs(20)),
+            _ => Ok(()),
+        }
     }
 
     /// Waits (bounded) until the env is online and the tracker agent reports
@@ -241,26 +326,50 @@ impl EmulatedEnclosure {
         Err(format!("{} stayed offline for {limit:?}", self.env))
     }
 
+    /// Sends a signal (`STOP`, `CONT`, `TERM`, …) to one part.
+    pub fn signal(&self, part: Part, signal: &str) {
+        if let Some(process) = self.processes.get(&part) {
+            process.signal(signal);
+        }
+    }
+
+    /// Kills one part at once (SIGKILL), like a crash.
+    pub fn kill(&mut self, part: Part) {
+        drop(self.processes.remove(&part));
+    }
+
+    /// Waits (bounded) for a part to exit by itself (after a signal);
+    /// returns its exit status.
+    pub fn wait_exit(&mut self, part: Part, limit: Duration) -> Option<std::process::ExitStatus> {
+        let process = self.processes.get_mut(&part)?;
+        let deadline = std::time::Instant::now() + limit;
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(status)) = process.0.try_wait() {
+                self.processes.remove(&part);
+                return Some(status);
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        None
+    }
+
     /// Sends a signal (`STOP`, `CONT`, …) to the controller process.
     pub fn signal_controller(&self, signal: &str) {
-        if let Some(controller) = &self.controller {
-            let pid = controller.0.id().to_string();
-            let _ = Command::new("kill")
-                .args([format!("-{signal}"), pid])
-                .status();
-        }
+        self.signal(Part::Controller, signal);
     }
 
     /// Kills the controller process at once (SIGKILL), like a crash.
     pub fn kill_controller(&mut self) {
-        drop(self.controller.take());
+        self.kill(Part::Controller);
     }
 }
 
 impl Drop for EmulatedEnclosure {
     fn drop(&mut self) {
-        self.controller.take();
-        self.others.clear();
+        // The controller first: its vanishing token stops the robot before
+        // the robot side goes.
+        self.processes.remove(&Part::Controller);
+        self.processes.clear();
         let _ = std::fs::remove_dir_all(&self.dir);
     }
 }

@@ -4,6 +4,7 @@
 //! independent Python peers under `tests/python/` that other suites drive.
 
 pub mod emulated;
+pub mod faults;
 pub mod netns;
 pub mod site;
 
@@ -36,6 +37,12 @@ impl Process {
         Self::spawn_in(None, binary, args, log)
     }
 
+    /// Starts a program found on `PATH` (e.g. `zenohd`, installed by
+    /// `.ci/setup`) with arguments and a `RUST_LOG` filter.
+    pub fn spawn_from_path(program: &str, args: &[&str], log: &str) -> std::io::Result<Self> {
+        Self::spawn_path(None, PathBuf::from(program), args, log)
+    }
+
     /// Like [`Process::spawn_logged`], inside network namespace `netns` if
     /// given (`ip netns exec` execs the binary: the child is the binary).
     pub fn spawn_in(
@@ -44,7 +51,15 @@ impl Process {
         args: &[&str],
         log: &str,
     ) -> std::io::Result<Self> {
-        let path = binary_dir().join(binary);
+        Self::spawn_path(netns, binary_dir().join(binary), args, log)
+    }
+
+    fn spawn_path(
+        netns: Option<&str>,
+        path: PathBuf,
+        args: &[&str],
+        log: &str,
+    ) -> std::io::Result<Self> {
         let mut command = match netns {
             Some(ns) => {
                 let mut c = Command::new("ip");
@@ -64,6 +79,15 @@ impl Process {
             .spawn()
             .map(Self)
             .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))
+    }
+}
+
+impl Process {
+    /// Sends `signal` (`STOP`, `CONT`, `TERM`, `HUP`, `INT`, `KILL`).
+    pub fn signal(&self, signal: &str) {
+        let _ = Command::new("kill")
+            .args([format!("-{signal}"), self.0.id().to_string()])
+            .status();
     }
 }
 

@@ -12,6 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use offworld_env_controller::operator::{press_estop, EStopScope};
+use offworld_env_controller::ControllerError;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
@@ -398,13 +399,26 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
 
     // E-stops are for operators: a trainer's and the controller's e-stops
     // do not stop the robot…
-    let engage = EStop {
-        engaged: true,
-        reason: "test".into(),
-    };
+    let engage = EStop::new(true, "test");
     wire::put(&mallory, &env.key(Topic::EStop), &engage).await?;
     wire::put(&mallory, &global_estop_key(), &engage).await?;
-    wire::put(&controller_session, &env.key(Topic::EStop), &engage).await?;
+    // Pressed like the CLI presses, with a credential the router's ACL
+    // denies e-stops: nobody acknowledges, and the press says so.
+    match press_estop(
+        &controller_session,
+        &EStopScope::Env(env.clone()),
+        true,
+        "not an operator",
+        Duration::from_secs(10),
+        Duration::from_secs(2),
+    )
+    .await
+    {
+        Err(ControllerError::Unacknowledged { report, .. }) => {
+            assert_eq!(report.silent, [(env.to_string(), "sim_twin".to_owned())]);
+        }
+        other => panic!("an ACL-dropped press must fail, got {other:?}"),
+    }
     settle().await;
     assert_eq!(spy.count("estop", None), 0);
     assert_eq!(spy_global.count("estop", None), 0);
@@ -417,22 +431,35 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     );
     // …an operator's does (pressed as `env_controller estop` presses it:
     // once the robot's subscription is seen through the router).
-    press_estop(
+    // The twin's acknowledgement comes back through the router.
+    let report = press_estop(
         &operator,
         &EStopScope::Env(env.clone()),
-        &engage,
+        true,
+        "test",
         Duration::from_secs(10),
+        Duration::from_secs(5),
     )
     .await?;
+    assert_eq!(report.acknowledged.len(), 1, "{report:?}");
+    assert_eq!(report.acknowledged[0].component, "sim_twin");
+    assert_eq!(report.acknowledged[0].state.summary(), "env");
     settle().await;
     assert_eq!(spy.count("estop", None), 1);
-    let held_seq = step(&mut gym, &spy).await;
-    let before = spy.wait_pose(held_seq - 1).await.expect("pose before");
-    let after = spy.wait_pose(held_seq).await.expect("pose after");
+    // The controller refuses motion under the e-stop (as for a real env),
+    // and no command reaches the robot.
+    let commands = spy.cmds().len();
+    let refused = gym
+        .step(Action::Discrete(FORWARD))
+        .await
+        .expect_err("no step under an e-stop");
+    assert_eq!(refused.code, ErrorCode::InvalidState, "{refused}");
     assert!(
-        planar_distance(&before, &after) < 0.005,
-        "the e-stopped robot moved: {before:?} -> {after:?}"
+        refused.message.contains("e-stop engaged: env (test)"),
+        "{refused}"
     );
+    settle().await;
+    assert_eq!(spy.cmds().len(), commands, "no command was sent");
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     Ok(())
 }
@@ -503,17 +530,15 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
             .map_err(|e| anyhow::anyhow!(e))?;
     }
 
-    // The router dies: the next step fails with a typed error, no hang.
+    // The router dies: the next step fails with a typed, transient error
+    // (never `NotFound`: the env was there a moment ago), no hang.
     site.farm.site.stop_router();
     let lost = gym
         .step(Action::Discrete(FORWARD))
         .await
         .expect_err("no router");
     assert!(
-        matches!(
-            lost.code,
-            ErrorCode::Timeout | ErrorCode::Unavailable | ErrorCode::NotFound
-        ),
+        matches!(lost.code, ErrorCode::Timeout | ErrorCode::Unavailable),
         "{lost}"
     );
 
@@ -530,10 +555,7 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
                 assert!(
                     matches!(
                         e.code,
-                        ErrorCode::Timeout
-                            | ErrorCode::Unavailable
-                            | ErrorCode::NotFound
-                            | ErrorCode::Unauthorized
+                        ErrorCode::Timeout | ErrorCode::Unavailable | ErrorCode::Unauthorized
                     ),
                     "{e}"
                 );
@@ -658,10 +680,7 @@ async fn agents_never_command_even_past_an_open_router() -> anyhow::Result<()> {
         angular_z: 0.0,
         duration_s: 1.0,
     };
-    let engage = EStop {
-        engaged: true,
-        reason: "test".into(),
-    };
+    let engage = EStop::new(true, "test");
     let pose = PoseStamped {
         header: Header::new(Time::default(), "world"),
         pose: Pose::default(),

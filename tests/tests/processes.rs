@@ -110,3 +110,109 @@ async fn controller_and_twin_processes_serve_a_full_episode() {
     drop(session);
     let _ = std::fs::remove_dir_all(&scratch);
 }
+
+/// Every long-running binary treats SIGTERM, SIGINT and SIGHUP as "stop
+/// cleanly": it exits by itself with status 0 (its liveliness tokens are
+/// undeclared and its records closed on the way), not by the signal's
+/// default action.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_service_exits_cleanly_on_sigterm_sigint_and_sighup() {
+    let scratch = std::env::temp_dir().join(format!("offworld-signals-{}", client::random_id()));
+    std::fs::create_dir_all(&scratch).expect("scratch");
+    let endpoint = loopback_endpoint().expect("port");
+    let db = scratch.join("gym.db");
+    let rrd = scratch.join("monitor.rrd");
+    let calibration = scratch.join("calibration.toml");
+    std::fs::write(
+        &calibration,
+        offworld_tests::emulated::emulator_calibration_toml(),
+    )
+    .expect("calibration");
+    let latch = scratch.join("robot.estop");
+    let (db, rrd, calibration, latch) = (
+        db.to_string_lossy().into_owned(),
+        rrd.to_string_lossy().into_owned(),
+        calibration.to_string_lossy().into_owned(),
+        latch.to_string_lossy().into_owned(),
+    );
+    let connect = ["--connect", endpoint.as_str()];
+    let services: Vec<(&str, Vec<&str>)> = vec![
+        (
+            "sim_twin",
+            [&["--env", "sim/signals-0"][..], &connect].concat(),
+        ),
+        (
+            "robot_agent",
+            [
+                &["--env", "real/signals-0", "--estop-latch", &latch][..],
+                &connect,
+            ]
+            .concat(),
+        ),
+        (
+            "base_guard",
+            [&["--env", "real/signals-0"][..], &connect].concat(),
+        ),
+        (
+            "tracker_agent",
+            [
+                &[
+                    "run",
+                    "--env",
+                    "real/signals-0",
+                    "--source",
+                    "udp://127.0.0.1:0",
+                ][..],
+                &["--calibration", &calibration],
+                &connect,
+            ]
+            .concat(),
+        ),
+        (
+            "monitor",
+            [&["--all", "--save", &rrd][..], &connect].concat(),
+        ),
+    ];
+    for signal in ["TERM", "INT", "HUP"] {
+        // The controller serves and listens: the others connect to it.
+        let controller = Process::spawn(
+            "env_controller",
+            &[
+                "--db",
+                &db,
+                "serve",
+                "--env",
+                "sim/signals-0=MonolithDiscrete",
+                "--listen",
+                &endpoint,
+            ],
+        )
+        .expect("controller");
+        let mut running = Vec::new();
+        for (binary, args) in &services {
+            running.push((*binary, Process::spawn(binary, args).expect(binary)));
+        }
+        // Up and past start-up (sessions open, handlers installed).
+        tokio::time::sleep(Duration::from_secs(3)).await;
+        for (binary, mut process) in running.into_iter().chain([("env_controller", controller)]) {
+            assert!(
+                process.0.try_wait().expect("wait").is_none(),
+                "{binary} died before the signal"
+            );
+            process.signal(signal);
+            let deadline = std::time::Instant::now() + Duration::from_secs(15);
+            let status = loop {
+                if let Some(status) = process.0.try_wait().expect("wait") {
+                    break status;
+                }
+                assert!(
+                    std::time::Instant::now() < deadline,
+                    "{binary} did not exit on SIG{signal}"
+                );
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            };
+            assert!(status.success(), "{binary} on SIG{signal}: {status}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&scratch);
+}

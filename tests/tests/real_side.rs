@@ -246,10 +246,7 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
     let (_gym, result) = stepping.await.expect("step task");
     let err: WireError = result.expect_err("the step cannot succeed without its controller");
     assert!(
-        matches!(
-            err.code,
-            ErrorCode::Timeout | ErrorCode::NotFound | ErrorCode::Unavailable
-        ),
+        matches!(err.code, ErrorCode::Timeout | ErrorCode::Unavailable),
         "{err}"
     );
 }

@@ -29,6 +29,7 @@ use tokio::io::AsyncBufReadExt;
 #[derive(Parser)]
 #[command(
     name = "tracker_agent",
+    version,
     about = "Vive tracker localization for an OffWorld enclosure"
 )]
 struct Cli {
@@ -186,7 +187,7 @@ async fn run(args: RunArgs) -> anyhow::Result<()> {
     let session = args.common.client_config().open().await?;
     let stats =
         offworld_tracker_agent::run(&session, args.env, calibration, source, config, async {
-            let _ = tokio::signal::ctrl_c().await;
+            let _ = offworld_runtime::shutdown::signalled().await;
         })
         .await?;
     tracing::info!(?stats, "done");

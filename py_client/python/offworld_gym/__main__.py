@@ -63,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
             state += f" until {_when(env['until_unix_ms'])}"
         elif env["message"]:
             state += f" ({env['message']})"
+        for latch, reason in env.get("estops", {}).items():
+            state += f" E-STOP {latch} ({reason})"
         print(f"{env['env_id']:<28} {env['task'] or '-':<26} {state:<40} {','.join(env['components'])}")
         for slot in env["bookings"]:
             print(f"    booked by {slot['user']} {_when(slot['start_unix_ms'])} – {_when(slot['end_unix_ms'])}")

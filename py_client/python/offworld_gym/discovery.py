@@ -26,6 +26,9 @@ class EnvInfo(TypedDict):
     components: list[str]
     #: Booked slots in progress or ahead, earliest first.
     bookings: list[Booking]
+    #: E-stops in force: ``{"site": reason, "env": reason}`` for the engaged
+    #: latches (motion is refused while any is); empty when none.
+    estops: dict[str, str]
 
 
 def list_envs(connect: str | None = None, timeout: float = 2.0) -> list[EnvInfo]:

@@ -394,6 +394,9 @@ pub struct EnvStatus {
     pub env_id: String,
     /// Current state.
     pub state: EnvState,
+    /// The e-stop latches that apply (site and env): motion is refused
+    /// while either is engaged, whatever `state` says.
+    pub estop: super::EStopState,
 }
 
 /// Operator commands.

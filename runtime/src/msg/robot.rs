@@ -24,10 +24,18 @@ pub struct MotionCommand {
 /// say): the controller fails the step with `reason` at once.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct MotionFault {
-    /// The command concerned.
+    /// The command concerned ([`MotionFault::ANY_COMMAND`]: whichever is
+    /// in flight).
     pub seq: u64,
     /// Why it will not be answered.
     pub reason: String,
+}
+
+impl MotionFault {
+    /// The `seq` of a fault that fails whatever command is in flight (the
+    /// base guard's: it stopped the base without knowing which command
+    /// moved it).
+    pub const ANY_COMMAND: u64 = u64::MAX;
 }
 
 /// A planar pose in the world frame.
@@ -124,6 +132,57 @@ pub struct EStop {
     pub engaged: bool,
     /// Who and why, for the log.
     pub reason: String,
+    /// The operator's id for this press, echoed in every [`EStopAck`]
+    /// (0: nobody waits for acknowledgements).
+    pub press_id: u64,
+}
+
+impl EStop {
+    /// An engage (`engaged`) or release nobody waits acknowledgements for.
+    pub fn new(engaged: bool, reason: impl Into<String>) -> Self {
+        Self {
+            engaged,
+            reason: reason.into(),
+            press_id: 0,
+        }
+    }
+}
+
+/// One e-stop latch (site-wide, or one env's): engaged or not, why, and
+/// when it last changed (the newer of two reports wins when a restarted
+/// component merges what the network remembers).
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct LatchState {
+    /// Motion refused while true.
+    pub engaged: bool,
+    /// The operator's reason of the last change.
+    pub reason: String,
+    /// Wall clock of the last change (zero: never changed).
+    pub changed: Time,
+}
+
+/// The e-stop latches that apply to one env: the site's and its own. They
+/// are independent: releasing one never clears the other.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct EStopState {
+    /// The site-wide latch.
+    pub site: LatchState,
+    /// This env's latch.
+    pub env: LatchState,
+}
+
+/// A robot agent's or twin's acknowledgement of an e-stop it received and
+/// applied (the robot is already stopped when it is sent).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EStopAck {
+    /// The press acknowledged ([`EStop::press_id`]).
+    pub press_id: u64,
+    /// Who acknowledges (`robot_agent`, `sim_twin`).
+    pub component: String,
+    /// The env it serves.
+    pub env: String,
+    /// The latches in force after applying it.
+    pub state: EStopState,
 }
 
 /// Whether localization is currently trustworthy.

@@ -257,12 +257,24 @@ pub fn episode_event() -> EpisodeEvent {
     }
 }
 
+pub fn estop_state() -> EStopState {
+    EStopState {
+        site: LatchState {
+            engaged: true,
+            reason: "fire alarm".into(),
+            changed: header().stamp,
+        },
+        env: LatchState::default(),
+    }
+}
+
 pub fn env_status() -> EnvStatus {
     EnvStatus {
         env_id: "real/enclosure-a".into(),
         state: EnvState::Leased {
             until_unix_ms: 1_700_000_999_000,
         },
+        estop: estop_state(),
     }
 }
 
@@ -305,6 +317,17 @@ macro_rules! for_each_sample {
             EStop {
                 engaged: true,
                 reason: "operator".into(),
+                press_id: 0x1234_5678_9abc,
+            },
+        );
+        $f("EStopState", estop_state());
+        $f(
+            "EStopAck",
+            EStopAck {
+                press_id: 7,
+                component: "robot_agent".into(),
+                env: "real/enclosure-a".into(),
+                state: estop_state(),
             },
         );
         $f(
@@ -357,6 +380,7 @@ macro_rules! for_each_sample {
                 state: EnvState::Maintenance {
                     message: "wheels".into(),
                 },
+                estop: EStopState::default(),
             },
         );
         $f(

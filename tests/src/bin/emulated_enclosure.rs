@@ -48,7 +48,7 @@ async fn main() -> anyhow::Result<()> {
     eprintln!("  OFFWORLD_GYM_ACCESS_TOKEN={}", deployment.token);
     let Some((program, rest)) = args.command.split_first() else {
         eprintln!("Ctrl-C to stop");
-        tokio::signal::ctrl_c().await?;
+        offworld_runtime::shutdown::signalled().await?;
         return Ok(());
     };
     let status = Command::new(program)

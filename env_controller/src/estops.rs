@@ -1,0 +1,93 @@
+//! The e-stops as the controller sees them, per env: the site latch and the
+//! env's own ([`offworld_runtime::estop`]). The controller refuses resets
+//! and steps while either is engaged — the same `InvalidState` for a sim
+//! env and a real one — shows them in the env's status, answers
+//! `estop_state` for its envs (so a restarted robot agent or twin learns
+//! them from the network), and on start learns them the same way.
+
+use std::time::Duration;
+
+use offworld_runtime::codec;
+use offworld_runtime::estop::{self, Latch};
+use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
+use offworld_runtime::msg::{EStop, EStopState, Time};
+use offworld_runtime::wire;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::query::{Query, Queryable};
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::WireError;
+use tokio::sync::watch;
+
+use crate::error::ControllerError;
+
+/// How long a starting controller asks the network for the latches.
+const RECALL: Duration = Duration::from_millis(500);
+
+/// One env's e-stop latches, followed live.
+pub struct EnvEStops {
+    state: watch::Receiver<EStopState>,
+    _subscribers: [Subscriber<()>; 2],
+    _queryable: Queryable<()>,
+}
+
+impl EnvEStops {
+    /// Learns the latches from the network, then follows both e-stop keys.
+    pub async fn follow(session: &Session, env: &EnvId) -> Result<Self, ControllerError> {
+        let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
+        let recalled = estop::recall(session, env, RECALL).await;
+        if let Some(reason) = recalled.refusal() {
+            tracing::warn!(%env, %reason, "e-stop in force at start (from the network)");
+        }
+        let (tx, state) = watch::channel(recalled);
+        let subscribe = |key: String, latch: Latch| {
+            let tx = tx.clone();
+            let env = env.clone();
+            session.declare_subscriber(key).callback(move |s: Sample| {
+                let stop = codec::decode_payload::<EStop>(s.payload()).unwrap_or_else(|e| {
+                    // As the robot does: a garbled e-stop engages.
+                    EStop::new(true, format!("malformed e-stop ({e})"))
+                });
+                tx.send_modify(|state| {
+                    state.apply(latch, &stop, Time::now());
+                });
+                tracing::warn!(%env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, "e-stop");
+            })
+        };
+        let env_sub = subscribe(env.key(Topic::EStop), Latch::Env)
+            .await
+            .map_err(zerr)?;
+        let site_sub = subscribe(global_estop_key(), Latch::Site)
+            .await
+            .map_err(zerr)?;
+        let answered = state.clone();
+        let queryable = session
+            .declare_queryable(env.key(Topic::EStopState))
+            .callback(move |q: Query| {
+                let current = answered.borrow().clone();
+                if let Err(e) = wire::reply_now(&q, Ok(&current)) {
+                    tracing::warn!("e-stop state reply failed: {e}");
+                }
+            })
+            .await
+            .map_err(zerr)?;
+        Ok(Self {
+            state,
+            _subscribers: [env_sub, site_sub],
+            _queryable: queryable,
+        })
+    }
+
+    /// The latches now.
+    pub fn state(&self) -> EStopState {
+        self.state.borrow().clone()
+    }
+
+    /// `InvalidState` naming every engaged latch, if motion is refused.
+    pub fn refuse_motion(&self) -> Result<(), WireError> {
+        match self.state.borrow().refusal() {
+            Some(reason) => Err(WireError::invalid_state(reason)),
+            None => Ok(()),
+        }
+    }
+}

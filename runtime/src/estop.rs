@@ -1,0 +1,214 @@
+//! E-stop semantics, defined once for every component that obeys or shows
+//! them (robot agent, twin, controller, operator CLI).
+//!
+//! Two latches apply to every env: the site-wide one
+//! (`offworld/@v1/estop`) and the env's own (`<env>/estop`). They are
+//! independent: engaging or releasing one never touches the other, and
+//! motion is refused while either is engaged. Every change is stamped with
+//! the wall clock, so a component that restarts merges what it kept on disk
+//! with what the network remembers ([`crate::keys::Topic::EStopState`]) by
+//! taking, per latch, the newer report.
+
+use std::time::Duration;
+
+use zenoh::query::{ConsolidationMode, QueryTarget, Reply};
+use zenoh::{Session, Wait};
+
+use crate::codec;
+use crate::keys::{topic_on_all_envs, EnvId, Topic};
+use crate::msg::{EStop, EStopState, LatchState, Time};
+
+/// Which latch an e-stop publication sets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Latch {
+    /// Every robot of the site.
+    Site,
+    /// One env's robot or twin.
+    Env,
+}
+
+impl Latch {
+    /// `site` or `env`, for logs and messages.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Site => "site",
+            Self::Env => "env",
+        }
+    }
+}
+
+fn newer(a: &Time, b: &Time) -> bool {
+    (a.sec, a.nanosec) > (b.sec, b.nanosec)
+}
+
+impl EStopState {
+    /// The latch `latch`.
+    pub fn latch(&self, latch: Latch) -> &LatchState {
+        match latch {
+            Latch::Site => &self.site,
+            Latch::Env => &self.env,
+        }
+    }
+
+    /// Applies `stop` to `latch` at `now`; returns whether it changed
+    /// whether that latch is engaged.
+    pub fn apply(&mut self, latch: Latch, stop: &EStop, now: Time) -> bool {
+        let slot = match latch {
+            Latch::Site => &mut self.site,
+            Latch::Env => &mut self.env,
+        };
+        let changed = slot.engaged != stop.engaged;
+        *slot = LatchState {
+            engaged: stop.engaged,
+            reason: stop.reason.clone(),
+            changed: now,
+        };
+        changed
+    }
+
+    /// Takes, per latch, `other`'s report where it is newer than ours.
+    /// Returns whether anything engaged or released.
+    pub fn merge(&mut self, other: &EStopState) -> bool {
+        let mut changed = false;
+        for (ours, theirs) in [(&mut self.site, &other.site), (&mut self.env, &other.env)] {
+            if newer(&theirs.changed, &ours.changed) {
+                changed |= ours.engaged != theirs.engaged;
+                *ours = theirs.clone();
+            }
+        }
+        changed
+    }
+
+    /// Whether any latch refuses motion.
+    pub fn engaged(&self) -> bool {
+        self.site.engaged || self.env.engaged
+    }
+
+    /// Why motion is refused, naming every engaged latch, if it is.
+    pub fn refusal(&self) -> Option<String> {
+        let engaged: Vec<String> = [Latch::Site, Latch::Env]
+            .into_iter()
+            .filter(|l| self.latch(*l).engaged)
+            .map(|l| format!("{} ({})", l.as_str(), self.latch(l).reason))
+            .collect();
+        (!engaged.is_empty()).then(|| format!("e-stop engaged: {}", engaged.join(", ")))
+    }
+
+    /// The engaged latches as `site`, `env`, `site+env` or `none`.
+    pub fn summary(&self) -> &'static str {
+        match (self.site.engaged, self.env.engaged) {
+            (true, true) => "site+env",
+            (true, false) => "site",
+            (false, true) => "env",
+            (false, false) => "none",
+        }
+    }
+}
+
+/// What the network remembers of the e-stops that apply to `env`: asks
+/// every `estop_state` queryable of the site (robot agents, twins,
+/// controllers) for at most `timeout` and merges the newest report per
+/// latch: the site latch from any env's answer, the env latch only from
+/// answers for `env`. Nobody answering gives the default (released, never
+/// changed), which loses to anything kept on disk.
+pub async fn recall(session: &Session, env: &EnvId, timeout: Duration) -> EStopState {
+    let mut state = EStopState::default();
+    match recall_query(session, timeout).await {
+        Ok(replies) => {
+            while let Ok(reply) = replies.recv_async().await {
+                fold_reply(&mut state, env, &reply);
+            }
+        }
+        Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
+    }
+    state
+}
+
+/// [`recall`] for a caller that is not async (a simulation thread's setup).
+pub fn recall_wait(session: &Session, env: &EnvId, timeout: Duration) -> EStopState {
+    let mut state = EStopState::default();
+    match recall_query(session, timeout).wait() {
+        Ok(replies) => {
+            while let Ok(reply) = replies.recv() {
+                fold_reply(&mut state, env, &reply);
+            }
+        }
+        Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
+    }
+    state
+}
+
+fn recall_query(
+    session: &Session,
+    timeout: Duration,
+) -> zenoh::session::SessionGetBuilder<'_, '_, zenoh::handlers::DefaultHandler> {
+    session
+        .get(topic_on_all_envs(Topic::EStopState))
+        .target(QueryTarget::All)
+        .consolidation(ConsolidationMode::None)
+        .timeout(timeout)
+}
+
+fn fold_reply(state: &mut EStopState, env: &EnvId, reply: &Reply) {
+    let Ok(sample) = reply.result() else { return };
+    let Ok(theirs) = codec::decode_payload::<EStopState>(sample.payload()) else {
+        tracing::warn!(key = %sample.key_expr(), "ignored a malformed e-stop state");
+        return;
+    };
+    let same_env = EnvId::from_key(sample.key_expr().as_str()).is_ok_and(|e| &e == env);
+    let report = EStopState {
+        site: theirs.site,
+        env: if same_env {
+            theirs.env
+        } else {
+            LatchState::default()
+        },
+    };
+    state.merge(&report);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(sec: i32) -> Time {
+        Time { sec, nanosec: 0 }
+    }
+
+    #[test]
+    fn site_and_env_latches_are_independent() {
+        let mut state = EStopState::default();
+        assert!(state.apply(Latch::Site, &EStop::new(true, "fire alarm"), at(1)));
+        assert!(state.apply(Latch::Env, &EStop::new(true, "person inside"), at(2)));
+        assert_eq!(
+            state.refusal().as_deref(),
+            Some("e-stop engaged: site (fire alarm), env (person inside)")
+        );
+        assert!(state.apply(Latch::Env, &EStop::new(false, "clear"), at(3)));
+        assert!(state.engaged(), "the env release leaves the site latch");
+        assert_eq!(state.summary(), "site");
+        assert!(!state.apply(Latch::Env, &EStop::new(false, "again"), at(4)));
+        assert!(state.apply(Latch::Site, &EStop::new(false, "all clear"), at(5)));
+        assert_eq!(state.refusal(), None);
+    }
+
+    #[test]
+    fn a_merge_takes_the_newer_report_per_latch() {
+        // Kept on disk: site engaged at t=10, env released at t=0.
+        let mut ours = EStopState::default();
+        ours.apply(Latch::Site, &EStop::new(true, "drill"), at(10));
+        // The network: site released at t=20 (while we were down), env
+        // engaged at t=15.
+        let mut theirs = EStopState::default();
+        theirs.apply(Latch::Site, &EStop::new(false, "drill over"), at(20));
+        theirs.apply(Latch::Env, &EStop::new(true, "maintenance"), at(15));
+        assert!(ours.merge(&theirs));
+        assert!(!ours.site.engaged);
+        assert_eq!(ours.env.reason, "maintenance");
+        // An older report changes nothing.
+        let mut stale = EStopState::default();
+        stale.apply(Latch::Env, &EStop::new(false, "old"), at(5));
+        assert!(!ours.merge(&stale));
+        assert!(ours.env.engaged);
+    }
+}

@@ -1,0 +1,161 @@
+//! `fault_matrix`: the fault-injection matrix as a report. For every
+//! process of the emulated enclosure (router, hardware, controller, robot
+//! agent, base guard, tracker agent) and every fault (kill -9, SIGTERM,
+//! SIGSTOP for 5 s), while a step turns the robot on the worst-case base
+//! (it holds the last velocity forever): how long the base kept moving,
+//! how far it turned, the client's error and how soon it came; then
+//! whether every episode was recorded. Prints a Markdown table
+//! (`docs/safety.md` holds the latest).
+//!
+//! ```text
+//! fault_matrix                       # the whole matrix, ~10 min
+//! fault_matrix --part robot_agent    # one part
+//! fault_matrix --base-timeout-ms 300 # against a base with a command timeout
+//! ```
+
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+use offworld_env_controller::Store;
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::msg::{AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest};
+use offworld_runtime::SessionConfig;
+use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
+use offworld_tests::faults::{
+    inject, recover, reset_when_ready, BaseObserver, Fault, FaultOutcome,
+};
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Inject process faults into the emulated enclosure and report what the robot and the client saw"
+)]
+struct Args {
+    /// Only this part (router, hardware, env_controller, robot_agent,
+    /// base_guard, tracker_agent).
+    #[arg(long)]
+    part: Option<String>,
+    /// The emulated base stops after this long without a command (default:
+    /// never, the worst case).
+    #[arg(long)]
+    base_timeout_ms: Option<u64>,
+    /// Watch the base this long after each fault, s.
+    #[arg(long, default_value_t = 3.0)]
+    window_s: f64,
+}
+
+fn request(token: &str, resume: bool) -> OpenRequest {
+    OpenRequest {
+        token: token.to_owned(),
+        experiment_name: "fault-matrix".into(),
+        resume_experiment: resume,
+        algorithm_mode: AlgorithmMode::Train,
+        ..OpenRequest::anonymous(ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 24,
+            width: 32,
+            depth_format: DepthFormat::Uint8,
+        })
+    }
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let window = Duration::try_from_secs_f64(args.window_s).context("--window-s")?;
+    let mut options = Options::new("MonolithContinuous")?;
+    options.base_cmd_timeout_ms = args.base_timeout_ms;
+    let parts: Vec<Part> = Part::ALL
+        .into_iter()
+        .filter(|p| args.part.as_deref().is_none_or(|name| name == p.name()))
+        .collect();
+    anyhow::ensure!(!parts.is_empty(), "no such part: {:?}", args.part);
+    let faults = [
+        Fault::Kill,
+        Fault::Terminate,
+        Fault::Freeze(Duration::from_secs(5)),
+    ];
+    eprintln!("starting the emulated enclosure…");
+    let mut deployment = EmulatedEnclosure::start(&options)?;
+    deployment
+        .ready(Duration::from_secs(60))
+        .await
+        .map_err(anyhow::Error::msg)?;
+    let base = BaseObserver::connect(&deployment).await?;
+    let mut outcomes: Vec<FaultOutcome> = Vec::new();
+    let mut resets = 0u64;
+    let total = parts.len() * faults.len();
+    for (i, (part, fault)) in parts
+        .iter()
+        .flat_map(|p| faults.iter().map(move |f| (*p, *f)))
+        .enumerate()
+    {
+        eprintln!("[{}/{total}] {} {fault}", i + 1, part.name());
+        // A fresh client session each time: the controller may be the part.
+        let session = SessionConfig::connecting(&deployment.endpoint)
+            .open()
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let mut gym = EnvClient::open_when_ready(
+            &session,
+            &deployment.env,
+            request(&deployment.token, resets > 0),
+            ClientTimeouts::default(),
+            Duration::from_secs(60),
+        )
+        .await
+        .map_err(|e| anyhow::anyhow!("open: {e}"))?;
+        reset_when_ready(&mut gym, 100 + i as u64, Duration::from_secs(90))
+            .await
+            .map_err(|e| anyhow::anyhow!("reset: {e}"))?;
+        resets += 1;
+        let (mut gym, outcome) = inject(&mut deployment, gym, &base, part, fault, window).await;
+        outcomes.push(outcome);
+        recover(&mut deployment, part, fault).await?;
+        // The session may be gone with a restarted controller.
+        let _ = gym.close().await;
+    }
+    let store = Store::open(&deployment.dir.join("gym.db"))?;
+    let recorded = store
+        .experiments()?
+        .into_iter()
+        .find(|e| e.name == "fault-matrix")
+        .map_or(0, |e| e.episodes);
+    println!(
+        "Base: {}. Each fault hits a step turning the robot at 1.5 rad/s; the base is watched for {:.0} s.\n",
+        match args.base_timeout_ms {
+            Some(ms) => format!("stops after {ms} ms without a command"),
+            None => "holds the last velocity forever (worst case)".into(),
+        },
+        window.as_secs_f64()
+    );
+    println!("| part | fault | base moved for (ms) | turned after (rad) | client error | error after (ms) |");
+    println!("|---|---|---|---|---|---|");
+    for o in &outcomes {
+        let moved = match o.moved_for {
+            _ if !o.observed => "no odometry (hardware gone)".into(),
+            Some(d) => d.as_millis().to_string(),
+            None => "never stopped".into(),
+        };
+        let error = o
+            .client_error
+            .as_ref()
+            .map_or("none (step succeeded)".into(), |e| {
+                format!("{:?}: {}", e.code, e.message)
+            });
+        println!(
+            "| {} | {} | {moved} | {:.2} | {} | {} |",
+            o.part.name(),
+            o.fault,
+            o.turned_rad,
+            error.replace('|', "/"),
+            o.result_after.as_millis()
+        );
+    }
+    println!(
+        "\nEpisodes started: {resets}; recorded: {recorded}; lost: {}.",
+        resets.saturating_sub(recorded)
+    );
+    Ok(())
+}

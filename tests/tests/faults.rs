@@ -1,0 +1,192 @@
+//! Fault injection with real processes on the emulated enclosure, against
+//! the worst-case base (it holds the last velocity forever): the robot
+//! agent killed, terminated and frozen, the camera hardware killed, the
+//! tracker agent killed, the robot's router killed — each while a step
+//! turns the robot. Asserted for each: the base stopped and stayed stopped
+//! (it turned far less than the 1.5 rad/s it was told would give over the
+//! window), the client's step failed with a typed transient error, and at
+//! the end no episode record was lost and the experiment resumes.
+//!
+//! The full matrix with its figures is the `fault_matrix` program.
+
+use std::time::Duration;
+
+use offworld_env_controller::Store;
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::msg::{AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest};
+use offworld_runtime::{ErrorCode, SessionConfig};
+use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
+use offworld_tests::faults::{inject, recover, reset_when_ready, BaseObserver, Fault};
+
+/// How long the base is watched after each fault. A base that held its
+/// velocity would turn 1.5 rad/s × 3 s = 4.5 rad in it.
+const WINDOW: Duration = Duration::from_secs(3);
+/// What the base may still turn after a fault: 200 ms at the robot's
+/// top 2.5 rad/s is 0.5 rad; the rest is slack for a loaded machine.
+const TURN_BOUND_RAD: f64 = 1.2;
+
+fn request(token: &str, experiment: &str, resume: bool) -> OpenRequest {
+    OpenRequest {
+        token: token.to_owned(),
+        experiment_name: experiment.to_owned(),
+        resume_experiment: resume,
+        algorithm_mode: AlgorithmMode::Train,
+        ..OpenRequest::anonymous(ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 24,
+            width: 32,
+            depth_format: DepthFormat::Uint8,
+        })
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
+    let options = Options::new("MonolithContinuous").expect("options");
+    assert_eq!(options.base_cmd_timeout_ms, None, "the worst-case base");
+    let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    deployment
+        .ready(Duration::from_secs(60))
+        .await
+        .expect("deployment ready");
+    let base = BaseObserver::connect(&deployment).await.expect("observer");
+    let session = SessionConfig::connecting(&deployment.endpoint)
+        .open()
+        .await
+        .expect("client session");
+    let mut gym = EnvClient::open_when_ready(
+        &session,
+        &deployment.env,
+        request(&deployment.token, "faults", false),
+        ClientTimeouts::default(),
+        Duration::from_secs(30),
+    )
+    .await
+    .expect("open");
+
+    let scenarios = [
+        (Part::RobotAgent, Fault::Kill),
+        (Part::RobotAgent, Fault::Terminate),
+        (Part::RobotAgent, Fault::Freeze(Duration::from_secs(5))),
+        (Part::TrackerAgent, Fault::Kill),
+        (Part::Router, Fault::Kill),
+        (Part::Hardware, Fault::Kill),
+    ];
+    let mut resets = 0u64;
+    for (seed, (part, fault)) in (10u64..).zip(scenarios) {
+        reset_when_ready(&mut gym, seed, Duration::from_secs(90))
+            .await
+            .unwrap_or_else(|e| panic!("{part:?} {fault}: no reset: {e}"));
+        resets += 1;
+        let (back, outcome) = inject(&mut deployment, gym, &base, part, fault, WINDOW).await;
+        gym = back;
+        eprintln!(
+            "{:<14} {:<10} moved for {:?}, turned {:.2} rad, client {:?} after {:?}",
+            part.name(),
+            fault.to_string(),
+            outcome.moved_for,
+            outcome.turned_rad,
+            outcome.client_error.as_ref().map(|e| e.to_string()),
+            outcome.result_after
+        );
+        if part != Part::Hardware {
+            // (A killed emulator takes its odometry with it: nothing to see.)
+            assert!(
+                outcome.observed,
+                "{part:?} {fault}: odometry heard after the fault"
+            );
+            assert!(
+                outcome.stopped_within(Duration::from_secs(1)),
+                "{part:?} {fault}: the base kept moving ({:?})",
+                outcome.moved_for
+            );
+            assert!(
+                outcome.turned_rad < TURN_BOUND_RAD,
+                "{part:?} {fault}: turned {:.2} rad after the fault",
+                outcome.turned_rad
+            );
+        }
+        let error = outcome
+            .client_error
+            .unwrap_or_else(|| panic!("{part:?} {fault}: the interrupted step succeeded"));
+        assert_eq!(
+            error.code,
+            ErrorCode::Unavailable,
+            "{part:?} {fault}: a transient, typed error: {error}"
+        );
+        recover(&mut deployment, part, fault)
+            .await
+            .unwrap_or_else(|e| panic!("{part:?} {fault}: no recovery: {e}"));
+    }
+
+    // Every episode was recorded (each ended aborted by its fault), and the
+    // experiment resumes with all of them.
+    gym.close().await.expect("close");
+    let store = Store::open(&deployment.dir.join("gym.db")).expect("store");
+    let experiment = store
+        .experiments()
+        .expect("experiments")
+        .into_iter()
+        .find(|e| e.name == "faults")
+        .expect("the experiment");
+    assert_eq!(experiment.episodes, resets, "no episode record lost");
+    let resumed = EnvClient::open(
+        &session,
+        &deployment.env,
+        request(&deployment.token, "faults", true),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("resume");
+    assert_eq!(resumed.opened().experiment.episodes, resets);
+}
+
+/// The control: without the base guard, a killed robot agent leaves the
+/// worst-case base turning for as long as it is watched — what the guard
+/// exists for, and proof that the measurement above can see motion.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_the_guard_a_killed_agent_leaves_the_worst_case_base_moving() {
+    let mut options = Options::new("MonolithContinuous").expect("options");
+    options.base_guard = false;
+    let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    deployment
+        .ready(Duration::from_secs(60))
+        .await
+        .expect("deployment ready");
+    let base = BaseObserver::connect(&deployment).await.expect("observer");
+    let session = SessionConfig::connecting(&deployment.endpoint)
+        .open()
+        .await
+        .expect("client session");
+    let mut gym = EnvClient::open_when_ready(
+        &session,
+        &deployment.env,
+        request(&deployment.token, "unguarded", false),
+        ClientTimeouts::default(),
+        Duration::from_secs(30),
+    )
+    .await
+    .expect("open");
+    reset_when_ready(&mut gym, 3, Duration::from_secs(90))
+        .await
+        .expect("reset");
+    let (_gym, outcome) = inject(
+        &mut deployment,
+        gym,
+        &base,
+        Part::RobotAgent,
+        Fault::Kill,
+        WINDOW,
+    )
+    .await;
+    assert!(outcome.observed, "odometry heard after the fault");
+    assert_eq!(
+        outcome.moved_for, None,
+        "still moving at the end of the window"
+    );
+    assert!(
+        outcome.turned_rad > 3.0,
+        "kept turning at 1.5 rad/s: {:.2} rad in {WINDOW:?}",
+        outcome.turned_rad
+    );
+}
