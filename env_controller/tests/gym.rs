@@ -690,3 +690,60 @@ async fn bookings_reserve_slots_and_end_leases_with_them() {
         "{remaining:?}"
     );
 }
+
+/// A sim env under an e-stop refuses motion exactly as a real one does:
+/// reset and step answer `InvalidState` naming the latches in force, the
+/// episode in progress is recorded as aborted, `status` shows the latches;
+/// releasing the env latch leaves the site latch in force; releasing both
+/// lets a new episode start.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sim_env_under_an_estop_refuses_motion_and_shows_it() {
+    use offworld_env_controller::operator::{press_estop, EStopScope};
+    let dir = ScratchDir::new();
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let mut gym = open(&session, &d.env, ALICE, "estopped")
+        .await
+        .expect("open");
+    gym.reset(Seed::Fixed(1)).await.expect("reset");
+    gym.step(Action::Discrete(2)).await.expect("step");
+    let wait = Duration::from_secs(10);
+    let press = |scope: EStopScope, engaged: bool, reason: &'static str| {
+        let session = session.clone();
+        async move {
+            press_estop(&session, &scope, engaged, reason, wait, wait)
+                .await
+                .expect("acknowledged")
+        }
+    };
+    press(EStopScope::Site, true, "fire alarm").await;
+    press(EStopScope::Env(d.env.clone()), true, "person inside").await;
+    let refused = gym.step(Action::Discrete(2)).await.expect_err("refused");
+    assert_eq!(refused.code, ErrorCode::InvalidState);
+    assert_eq!(
+        refused.message,
+        "e-stop engaged: site (fire alarm), env (person inside)"
+    );
+    let status = client::status(&session, &d.env, wait)
+        .await
+        .expect("status");
+    assert_eq!(status.estop.summary(), "site+env");
+    assert_eq!(status.estop.env.reason, "person inside");
+
+    // The env release leaves the site latch.
+    press(EStopScope::Env(d.env.clone()), false, "person out").await;
+    let refused = gym.reset(Seed::Fixed(2)).await.expect_err("still refused");
+    assert_eq!(refused.code, ErrorCode::InvalidState);
+    assert_eq!(refused.message, "e-stop engaged: site (fire alarm)");
+    press(EStopScope::Site, false, "all clear").await;
+    let status = client::status(&session, &d.env, wait)
+        .await
+        .expect("status");
+    assert_eq!(status.estop.summary(), "none");
+    gym.reset(Seed::Fixed(3))
+        .await
+        .expect("a new episode after the release");
+    let closed = gym.close().await.expect("close");
+    // The interrupted episode and the new one.
+    assert_eq!(closed.experiment.episodes, 2, "{:?}", closed.experiment);
+}

@@ -18,7 +18,7 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
+use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::query::{Query, Queryable};
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
@@ -101,7 +101,7 @@ pub async fn spawn<H: RobotHardware>(
     let (pose_tx, poses) = watch::channel(None);
     let declarations = Declarations::declare(session, &env, tx, pose_tx, estop_rx).await?;
     let agent = Agent {
-        answers: Answers::declare(session, &env).await?,
+        outbox: Outbox::declare(session, &env).await?,
         env,
         watchdog: if config.require_base_guard {
             Watchdog::new(config.watchdog()).require_guard()
@@ -293,23 +293,66 @@ impl Declarations {
     }
 }
 
-/// The publishers of a command's answer: a dropped one fails the step, so
-/// they wait out a congested link instead.
-struct Answers {
-    obs: Publisher<'static>,
-    odom: Publisher<'static>,
-    fault: Publisher<'static>,
-    estop_ack: Publisher<'static>,
+/// What the agent tells the controller and operators.
+enum Outgoing {
+    /// A command's answer: its odometry, then its frame (the frame
+    /// completes an answer).
+    Answer {
+        seq: u64,
+        odom: Option<std::sync::Arc<offworld_runtime::msg::Odometry>>,
+        frame: Box<CameraFrame>,
+    },
+    Fault(MotionFault),
+    Ack(EStopAck),
 }
 
-impl Answers {
+/// The agent's outgoing messages, published in order by a thread of their
+/// own. A dropped answer fails the step, so they wait out a congested link
+/// instead — and that wait must never hold the control task, which brakes
+/// the robot: an e-stop or a watchdog trip is acted on while a frame is
+/// still queued.
+struct Outbox {
+    queue: std::sync::mpsc::Sender<Outgoing>,
+}
+
+impl Outbox {
     async fn declare(session: &Session, env: &EnvId) -> Result<Self, AgentError> {
-        Ok(Self {
-            obs: wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?,
-            odom: wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?,
-            fault: wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?,
-            estop_ack: wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?,
-        })
+        let obs = wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?;
+        let odom_out = wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?;
+        let fault = wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?;
+        let ack = wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?;
+        let (queue, outgoing) = std::sync::mpsc::channel::<Outgoing>();
+        std::thread::Builder::new()
+            .name("robot_agent/outbox".into())
+            .spawn(move || {
+                // Ends when the agent (the only sender) is gone.
+                for message in outgoing {
+                    let result = match message {
+                        Outgoing::Answer { seq, odom, frame } => {
+                            if let Some(odom) = odom {
+                                let tag = SeqTag { seq };
+                                if let Err(e) = wire::publish_tagged(&odom_out, &*odom, tag) {
+                                    tracing::warn!("odom put failed: {e}");
+                                }
+                            }
+                            wire::publish(&obs, &*frame)
+                        }
+                        Outgoing::Fault(f) => wire::publish(&fault, &f),
+                        Outgoing::Ack(a) => wire::publish(&ack, &a),
+                    };
+                    if let Err(e) = result {
+                        tracing::warn!("robot agent publication failed: {e}");
+                    }
+                }
+            })
+            .map_err(|e| AgentError::Config(format!("cannot start the outbox thread: {e}")))?;
+        Ok(Self { queue })
+    }
+
+    fn send(&self, message: Outgoing) {
+        if self.queue.send(message).is_err() {
+            tracing::error!("the robot agent's outbox is gone: a message was lost");
+        }
     }
 }
 
@@ -360,7 +403,7 @@ enum OnHalt {
 
 struct Agent<H: RobotHardware> {
     env: EnvId,
-    answers: Answers,
+    outbox: Outbox,
     config: AgentConfig,
     robot: H,
     sensors: watch::Receiver<Sensors>,
@@ -467,9 +510,7 @@ impl<H: RobotHardware> Agent<H> {
             env: self.env.to_string(),
             state: self.estops.clone(),
         };
-        if let Err(e) = wire::publish(&self.answers.estop_ack, &ack) {
-            tracing::warn!("cannot acknowledge the e-stop: {e}");
-        }
+        self.outbox.send(Outgoing::Ack(ack));
     }
 
     /// Why motion is refused right now, if it is.
@@ -530,9 +571,7 @@ impl<H: RobotHardware> Agent<H> {
                     reason: format!("motion refused: {reason}"),
                 };
                 tracing::warn!(seq = cmd.seq, "{}", fault.reason);
-                if let Err(e) = wire::publish(&self.answers.fault, &fault) {
-                    tracing::warn!("cannot report the refusal: {e}");
-                }
+                self.outbox.send(Outgoing::Fault(fault));
                 self.activity = Activity::Idle;
                 return;
             }
@@ -730,9 +769,7 @@ impl<H: RobotHardware> Agent<H> {
                         ),
                     };
                     tracing::error!(seq, "{}: not answered", fault.reason);
-                    if let Err(e) = wire::publish(&self.answers.fault, &fault) {
-                        tracing::warn!("cannot report the fault: {e}");
-                    }
+                    self.outbox.send(Outgoing::Fault(fault));
                     Activity::Idle
                 } else {
                     Activity::Capturing {
@@ -789,9 +826,7 @@ impl<H: RobotHardware> Agent<H> {
         tracing::error!(seq, "{}: command failed", fault.reason);
         self.halt(&fault.reason, OnHalt::Abandon).await;
         self.activity = Activity::Idle;
-        if let Err(e) = wire::publish(&self.answers.fault, &fault) {
-            tracing::warn!("cannot report the fault: {e}");
-        }
+        self.outbox.send(Outgoing::Fault(fault));
     }
 
     async fn navigate(
@@ -908,14 +943,11 @@ impl<H: RobotHardware> Agent<H> {
                 _ => return false,
             }
         };
-        if let Some(odom) = odom {
-            if let Err(e) = wire::publish_tagged(&self.answers.odom, &*odom, SeqTag { seq }) {
-                tracing::warn!("odom put failed: {e}");
-            }
-        }
-        if let Err(e) = wire::publish(&self.answers.obs, &frame) {
-            tracing::warn!("obs put failed: {e}");
-        }
+        self.outbox.send(Outgoing::Answer {
+            seq,
+            odom,
+            frame: Box::new(frame),
+        });
         true
     }
 
