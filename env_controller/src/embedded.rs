@@ -79,4 +79,9 @@ impl Embedded {
         }
         Ok(Self { controller, twins })
     }
+
+    /// Stops cleanly: see [`Controller::shutdown`].
+    pub async fn shutdown(self, reason: &str) {
+        self.controller.shutdown(reason).await;
+    }
 }

@@ -729,6 +729,15 @@ impl EnvServer {
     }
 
     /// Records an unfinished episode as ended for `reason`.
+    /// Stops the robot and records the episode in progress as aborted
+    /// (the controller is stopping).
+    pub async fn stop_and_record(&self, reason: &str) {
+        self.link.close();
+        self.link.stop().await;
+        let mut state = self.state.lock().await;
+        self.abort_episode(&mut state, reason).await;
+    }
+
     async fn abort_episode(&self, state: &mut State, reason: &str) {
         let running = state.episode.as_ref().is_some_and(|e| !e.over);
         if running {

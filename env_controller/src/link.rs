@@ -254,6 +254,8 @@ pub struct RobotLink {
     /// tracking is lost; a step in flight wakes on it.
     tracking_lost: Arc<watch::Sender<bool>>,
     embodiment_alive: watch::Receiver<bool>,
+    /// Set when the controller stops: commands in flight fail at once.
+    closing: watch::Sender<bool>,
     timeouts: LinkTimeouts,
     _subscribers: Vec<Subscriber<()>>,
 }
@@ -396,6 +398,7 @@ impl RobotLink {
             poses,
             tracking_lost,
             embodiment_alive,
+            closing: watch::channel(false).0,
             timeouts,
             _subscribers: vec![obs, fault, pose, tracking, liveliness],
         })
@@ -426,6 +429,9 @@ impl RobotLink {
     ) -> Result<Answer, WireError> {
         if !self.online() {
             return Err(self.gone());
+        }
+        if *self.closing.borrow() {
+            return Err(WireError::unavailable("the controller is stopping"));
         }
         if *self.tracking_lost.borrow() {
             self.stop().await;
@@ -492,6 +498,8 @@ impl RobotLink {
         alive.mark_unchanged();
         let mut lost = self.tracking_lost.subscribe();
         lost.mark_unchanged();
+        let mut closing = self.closing.subscribe();
+        closing.mark_unchanged();
         wire::publish(&self.cmd, cmd)
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
@@ -523,6 +531,11 @@ impl RobotLink {
                     Ok(()) = alive.changed() => {
                         if !*alive.borrow_and_update() {
                             return Some(Err(self.gone()));
+                        }
+                    }
+                    Ok(()) = closing.changed() => {
+                        if *closing.borrow_and_update() {
+                            return Some(Err(WireError::unavailable("the controller is stopping")));
                         }
                     }
                     Ok(()) = lost.changed() => {
@@ -610,6 +623,12 @@ impl RobotLink {
              (process stopped, or the link to it is cut)",
             self.env
         ))
+    }
+
+    /// The controller is stopping: commands in flight fail now (their
+    /// episodes are recorded as aborted) and new ones are refused.
+    pub fn close(&self) {
+        self.closing.send_replace(true);
     }
 
     /// Commands zero velocity at once (best effort).

@@ -109,6 +109,12 @@ enum ExperimentsCommand {
     List,
 }
 
+/// What `serve` runs.
+enum Running {
+    Embedded(Embedded),
+    Controller(Controller),
+}
+
 fn parse_env(text: &str) -> anyhow::Result<(EnvId, Task)> {
     let (env, task) = text
         .split_once('=')
@@ -138,8 +144,8 @@ async fn main() -> anyhow::Result<()> {
                 lease_idle: std::time::Duration::from_secs(lease_idle_s),
                 ..EnvOptions::default()
             };
-            // Keep whichever deployment runs alive until Ctrl-C.
-            let _running: Box<dyn std::any::Any> = if embedded_twins {
+            // Keep whichever deployment runs alive until a stop signal.
+            let running = if embedded_twins {
                 let sims: Vec<SimEnv> = envs
                     .iter()
                     .map(|(env, task)| SimEnv {
@@ -149,19 +155,24 @@ async fn main() -> anyhow::Result<()> {
                         seed: 0,
                     })
                     .collect();
-                Box::new(Embedded::start(&session, &sims, store).await?)
+                Running::Embedded(Embedded::start(&session, &sims, store).await?)
             } else {
                 let mut controller = Controller::new(session.clone(), store);
                 for (env, task) in envs {
                     let opts = options(&env);
                     controller.serve(env, task, opts).await?;
                 }
-                Box::new(controller)
+                Running::Controller(controller)
             };
             tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
-            // Dropping the deployment stops the robots (liveliness) and
-            // closes the store cleanly.
-            offworld_runtime::shutdown::signalled().await?;
+            let signal = offworld_runtime::shutdown::signalled().await?;
+            // Robots told to stop, episodes in progress recorded; then the
+            // liveliness tokens go with the deployment.
+            let reason = format!("the controller stopped ({signal})");
+            match running {
+                Running::Embedded(embedded) => embedded.shutdown(&reason).await,
+                Running::Controller(controller) => controller.shutdown(&reason).await,
+            }
         }
         Command::Estop {
             env,

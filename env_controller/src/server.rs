@@ -171,6 +171,15 @@ impl Controller {
     pub fn envs(&self) -> impl Iterator<Item = &Arc<EnvServer>> {
         self.envs.iter().map(|e| &e.server)
     }
+
+    /// Stops cleanly (SIGTERM, Ctrl-C): every robot is told to stop and
+    /// every episode in progress is recorded as aborted with `reason`, then
+    /// serving ends (liveliness tokens undeclared on drop).
+    pub async fn shutdown(self, reason: &str) {
+        for env in &self.envs {
+            env.server.stop_and_record(reason).await;
+        }
+    }
 }
 
 async fn handle(server: &EnvServer, topic: Topic, query: &Query) {

@@ -59,13 +59,29 @@ enum Event {
 }
 
 /// A running agent; stops the robot and ends when dropped or shut down.
-pub struct AgentHandle {
+pub type AgentHandle = NodeHandle;
+
+/// A node running on its own task until told to stop: dropping the handle
+/// tells it, [`NodeHandle::shutdown`] also waits for it to end.
+pub struct NodeHandle {
     shutdown: Option<oneshot::Sender<()>>,
     task: Option<JoinHandle<()>>,
 }
 
-impl AgentHandle {
-    /// Stops the robot and waits for the agent to end.
+impl NodeHandle {
+    /// Runs `node` (told to stop through the receiver it is given).
+    pub(crate) fn spawn<F>(node: impl FnOnce(oneshot::Receiver<()>) -> F) -> Self
+    where
+        F: std::future::Future<Output = ()> + Send + 'static,
+    {
+        let (shutdown, stop) = oneshot::channel();
+        Self {
+            shutdown: Some(shutdown),
+            task: Some(tokio::spawn(node(stop))),
+        }
+    }
+
+    /// Stops the node (for the agent: the robot first) and waits for it.
     pub async fn shutdown(mut self) {
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
@@ -76,7 +92,7 @@ impl AgentHandle {
     }
 }
 
-impl Drop for AgentHandle {
+impl Drop for NodeHandle {
     fn drop(&mut self) {
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
@@ -124,12 +140,7 @@ pub async fn spawn<H: RobotHardware>(
         watch_camera_from: Instant::now(),
         _declarations: declarations,
     };
-    let (shutdown, stop) = oneshot::channel();
-    let task = tokio::spawn(agent.run(events, stop));
-    Ok(AgentHandle {
-        shutdown: Some(shutdown),
-        task: Some(task),
-    })
+    Ok(NodeHandle::spawn(|stop| agent.run(events, stop)))
 }
 
 /// Zenoh declarations kept alive with the agent.
@@ -227,36 +238,29 @@ impl Declarations {
                 })
                 .await?,
         );
-        let t = tx.clone();
-        subscribers.push(
-            session
-                .liveliness()
-                .declare_subscriber(env.alive_key(Component::Controller))
-                .history(true)
-                .callback(move |s: Sample| {
-                    let present = s.kind() == SampleKind::Put;
-                    let t = t.clone();
-                    tokio::spawn(async move {
-                        let _ = t.send(Event::ControllerPresent(present)).await;
-                    });
-                })
-                .await?,
-        );
-        let t = tx.clone();
-        subscribers.push(
-            session
-                .liveliness()
-                .declare_subscriber(env.alive_key(Component::BaseGuard))
-                .history(true)
-                .callback(move |s: Sample| {
-                    let present = s.kind() == SampleKind::Put;
-                    let t = t.clone();
-                    tokio::spawn(async move {
-                        let _ = t.send(Event::GuardPresent(present)).await;
-                    });
-                })
-                .await?,
-        );
+        // Presence changes are never dropped: each one arms or disarms.
+        type Presence = fn(bool) -> Event;
+        let presence: [(Component, Presence); 2] = [
+            (Component::Controller, Event::ControllerPresent),
+            (Component::BaseGuard, Event::GuardPresent),
+        ];
+        for (component, event) in presence {
+            let t = tx.clone();
+            subscribers.push(
+                session
+                    .liveliness()
+                    .declare_subscriber(env.alive_key(component))
+                    .history(true)
+                    .callback(move |s: Sample| {
+                        let present = event(s.kind() == SampleKind::Put);
+                        let t = t.clone();
+                        tokio::spawn(async move {
+                            let _ = t.send(present).await;
+                        });
+                    })
+                    .await?,
+            );
+        }
         let t = tx;
         let goto = session
             .declare_queryable(env.key(Topic::Goto))

@@ -114,6 +114,11 @@ impl Default for AgentConfig {
 }
 
 impl AgentConfig {
+    /// Reads `path`, or the defaults (a ROSbot on rmw_zenoh) without one.
+    pub fn load_or_default(path: Option<&Path>) -> Result<Self, AgentError> {
+        path.map_or_else(|| Ok(Self::default()), Self::load)
+    }
+
     /// Reads a TOML file.
     pub fn load(path: &Path) -> Result<Self, AgentError> {
         let text = std::fs::read_to_string(path)

@@ -33,8 +33,8 @@ use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, oneshot};
-use tokio::task::JoinHandle;
 
+use crate::agent::NodeHandle;
 use crate::error::AgentError;
 use crate::limiter::Velocity;
 use crate::ros2::CmdVelPublisher;
@@ -209,30 +209,7 @@ enum Event {
 }
 
 /// A running guard; ends when dropped or shut down.
-pub struct GuardHandle {
-    shutdown: Option<oneshot::Sender<()>>,
-    task: Option<JoinHandle<()>>,
-}
-
-impl GuardHandle {
-    /// Stops guarding and waits for the task to end.
-    pub async fn shutdown(mut self) {
-        if let Some(tx) = self.shutdown.take() {
-            let _ = tx.send(());
-        }
-        if let Some(task) = self.task.take() {
-            let _ = task.await;
-        }
-    }
-}
-
-impl Drop for GuardHandle {
-    fn drop(&mut self) {
-        if let Some(tx) = self.shutdown.take() {
-            let _ = tx.send(());
-        }
-    }
-}
+pub type GuardHandle = NodeHandle;
 
 /// Guards the base of `env`'s robot on `session` (a client of the robot
 /// computer's router, like the agent).
@@ -282,12 +259,7 @@ pub async fn spawn(
         _subscribers: [cmd_vel, agent],
         _token: token,
     };
-    let (shutdown, stop) = oneshot::channel();
-    let task = tokio::spawn(node.run(events, stop));
-    Ok(GuardHandle {
-        shutdown: Some(shutdown),
-        task: Some(task),
-    })
+    Ok(NodeHandle::spawn(|stop| node.run(events, stop)))
 }
 
 struct GuardNode {

@@ -36,7 +36,7 @@ pub mod nav;
 pub mod ros2;
 pub mod watchdog;
 
-pub use agent::{spawn, AgentHandle};
+pub use agent::{spawn, AgentHandle, NodeHandle};
 pub use config::{AgentConfig, Limits};
 pub use error::AgentError;
 pub use guard::GuardConfig;

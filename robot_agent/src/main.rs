@@ -50,10 +50,7 @@ async fn main() -> anyhow::Result<()> {
         "the robot agent serves `real/…` envs, not {}",
         args.env
     );
-    let mut config = match &args.robot_config {
-        Some(path) => AgentConfig::load(path)?,
-        None => AgentConfig::default(),
-    };
+    let mut config = AgentConfig::load_or_default(args.robot_config.as_deref())?;
     if let Some(world) = args.world {
         config.world = world;
     }

@@ -12,7 +12,9 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::client::EnvClient;
 use offworld_runtime::codec;
-use offworld_runtime::msg::{Action, Odometry, Seed};
+use offworld_runtime::msg::{
+    Action, AlgorithmMode, Channels, DepthFormat, ObsOptions, Odometry, OpenRequest, Seed,
+};
 use offworld_runtime::ros2::{RobotTopics, RosGraph, RosType};
 use offworld_runtime::session::Mode;
 use offworld_runtime::zenoh::pubsub::Subscriber;
@@ -154,6 +156,23 @@ impl FaultOutcome {
     /// The client error's code, if any.
     pub fn error_code(&self) -> Option<ErrorCode> {
         self.client_error.as_ref().map(|e| e.code)
+    }
+}
+
+/// A training session on `experiment` (small depth-only observations: the
+/// faults are the point, not the pixels).
+pub fn open_request(token: &str, experiment: &str, resume: bool) -> OpenRequest {
+    OpenRequest {
+        token: token.to_owned(),
+        experiment_name: experiment.to_owned(),
+        resume_experiment: resume,
+        algorithm_mode: AlgorithmMode::Train,
+        ..OpenRequest::anonymous(ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 24,
+            width: 32,
+            depth_format: DepthFormat::Uint8,
+        })
     }
 }
 

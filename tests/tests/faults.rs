@@ -13,10 +13,12 @@ use std::time::Duration;
 
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
-use offworld_runtime::msg::{AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest};
+use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig};
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
-use offworld_tests::faults::{inject, recover, reset_when_ready, BaseObserver, Fault};
+use offworld_tests::faults::{
+    inject, open_request, recover, reset_when_ready, BaseObserver, Fault,
+};
 
 /// How long the base is watched after each fault. A base that held its
 /// velocity would turn 1.5 rad/s × 3 s = 4.5 rad in it.
@@ -25,26 +27,12 @@ const WINDOW: Duration = Duration::from_secs(3);
 /// top 2.5 rad/s is 0.5 rad; the rest is slack for a loaded machine.
 const TURN_BOUND_RAD: f64 = 1.2;
 
-fn request(token: &str, experiment: &str, resume: bool) -> OpenRequest {
-    OpenRequest {
-        token: token.to_owned(),
-        experiment_name: experiment.to_owned(),
-        resume_experiment: resume,
-        algorithm_mode: AlgorithmMode::Train,
-        ..OpenRequest::anonymous(ObsOptions {
-            channels: Channels::DepthOnly,
-            height: 24,
-            width: 32,
-            depth_format: DepthFormat::Uint8,
-        })
-    }
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
-    let options = Options::new("MonolithContinuous").expect("options");
-    assert_eq!(options.base_cmd_timeout_ms, None, "the worst-case base");
-    let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
+/// Starts the deployment and opens a training session on `experiment`.
+async fn deploy(
+    options: &Options,
+    experiment: &str,
+) -> (EmulatedEnclosure, BaseObserver, Session, EnvClient) {
+    let deployment = EmulatedEnclosure::start(options).expect("deployment");
     deployment
         .ready(Duration::from_secs(60))
         .await
@@ -54,15 +42,23 @@ async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
         .open()
         .await
         .expect("client session");
-    let mut gym = EnvClient::open_when_ready(
+    let gym = EnvClient::open_when_ready(
         &session,
         &deployment.env,
-        request(&deployment.token, "faults", false),
+        open_request(&deployment.token, experiment, false),
         ClientTimeouts::default(),
         Duration::from_secs(30),
     )
     .await
     .expect("open");
+    (deployment, base, session, gym)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
+    let options = Options::new("MonolithContinuous").expect("options");
+    assert_eq!(options.base_cmd_timeout_ms, None, "the worst-case base");
+    let (mut deployment, base, session, mut gym) = deploy(&options, "faults").await;
 
     let scenarios = [
         (Part::RobotAgent, Fault::Kill),
@@ -133,7 +129,7 @@ async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
     let resumed = EnvClient::open(
         &session,
         &deployment.env,
-        request(&deployment.token, "faults", true),
+        open_request(&deployment.token, "faults", true),
         ClientTimeouts::default(),
     )
     .await
@@ -148,25 +144,7 @@ async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
 async fn without_the_guard_a_killed_agent_leaves_the_worst_case_base_moving() {
     let mut options = Options::new("MonolithContinuous").expect("options");
     options.base_guard = false;
-    let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
-    deployment
-        .ready(Duration::from_secs(60))
-        .await
-        .expect("deployment ready");
-    let base = BaseObserver::connect(&deployment).await.expect("observer");
-    let session = SessionConfig::connecting(&deployment.endpoint)
-        .open()
-        .await
-        .expect("client session");
-    let mut gym = EnvClient::open_when_ready(
-        &session,
-        &deployment.env,
-        request(&deployment.token, "unguarded", false),
-        ClientTimeouts::default(),
-        Duration::from_secs(30),
-    )
-    .await
-    .expect("open");
+    let (mut deployment, base, _session, mut gym) = deploy(&options, "unguarded").await;
     reset_when_ready(&mut gym, 3, Duration::from_secs(90))
         .await
         .expect("reset");

@@ -55,7 +55,14 @@ async fn robot_agent_speaks_ros2_to_an_independent_rmw_zenoh_robot() {
     // domain 0, root namespace, ROSbot topic names).
     let env = EnvId::real("wire-0").expect("env");
     let config = AgentConfig::default();
-    let hardware = Ros2Robot::connect(&session, &config.graph().expect("graph"), &config.topics)
+    let graph = config.graph().expect("graph");
+    // The robot's base guard beside it, as on a robot (the agent refuses
+    // to move without one).
+    let guard =
+        offworld_robot_agent::guard::spawn(&session, &env, &graph, &config.topics, config.guard)
+            .await
+            .expect("base guard");
+    let hardware = Ros2Robot::connect(&session, &graph, &config.topics)
         .await
         .expect("ros2 backend");
     let agent = offworld_robot_agent::spawn(&session, env.clone(), config, hardware)
@@ -132,6 +139,10 @@ async fn robot_agent_speaks_ros2_to_an_independent_rmw_zenoh_robot() {
         "the answer was captured after the motion ended"
     );
 
+    // The guard first: it would rightly zero the base when the agent's
+    // token goes, from a publisher of its own, and this test checks the
+    // agent's stream alone.
+    guard.shutdown().await;
     agent.shutdown().await;
     beats.abort();
     drop(robot_py.stdin.take());

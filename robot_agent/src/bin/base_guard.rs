@@ -46,10 +46,7 @@ async fn main() -> anyhow::Result<()> {
         "the base guard guards `real/…` envs, not {}",
         args.env
     );
-    let mut config = match &args.robot_config {
-        Some(path) => AgentConfig::load(path)?,
-        None => AgentConfig::default(),
-    };
+    let mut config = AgentConfig::load_or_default(args.robot_config.as_deref())?;
     if let Some(ms) = args.stale_ms {
         config.guard.stale_ms = ms;
     }

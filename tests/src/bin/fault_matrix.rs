@@ -19,11 +19,10 @@ use anyhow::Context;
 use clap::Parser;
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
-use offworld_runtime::msg::{AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest};
 use offworld_runtime::SessionConfig;
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::{
-    inject, recover, reset_when_ready, BaseObserver, Fault, FaultOutcome,
+    inject, open_request, recover, reset_when_ready, BaseObserver, Fault, FaultOutcome,
 };
 
 #[derive(Parser)]
@@ -43,21 +42,6 @@ struct Args {
     /// Watch the base this long after each fault, s.
     #[arg(long, default_value_t = 3.0)]
     window_s: f64,
-}
-
-fn request(token: &str, resume: bool) -> OpenRequest {
-    OpenRequest {
-        token: token.to_owned(),
-        experiment_name: "fault-matrix".into(),
-        resume_experiment: resume,
-        algorithm_mode: AlgorithmMode::Train,
-        ..OpenRequest::anonymous(ObsOptions {
-            channels: Channels::DepthOnly,
-            height: 24,
-            width: 32,
-            depth_format: DepthFormat::Uint8,
-        })
-    }
 }
 
 #[tokio::main]
@@ -100,7 +84,7 @@ async fn main() -> anyhow::Result<()> {
         let mut gym = EnvClient::open_when_ready(
             &session,
             &deployment.env,
-            request(&deployment.token, resets > 0),
+            open_request(&deployment.token, "fault-matrix", resets > 0),
             ClientTimeouts::default(),
             Duration::from_secs(60),
         )
