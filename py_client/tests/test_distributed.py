@@ -63,6 +63,7 @@ def test_list_envs_shows_each_env_with_task_state_and_components(trainer):
         assert e["task"] == "MonolithDiscrete"
         assert e["state"] == "free", e
         assert e["components"] == ["controller", "sim_twin"]
+        assert e["estops"] == {}, "no e-stop engaged"
     # The same through the CLI, as JSON.
     out = subprocess.run(
         [sys.executable, "-m", "offworld_gym", "envs", "--json"], capture_output=True, text=True, check=True
