@@ -11,6 +11,7 @@
 //! fault_matrix                       # the whole matrix, ~10 min
 //! fault_matrix --part robot_agent    # one part
 //! fault_matrix --base-timeout-ms 300 # against a base with a command timeout
+//! fault_matrix --no-guard --base-timeout-ms 300 --part robot_agent  # the base's timeout alone
 //! ```
 
 use std::time::Duration;
@@ -39,6 +40,10 @@ struct Args {
     /// never, the worst case).
     #[arg(long)]
     base_timeout_ms: Option<u64>,
+    /// Run without the robot's base guard (the agent then does not require
+    /// one): what the base's own timeout, or nothing, does alone.
+    #[arg(long)]
+    no_guard: bool,
     /// Watch the base this long after each fault, s.
     #[arg(long, default_value_t = 3.0)]
     window_s: f64,
@@ -50,9 +55,11 @@ async fn main() -> anyhow::Result<()> {
     let window = Duration::try_from_secs_f64(args.window_s).context("--window-s")?;
     let mut options = Options::new("MonolithContinuous")?;
     options.base_cmd_timeout_ms = args.base_timeout_ms;
+    options.base_guard = !args.no_guard;
     let parts: Vec<Part> = Part::ALL
         .into_iter()
         .filter(|p| args.part.as_deref().is_none_or(|name| name == p.name()))
+        .filter(|p| *p != Part::BaseGuard || !args.no_guard)
         .collect();
     anyhow::ensure!(!parts.is_empty(), "no such part: {:?}", args.part);
     let faults = [
@@ -107,11 +114,12 @@ async fn main() -> anyhow::Result<()> {
         .find(|e| e.name == "fault-matrix")
         .map_or(0, |e| e.episodes);
     println!(
-        "Base: {}. Each fault hits a step turning the robot at 1.5 rad/s; the base is watched for {:.0} s.\n",
+        "Base: {}{}. Each fault hits a step turning the robot at 1.5 rad/s; the base is watched for {:.0} s.\n",
         match args.base_timeout_ms {
             Some(ms) => format!("stops after {ms} ms without a command"),
             None => "holds the last velocity forever (worst case)".into(),
         },
+        if args.no_guard { "; no base guard" } else { "" },
         window.as_secs_f64()
     );
     println!("| part | fault | base moved for (ms) | turned after (rad) | client error | error after (ms) |");
