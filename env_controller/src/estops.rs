@@ -7,13 +7,11 @@
 
 use std::time::Duration;
 
-use offworld_runtime::codec;
 use offworld_runtime::estop::{self, Latch};
 use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
-use offworld_runtime::msg::{EStop, EStopState, Time};
-use offworld_runtime::wire;
+use offworld_runtime::msg::{EStopState, Time};
 use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::query::{Query, Queryable};
+use offworld_runtime::zenoh::query::Queryable;
 use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
@@ -44,10 +42,7 @@ impl EnvEStops {
             let tx = tx.clone();
             let env = env.clone();
             session.declare_subscriber(key).callback(move |s: Sample| {
-                let stop = codec::decode_payload::<EStop>(s.payload()).unwrap_or_else(|e| {
-                    // As the robot does: a garbled e-stop engages.
-                    EStop::new(true, format!("malformed e-stop ({e})"))
-                });
+                let stop = estop::decode(s.payload());
                 tx.send_modify(|state| {
                     state.apply(latch, &stop, Time::now());
                 });
@@ -60,15 +55,9 @@ impl EnvEStops {
         let site_sub = subscribe(global_estop_key(), Latch::Site)
             .await
             .map_err(zerr)?;
-        let answered = state.clone();
         let queryable = session
             .declare_queryable(env.key(Topic::EStopState))
-            .callback(move |q: Query| {
-                let current = answered.borrow().clone();
-                if let Err(e) = wire::reply_now(&q, Ok(&current)) {
-                    tracing::warn!("e-stop state reply failed: {e}");
-                }
-            })
+            .callback(estop::state_replier(state.clone()))
             .await
             .map_err(zerr)?;
         Ok(Self {

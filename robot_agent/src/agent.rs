@@ -193,10 +193,7 @@ impl Declarations {
                 session
                     .declare_subscriber(key)
                     .callback(move |s: Sample| {
-                        let stop = codec::decode_payload::<EStop>(s.payload()).unwrap_or_else(
-                            // A garbled e-stop engages: safety first.
-                            |e| EStop::new(true, format!("malformed e-stop ({e})")),
-                        );
+                        let stop = estop::decode(s.payload());
                         // Never dropped: an e-stop must get through.
                         let t = t.clone();
                         tokio::spawn(async move {
@@ -277,12 +274,7 @@ impl Declarations {
             .await?;
         let estop_state = session
             .declare_queryable(env.key(Topic::EStopState))
-            .callback(move |q: Query| {
-                let state = estops.borrow().clone();
-                if let Err(e) = wire::reply_now(&q, Ok(&state)) {
-                    tracing::warn!("e-stop state reply failed: {e}");
-                }
-            })
+            .callback(estop::state_replier(estops))
             .await?;
         let token = session
             .liveliness()

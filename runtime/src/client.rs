@@ -142,15 +142,10 @@ impl EnvClient {
             session_id: self.reply.session_id.clone(),
             seed,
         };
-        ask_observation(
-            &self.session,
-            &self.env,
-            Topic::Reset,
-            &request,
-            self.timeouts.reset,
-        )
-        .await
-        .map_err(|e| controller_lost(e, &self.env))
+        let key = self.env.key(Topic::Reset);
+        wire::request_tail(&self.session, &key, &request, self.timeouts.reset)
+            .await
+            .map_err(|e| self.in_session(e))
     }
 
     /// Takes one step.
@@ -162,15 +157,10 @@ impl EnvClient {
             seq: self.seq,
             action,
         };
-        ask_observation(
-            &self.session,
-            &self.env,
-            Topic::Step,
-            &request,
-            self.timeouts.step,
-        )
-        .await
-        .map_err(|e| controller_lost(e, &self.env))
+        let key = self.env.key(Topic::Step);
+        wire::request_tail(&self.session, &key, &request, self.timeouts.step)
+            .await
+            .map_err(|e| self.in_session(e))
     }
 
     /// Releases the lease; a second call returns the first call's reply.
@@ -181,33 +171,28 @@ impl EnvClient {
         let request = CloseRequest {
             session_id: self.reply.session_id.clone(),
         };
-        let reply: CloseReply = ask(
-            &self.session,
-            &self.env,
-            Topic::Close,
-            &request,
-            self.timeouts.control,
-        )
-        .await
-        .map_err(|e| controller_lost(e, &self.env))?;
+        let key = self.env.key(Topic::Close);
+        let reply: CloseReply = wire::request(&self.session, &key, &request, self.timeouts.control)
+            .await
+            .map_err(|e| self.in_session(e))?;
         self.closed = Some(reply.clone());
         Ok(reply)
     }
-}
 
-/// Within an open session the env was there: nobody answering now means
-/// its controller (or the way to it) went away, which is transient — the
-/// client's session reconnects by itself and the lease comes back within
-/// the controller's grace period — not the permanent "no such env"
-/// (`NotFound`) that discovery reports.
-fn controller_lost(e: WireError, env: &EnvId) -> WireError {
-    if e.code == ErrorCode::NotFound && e.message.starts_with(wire::NO_RESPONDER) {
-        WireError::unavailable(format!(
-            "the controller of {env} is unreachable (it stopped, restarted or the network to it \
-             is down): retry; the session resumes when it is back"
-        ))
-    } else {
-        e
+    /// A request error within the open session as a typed error. The env
+    /// was there: nobody answering now means its controller (or the way to
+    /// it) went away, which is transient — the session reconnects by itself
+    /// and the lease comes back within the controller's grace period — not
+    /// the permanent "no such env" (`NotFound`) that discovery reports.
+    fn in_session(&self, e: wire::RequestError) -> WireError {
+        match e {
+            wire::RequestError::NoResponder(_) => WireError::unavailable(format!(
+                "the controller of {} is unreachable (it stopped, restarted or the network to \
+                 it is down): retry; the session resumes when it is back",
+                self.env
+            )),
+            e => e.into_wire(),
+        }
     }
 }
 
@@ -220,22 +205,6 @@ async fn ask<Req: serde::Serialize, Rep: serde::de::DeserializeOwned>(
     timeout: Duration,
 ) -> Result<Rep, WireError> {
     wire::request(session, &env.key(topic), request, timeout)
-        .await
-        .map_err(wire::RequestError::into_wire)
-}
-
-/// [`ask`] for the replies carrying an observation (received with one copy).
-async fn ask_observation<Req: serde::Serialize, Rep>(
-    session: &Session,
-    env: &EnvId,
-    topic: Topic,
-    request: &Req,
-    timeout: Duration,
-) -> Result<Rep, WireError>
-where
-    Rep: serde::de::DeserializeOwned + crate::codec::ByteTail,
-{
-    wire::request_tail(session, &env.key(topic), request, timeout)
         .await
         .map_err(wire::RequestError::into_wire)
 }

@@ -11,7 +11,9 @@
 
 use std::time::Duration;
 
-use zenoh::query::{ConsolidationMode, QueryTarget, Reply};
+use tokio::sync::watch;
+use zenoh::bytes::ZBytes;
+use zenoh::query::{ConsolidationMode, Query, QueryTarget, Reply};
 use zenoh::{Session, Wait};
 
 use crate::codec;
@@ -101,6 +103,24 @@ impl EStopState {
             (true, false) => "site",
             (false, true) => "env",
             (false, false) => "none",
+        }
+    }
+}
+
+/// An e-stop publication as every obeying component reads it: one that
+/// does not decode engages (safety first), naming why.
+pub fn decode(payload: &ZBytes) -> EStop {
+    codec::decode_payload::<EStop>(payload)
+        .unwrap_or_else(|e| EStop::new(true, format!("malformed e-stop ({e})")))
+}
+
+/// The callback of an `estop_state` queryable answering `state`'s current
+/// value (robot agents, twins and the controller declare one per env).
+pub fn state_replier(state: watch::Receiver<EStopState>) -> impl Fn(Query) + Send + Sync + 'static {
+    move |query: Query| {
+        let current = state.borrow().clone();
+        if let Err(e) = crate::wire::reply_now(&query, Ok(&current)) {
+            tracing::warn!("e-stop state reply failed: {e}");
         }
     }
 }

@@ -43,16 +43,13 @@ pub enum RequestError {
     Zenoh(String),
 }
 
-/// How [`RequestError::NoResponder`] reads as a [`WireError`] message.
-pub const NO_RESPONDER: &str = "no env is serving";
-
 impl RequestError {
     /// The error as a client sees it: every failure becomes a typed code.
     pub fn into_wire(self) -> WireError {
         match self {
             RequestError::Remote(e) => e,
             RequestError::NoResponder(key) => {
-                WireError::not_found(format!("{NO_RESPONDER} `{key}`"))
+                WireError::not_found(format!("no env is serving `{key}`"))
             }
             e @ RequestError::Timeout { .. } => WireError::timeout(e.to_string()),
             e => WireError::internal(e.to_string()),

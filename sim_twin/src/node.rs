@@ -19,7 +19,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -27,8 +27,7 @@ use offworld_runtime::codec;
 use offworld_runtime::estop::{self, Latch};
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D,
-    SeqTag, Time,
+    EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, SeqTag, Time,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
@@ -166,17 +165,10 @@ impl TwinNode {
         if let Some(reason) = estops.refusal() {
             tracing::warn!(%env, %reason, "e-stop engaged before this start (from the network)");
         }
-        let shared_estops = Arc::new(Mutex::new(estops.clone()));
-        let answered_estops = shared_estops.clone();
+        let (shared_estops, answered) = tokio::sync::watch::channel(estops.clone());
         let estop_state = session
             .declare_queryable(env.key(Topic::EStopState))
-            .callback(move |query: Query| {
-                let state = answered_estops
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .clone();
-                reply_blocking(&query, Ok(&state));
-            })
+            .callback(estop::state_replier(answered))
             .wait()
             .map_err(zerr)?;
         let goto_tx = tx.clone();
@@ -269,7 +261,7 @@ struct Worker {
     /// The site and env e-stop latches in force.
     estops: EStopState,
     /// What the `estop_state` queryable answers.
-    shared_estops: Arc<Mutex<EStopState>>,
+    shared_estops: tokio::sync::watch::Sender<EStopState>,
     publishers: Publishers,
     /// Camera frame payloads (recycled).
     frames: FramePayloads,
@@ -323,7 +315,7 @@ impl Worker {
             twin,
             clock,
             estops: EStopState::default(),
-            shared_estops: Arc::default(),
+            shared_estops: tokio::sync::watch::channel(EStopState::default()).0,
             publishers,
             frames: FramePayloads::new(),
             rejected: 0,
@@ -482,17 +474,10 @@ impl Worker {
 
     /// Applies an e-stop to its latch and acknowledges it.
     fn estop(&mut self, latch: Latch, sample: &Sample) {
-        let stop = codec::decode_payload::<EStop>(sample.payload()).unwrap_or_else(|e| {
-            // A garbled e-stop is treated as engaged: safety first.
-            tracing::error!(env = %self.env, "malformed e-stop, engaging: {e}");
-            EStop::new(true, format!("malformed e-stop ({e})"))
-        });
+        let stop = estop::decode(sample.payload());
         self.estops.apply(latch, &stop, Time::now());
         tracing::warn!(env = %self.env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, now = self.estops.summary(), "e-stop");
-        *self
-            .shared_estops
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = self.estops.clone();
+        self.shared_estops.send_replace(self.estops.clone());
         let ack = EStopAck {
             press_id: stop.press_id,
             component: Component::SimTwin.as_str().to_owned(),
