@@ -45,6 +45,17 @@ impl Embedded {
         envs: &[SimEnv],
         store: Store,
     ) -> Result<Self, ControllerError> {
+        Self::start_with(session, envs, store, EnvOptions::default()).await
+    }
+
+    /// [`Embedded::start`] with a site's policy (`options`; anonymous
+    /// access is always allowed and the seed is each `SimEnv`'s).
+    pub async fn start_with(
+        session: &Session,
+        envs: &[SimEnv],
+        store: Store,
+        options: EnvOptions,
+    ) -> Result<Self, ControllerError> {
         let mut controller = Controller::new(session.clone(), store);
         let mut twins = Vec::new();
         for sim in envs {
@@ -66,7 +77,7 @@ impl Embedded {
             let options = EnvOptions {
                 allow_anonymous: true,
                 seed: sim.seed,
-                ..EnvOptions::default()
+                ..options
             };
             let server: std::sync::Arc<EnvServer> =
                 controller.serve(sim.env.clone(), task, options).await?;

@@ -2,7 +2,7 @@
 //! behind the `open`/`spec`/`reset`/`step`/`close`/`status`/`admin`/
 //! `leaderboard` queryables. Requests to one env are serialised.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use offworld_runtime::codec::{self, Encoded};
@@ -25,7 +25,8 @@ use crate::estops::EnvEStops;
 use crate::link::{Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink};
 use crate::observation::{shape, validate_options};
 use crate::store::{
-    now_ms, BookingRules, EpisodeRecord, Experiment, SlotAt, Store, User, ANONYMOUS,
+    format_unix_ms, lock_store, now_ms, validate_experiment_name, BookingRules, EpisodeRecord,
+    Experiment, SlotAt, Store, User, ANONYMOUS,
 };
 use crate::task::Task;
 
@@ -44,6 +45,35 @@ pub struct EnvOptions {
     pub seed: u64,
     /// Limits on bookings.
     pub booking_rules: BookingRules,
+}
+
+/// Longest lease idle timeout and reconnect grace a site may configure.
+pub const MAX_LEASE_TIMEOUT: Duration = Duration::from_secs(7 * 24 * 3600);
+
+impl EnvOptions {
+    /// Checks the policy itself (a site's configuration): lease timeouts
+    /// at most [`MAX_LEASE_TIMEOUT`] (the idle one not zero), sane booking
+    /// rules.
+    pub fn check(&self) -> Result<(), crate::ControllerError> {
+        if self.lease_idle.is_zero() {
+            return Err(crate::ControllerError::Config(
+                "the lease idle timeout must not be zero".into(),
+            ));
+        }
+        for (what, d) in [
+            ("lease idle timeout", self.lease_idle),
+            ("reconnect grace", self.reconnect_grace),
+        ] {
+            if d > MAX_LEASE_TIMEOUT {
+                return Err(crate::ControllerError::Config(format!(
+                    "the {what} is at most {} s, got {} s",
+                    MAX_LEASE_TIMEOUT.as_secs(),
+                    d.as_secs_f64()
+                )));
+            }
+        }
+        self.booking_rules.check()
+    }
 }
 
 impl Default for EnvOptions {
@@ -112,12 +142,19 @@ pub struct EnvServer {
 }
 
 fn unix_ms_in(d: Duration) -> i64 {
-    now_ms() + d.as_millis() as i64
+    now_ms().saturating_add(i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
 }
 
-fn format_unix_ms(ms: i64) -> String {
-    let t = std::time::UNIX_EPOCH + Duration::from_millis(ms.max(0) as u64);
-    humantime::format_rfc3339_seconds(t).to_string()
+/// Checks the client id of an `open`: empty (no liveliness watch) or one
+/// safe key chunk, as `runtime::client` makes them (the liveliness key of
+/// the client is built from it).
+pub fn validate_client_id(env: &EnvId, client_id: &str) -> Result<(), WireError> {
+    if client_id.is_empty() {
+        return Ok(());
+    }
+    env.client_alive_key(client_id).map(drop).map_err(|_| {
+        WireError::bad_request("client ids are 1 to 64 characters of A-Z a-z 0-9 _ - (or empty)")
+    })
 }
 
 impl EnvServer {
@@ -129,6 +166,7 @@ impl EnvServer {
         options: EnvOptions,
         store: Arc<Mutex<Store>>,
     ) -> Result<Self, crate::ControllerError> {
+        options.check()?;
         let link = RobotLink::connect(session, &env, options.timeouts).await?;
         let estops = EnvEStops::follow(session, &env).await?;
         // Spectators' view: a slow one must never stall a step.
@@ -184,19 +222,13 @@ impl EnvServer {
         &self,
         f: impl FnOnce(&mut Store) -> Result<T, crate::ControllerError>,
     ) -> Result<T, WireError> {
-        let mut store = self
-            .store
-            .lock()
-            .map_err(|_| WireError::internal("store lock poisoned"))?;
-        f(&mut store).map_err(WireError::from)
+        f(&mut lock_store(&self.store)).map_err(WireError::from)
     }
 
     /// The slot in progress at `now` (Unix ms) and its holder's user id.
     fn slot_at(&self, now: i64) -> Result<Option<(Booking, i64)>, WireError> {
-        let mut cache = self
-            .slots
-            .lock()
-            .map_err(|_| WireError::internal("slot cache lock poisoned"))?;
+        // Only ever replaced whole: a panic cannot leave it half written.
+        let mut cache = self.slots.lock().unwrap_or_else(PoisonError::into_inner);
         match cache.as_ref() {
             Some(known) if now < known.until_ms => Ok(known.slot.clone()),
             _ => {
@@ -210,9 +242,7 @@ impl EnvServer {
     }
 
     fn forget_slots(&self) {
-        if let Ok(mut cache) = self.slots.lock() {
-            *cache = None;
-        }
+        *self.slots.lock().unwrap_or_else(PoisonError::into_inner) = None;
     }
 
     fn state_of(&self, state: &State) -> EnvState {
@@ -309,8 +339,16 @@ impl EnvServer {
 
     /// `open`: authenticate, take the lease, create or resume the experiment.
     pub async fn open(&self, req: OpenRequest) -> Result<OpenReply, WireError> {
-        let user = self.authenticate(&req.token)?;
+        // Every input checked before any lock is taken.
         validate_options(&req.obs)?;
+        validate_client_id(&self.env, &req.client_id)?;
+        let name = if req.experiment_name.is_empty() {
+            format!("run-{}", now_ms())
+        } else {
+            req.experiment_name.clone()
+        };
+        validate_experiment_name(&name)?;
+        let user = self.authenticate(&req.token)?;
         let mut state = self.state.lock().await;
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!(
@@ -362,11 +400,6 @@ impl EnvServer {
         // The same user reconnecting takes the lease over; the old
         // session's unfinished episode is recorded as aborted.
         self.abort_episode(&mut state, "session replaced").await;
-        let name = if req.experiment_name.is_empty() {
-            format!("run-{}", now_ms())
-        } else {
-            req.experiment_name.clone()
-        };
         let experiment = self.store(|s| {
             s.open_experiment(
                 &user,
@@ -539,7 +572,9 @@ impl EnvServer {
                 // robot that did not answer has been stopped by the link).
                 self.abort_episode(&mut state, &format!("aborted: {}", e.message))
                     .await;
-                return Err(e);
+                // An e-stop that cut the motion short is the reason to
+                // report, whichever message arrived first.
+                return Err(self.estops.refuse_motion().err().unwrap_or(e));
             }
         };
         let (outcome, reply) = judged.judge(&answered.pose().planar());
@@ -655,9 +690,14 @@ impl EnvServer {
             } => {
                 let user = self.authenticate(&token)?;
                 let rules = self.options.booking_rules;
-                let booking = self.store(|s| {
-                    s.book(&user, &env_id, start_unix_ms, end_unix_ms, now_ms(), rules)
-                })?;
+                // Checked here, before the store is locked (and again by
+                // the store, which clamps the start to its own `now`).
+                let now = now_ms();
+                rules
+                    .validate(start_unix_ms, end_unix_ms, now)
+                    .map_err(|e| WireError::from(crate::ControllerError::from(e)))?;
+                let booking =
+                    self.store(|s| s.book(&user, &env_id, start_unix_ms, end_unix_ms, now, rules))?;
                 self.forget_slots();
                 tracing::info!(env = %self.env, user = %user.name, id = booking.id, "slot booked");
                 Ok(Bookings {
@@ -769,11 +809,9 @@ impl EnvServer {
             started_ms: episode.started_ms,
             ended_ms: now_ms(),
         };
-        let mut store = self
-            .store
-            .lock()
-            .map_err(|_| WireError::internal("store lock poisoned"))?;
-        store.record_episode(&record).map_err(WireError::from)?;
+        lock_store(&self.store)
+            .record_episode(&record)
+            .map_err(WireError::from)?;
         lease.experiment.episodes += 1;
         lease.experiment.steps += u64::from(episode.steps);
         Ok(())
@@ -880,5 +918,65 @@ fn experiment_info(e: &Experiment) -> ExperimentInfo {
         name: e.name.clone(),
         episodes: e.episodes,
         steps: e.steps,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_strategies::{any_text, text};
+    use offworld_runtime::ErrorCode;
+    use proptest::prelude::*;
+
+    const CHUNK: &[char] = &['A', 'z', 'q', '0', '9', '_', '-'];
+
+    #[test]
+    fn site_policy_is_checked() {
+        EnvOptions::default().check().expect("defaults are sane");
+        for bad in [
+            EnvOptions {
+                lease_idle: Duration::ZERO,
+                ..EnvOptions::default()
+            },
+            EnvOptions {
+                lease_idle: Duration::from_secs(u64::MAX),
+                ..EnvOptions::default()
+            },
+            EnvOptions {
+                reconnect_grace: MAX_LEASE_TIMEOUT + Duration::from_secs(1),
+                ..EnvOptions::default()
+            },
+            EnvOptions {
+                booking_rules: BookingRules {
+                    max_slot_ms: 0,
+                    ..BookingRules::default()
+                },
+                ..EnvOptions::default()
+            },
+        ] {
+            assert!(bad.check().is_err(), "{bad:?}");
+        }
+        // Far-future lease ends are computed without overflow.
+        assert_eq!(unix_ms_in(Duration::MAX), i64::MAX);
+    }
+
+    proptest! {
+        /// Client ids: empty, or a key chunk the liveliness key can be made
+        /// of; anything else is a 400, never a panic.
+        #[test]
+        fn client_ids(
+            good in text(CHUNK, 1..=64),
+            any_id in any_text(),
+        ) {
+            let env = EnvId::sim("a").expect("env");
+            prop_assert!(validate_client_id(&env, &good).is_ok());
+            prop_assert!(validate_client_id(&env, "").is_ok());
+            match validate_client_id(&env, &any_id) {
+                Ok(()) => prop_assert!(
+                    any_id.is_empty() || env.client_alive_key(&any_id).is_ok()
+                ),
+                Err(e) => prop_assert_eq!(e.code, ErrorCode::BadRequest),
+            }
+        }
     }
 }

@@ -11,6 +11,10 @@ pub enum ControllerError {
     /// The database failed.
     #[error("store: {0}")]
     Store(String),
+    /// A value in a request (or a command line) is not acceptable; the
+    /// message says which and what would be.
+    #[error("{0}")]
+    InvalidArgument(String),
     /// Something that must exist does not.
     #[error("{0}")]
     NotFound(String),
@@ -40,6 +44,7 @@ impl From<ControllerError> for WireError {
     fn from(e: ControllerError) -> Self {
         match e {
             ControllerError::NotFound(m) => WireError::not_found(m),
+            ControllerError::InvalidArgument(m) => WireError::bad_request(m),
             ControllerError::Conflict(m) => WireError::bad_request(m),
             ControllerError::Config(m) => WireError::bad_request(m),
             ControllerError::Busy(m) => WireError::busy(m),

@@ -29,6 +29,8 @@ pub mod operator;
 pub mod server;
 pub mod store;
 pub mod task;
+#[cfg(test)]
+mod test_strategies;
 
 pub use env::{EnvOptions, EnvServer};
 pub use error::ControllerError;

@@ -15,6 +15,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv};
 use offworld_env_controller::operator::{press_estop, EStopScope};
+use offworld_env_controller::store::BookingRules;
 use offworld_env_controller::{Controller, ControllerError, EnvOptions, Store, Task};
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
@@ -46,6 +47,12 @@ enum Command {
         /// Lease idle timeout, s.
         #[arg(long, default_value_t = 300)]
         lease_idle_s: u64,
+        /// Longest booking slot, minutes.
+        #[arg(long, default_value_t = 240)]
+        max_slot_minutes: u32,
+        /// How far ahead a booking may start, days.
+        #[arg(long, default_value_t = 30)]
+        booking_horizon_days: u32,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -131,6 +138,8 @@ async fn main() -> anyhow::Result<()> {
             envs,
             embedded_twins,
             lease_idle_s,
+            max_slot_minutes,
+            booking_horizon_days,
             common,
         } => {
             let envs: Vec<(EnvId, Task)> = envs
@@ -139,10 +148,20 @@ async fn main() -> anyhow::Result<()> {
                 .collect::<Result<_, _>>()?;
             let store = Store::open(&args.db)?;
             let session = common.server_config().open().await?;
+            let site = EnvOptions {
+                lease_idle: std::time::Duration::from_secs(lease_idle_s),
+                booking_rules: BookingRules {
+                    max_slot_ms: i64::from(max_slot_minutes) * 60_000,
+                    horizon_ms: i64::from(booking_horizon_days) * 86_400_000,
+                    ..BookingRules::default()
+                },
+                ..EnvOptions::default()
+            };
+            // Refused here, before anything starts, rather than per env.
+            site.check()?;
             let options = |env: &EnvId| EnvOptions {
                 allow_anonymous: env.realm() == Realm::Sim,
-                lease_idle: std::time::Duration::from_secs(lease_idle_s),
-                ..EnvOptions::default()
+                ..site
             };
             // Keep whichever deployment runs alive until a stop signal.
             let running = if embedded_twins {
@@ -155,7 +174,7 @@ async fn main() -> anyhow::Result<()> {
                         seed: 0,
                     })
                     .collect();
-                Running::Embedded(Embedded::start(&session, &sims, store).await?)
+                Running::Embedded(Embedded::start_with(&session, &sims, store, site).await?)
             } else {
                 let mut controller = Controller::new(session.clone(), store);
                 for (env, task) in envs {

@@ -588,4 +588,50 @@ mod tests {
             assert!(validate_options(&o).is_err());
         }
     }
+
+    mod properties {
+        use super::super::*;
+        use proptest::prelude::*;
+
+        fn options() -> impl Strategy<Value = ObsOptions> {
+            let side = prop_oneof![any::<u32>(), 0u32..=MAX_SIDE + 2];
+            (
+                side.clone(),
+                side,
+                prop_oneof![
+                    Just(Channels::DepthOnly),
+                    Just(Channels::RgbOnly),
+                    Just(Channels::Rgbd)
+                ],
+                prop_oneof![Just(DepthFormat::Uint8), Just(DepthFormat::Meters)],
+            )
+                .prop_map(|(height, width, channels, depth_format)| ObsOptions {
+                    channels,
+                    height,
+                    width,
+                    depth_format,
+                })
+        }
+
+        proptest! {
+            /// Any resolution gets an answer: accepted exactly within
+            /// 1..=MAX_SIDE per side, so the observation's size stays
+            /// bounded (and its arithmetic far from overflow).
+            #[test]
+            fn resolutions(opts in options()) {
+                let ok = (1..=MAX_SIDE).contains(&opts.width) && (1..=MAX_SIDE).contains(&opts.height);
+                match validate_options(&opts) {
+                    Ok(()) => {
+                        prop_assert!(ok);
+                        let max = u64::from(MAX_SIDE) * u64::from(MAX_SIDE) * 4 * 4;
+                        prop_assert!(shape(&opts).shape_len() <= max);
+                    }
+                    Err(e) => {
+                        prop_assert!(!ok);
+                        prop_assert_eq!(e.code, offworld_runtime::ErrorCode::BadRequest);
+                    }
+                }
+            }
+        }
+    }
 }

@@ -1,9 +1,16 @@
 //! The controller: serves any number of envs from one process on one Zenoh
 //! session. Per env: one task per queryable (requests to an env are
 //! serialised by its state lock), a watcher of client liveliness tokens, a
-//! heartbeat for the robot's watchdog, and status publication.
+//! heartbeat for the robot's watchdog, and status publication. A handler
+//! that panics (a bug) answers `Internal` and its queryable keeps serving
+//! ([`answer_supervised`]).
 
+use std::any::Any;
+use std::future::Future;
+use std::panic::AssertUnwindSafe;
+use std::pin::pin;
 use std::sync::{Arc, Mutex};
+use std::task::Poll;
 use std::time::Duration;
 
 use offworld_runtime::codec::Encoded;
@@ -106,7 +113,7 @@ impl Controller {
             let server = server.clone();
             tasks.push(tokio::spawn(async move {
                 while let Ok(query) = queryable.recv_async().await {
-                    handle(&server, topic, &query).await;
+                    answer_supervised(&query, handle(&server, topic, &query)).await;
                 }
             }));
         }
@@ -124,9 +131,20 @@ impl Controller {
                 let Some(client_id) = sample.key_expr().as_str().rsplit('/').next() else {
                     continue;
                 };
-                match sample.kind() {
-                    SampleKind::Delete => watcher.client_disconnected(client_id).await,
-                    SampleKind::Put => watcher.client_reconnected(client_id).await,
+                let handled = supervised(async {
+                    match sample.kind() {
+                        SampleKind::Delete => watcher.client_disconnected(client_id).await,
+                        SampleKind::Put => watcher.client_reconnected(client_id).await,
+                    }
+                })
+                .await;
+                if let Err(panic) = handled {
+                    tracing::error!(
+                        env = %watcher.env(),
+                        client_id,
+                        "client liveliness handler panicked (a bug): {}",
+                        panic_message(panic.as_ref())
+                    );
                 }
             }
         }));
@@ -179,6 +197,51 @@ impl Controller {
         for env in &self.envs {
             env.server.stop_and_record(reason).await;
         }
+    }
+}
+
+/// Runs `work` to completion, catching a panic in any of its polls: the
+/// panic's payload instead of unwinding into the caller (a queryable's
+/// serving loop, which would die with it).
+pub async fn supervised<F: Future>(work: F) -> Result<F::Output, Box<dyn Any + Send>> {
+    let mut work = pin!(work);
+    std::future::poll_fn(move |cx| {
+        // The future is not polled again after a panic: whatever state it
+        // broke is dropped with it.
+        match std::panic::catch_unwind(AssertUnwindSafe(|| work.as_mut().poll(cx))) {
+            Ok(Poll::Ready(output)) => Poll::Ready(Ok(output)),
+            Ok(Poll::Pending) => Poll::Pending,
+            Err(panic) => Poll::Ready(Err(panic)),
+        }
+    })
+    .await
+}
+
+/// What a panic said, for the log.
+pub fn panic_message(panic: &(dyn Any + Send)) -> &str {
+    panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
+}
+
+/// Answers `query` with `work`; should `work` panic, the query is answered
+/// `Internal` instead and the caller goes on serving.
+pub async fn answer_supervised(query: &Query, work: impl Future<Output = ()>) {
+    let Err(panic) = supervised(work).await else {
+        return;
+    };
+    tracing::error!(
+        key = %query.key_expr(),
+        "request handler panicked (a bug): {}",
+        panic_message(panic.as_ref())
+    );
+    let refused = WireError::internal(
+        "the controller failed on this request (a bug, logged); it goes on serving",
+    );
+    if let Err(e) = wire::reply_encoded::<()>(query, Err(refused)).await {
+        tracing::warn!(key = %query.key_expr(), "reply failed: {e}");
     }
 }
 
@@ -269,4 +332,49 @@ async fn respond_unless_sent<T>(
         }
     };
     wire::reply_encoded(query, result).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use offworld_runtime::{ErrorCode, RequestError, SessionConfig};
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_panicking_handler_answers_internal_and_serving_goes_on() {
+        let session = SessionConfig::isolated().open().await.expect("session");
+        let key = "offworld/@v1/sim/supervised/ask";
+        let queryable = session.declare_queryable(key).await.expect("queryable");
+        let serving = tokio::spawn(async move {
+            while let Ok(query) = queryable.recv_async().await {
+                answer_supervised(&query, async {
+                    let n: u32 = wire::decode_query(&query).unwrap_or(0);
+                    tokio::task::yield_now().await;
+                    assert!(n != 13, "unlucky request");
+                    let _ = wire::reply(&query, Ok(&(n * 2))).await;
+                })
+                .await;
+            }
+        });
+        let ask = |n: u32| {
+            let session = session.clone();
+            async move { wire::request::<u32, u32>(&session, key, &n, Duration::from_secs(5)).await }
+        };
+        assert_eq!(ask(1).await.expect("answer"), 2);
+        match ask(13).await {
+            Err(RequestError::Remote(e)) => assert_eq!(e.code, ErrorCode::Internal, "{e}"),
+            other => panic!("expected Internal, got {other:?}"),
+        }
+        // The same queryable goes on answering.
+        assert_eq!(ask(21).await.expect("answer after the panic"), 42);
+        assert!(!serving.is_finished());
+        serving.abort();
+    }
+
+    #[tokio::test]
+    async fn supervised_returns_the_panic() {
+        let caught = supervised(async { panic!("boom {}", 7) }).await;
+        let panic = caught.expect_err("caught");
+        assert_eq!(panic_message(panic.as_ref()), "boom 7");
+        assert_eq!(supervised(async { 5 }).await.expect("no panic"), 5);
+    }
 }

@@ -3,7 +3,11 @@
 //! episode, written in one transaction as each episode ends — a crash
 //! loses at most the episode in progress.
 
+use std::cell::RefCell;
+use std::collections::HashSet;
+use std::fmt::Write as _;
 use std::path::Path;
+use std::sync::{Mutex, MutexGuard, PoisonError};
 
 use offworld_runtime::msg::{AlgorithmMode, Booking, LeaderboardEntry, LearningType};
 use rand::Rng;
@@ -153,6 +157,17 @@ pub const ANONYMOUS: &str = "anonymous";
 /// The store.
 pub struct Store {
     conn: Connection,
+    /// Booking rows read back that break the invariants (see
+    /// [`booking_violation`]): ignored, and warned about once each.
+    quarantine: Quarantine,
+}
+
+/// Locks the shared store. A panic while it was held (a bug) does not make
+/// it unusable: SQLite rolled back the transaction the panic interrupted
+/// (a [`rusqlite::Transaction`] dropped unfinished rolls back), so the
+/// store is as consistent as after any failed request.
+pub fn lock_store(store: &Mutex<Store>) -> MutexGuard<'_, Store> {
+    store.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 fn db(e: rusqlite::Error) -> ControllerError {
@@ -197,7 +212,10 @@ impl Store {
             params![ANONYMOUS, hash_token(""), now_ms()],
         )
         .map_err(db)?;
-        Ok(Self { conn })
+        Ok(Self {
+            conn,
+            quarantine: Quarantine::default(),
+        })
     }
 
     /// Registers a user and returns their token (shown once, stored hashed).
@@ -219,10 +237,11 @@ impl Store {
         token: &str,
         operator: bool,
     ) -> Result<(), ControllerError> {
-        if token.len() < 8 {
-            return Err(ControllerError::Config(
-                "tokens must have at least 8 characters".into(),
-            ));
+        validate_user_name(name)?;
+        if token.len() < 8 || token.len() > MAX_TOKEN_LEN {
+            return Err(ControllerError::Config(format!(
+                "tokens must have 8 to {MAX_TOKEN_LEN} characters"
+            )));
         }
         let role = if operator { "operator" } else { "user" };
         self.conn
@@ -234,8 +253,12 @@ impl Store {
         Ok(())
     }
 
-    /// The user holding `token`, if any.
+    /// The user holding `token`, if any. A token longer than any issued
+    /// is unknown without being hashed.
     pub fn authenticate(&self, token: &str) -> Result<Option<User>, ControllerError> {
+        if token.len() > MAX_TOKEN_LEN {
+            return Ok(None);
+        }
         self.conn
             .query_row(
                 "SELECT id, name, role FROM users WHERE token_sha256 = ?1",
@@ -265,6 +288,7 @@ impl Store {
         learning_type: LearningType,
         mode: AlgorithmMode,
     ) -> Result<Experiment, ControllerError> {
+        validate_experiment_name(name)?;
         let existing = self.experiment(user.id, env_id, name)?;
         match (existing, resume) {
             (Some(e), true) => Ok(e),
@@ -423,13 +447,112 @@ fn experiment_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Experiment> {
     })
 }
 
-/// Limits on bookings.
-#[derive(Debug, Clone, Copy)]
+/// Longest user name, characters.
+pub const MAX_USER_NAME: usize = 64;
+/// Longest experiment name, characters.
+pub const MAX_EXPERIMENT_NAME: usize = 128;
+/// Longest token looked up (issued tokens have 32 characters): a longer one
+/// is unknown, and is not even hashed.
+pub const MAX_TOKEN_LEN: usize = 256;
+/// What an experiment name may hold besides letters and digits.
+pub const EXPERIMENT_NAME_PUNCTUATION: &str = "-_.:+=@#/,()[] ";
+
+/// `text` for an error message: at most 40 characters of it, quoted and
+/// escaped (a hostile name is neither echoed whole nor able to carry
+/// control characters into a terminal).
+fn quoted(text: &str) -> String {
+    let mut head: String = text.chars().take(40).collect();
+    if head.len() < text.len() {
+        head.push('…');
+    }
+    format!("{head:?}")
+}
+
+/// Checks a user name: 1 to [`MAX_USER_NAME`] of `[A-Za-z0-9._@-]`.
+pub fn validate_user_name(name: &str) -> Result<(), ControllerError> {
+    let valid = !name.is_empty()
+        && name.len() <= MAX_USER_NAME
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'@' | b'-'));
+    if valid {
+        Ok(())
+    } else {
+        Err(ControllerError::InvalidArgument(format!(
+            "user names are 1 to {MAX_USER_NAME} characters of A-Z a-z 0-9 . _ @ -, got {}",
+            quoted(name)
+        )))
+    }
+}
+
+/// Checks an experiment name: 1 to [`MAX_EXPERIMENT_NAME`] letters, digits,
+/// spaces (not at either end) and [`EXPERIMENT_NAME_PUNCTUATION`].
+pub fn validate_experiment_name(name: &str) -> Result<(), ControllerError> {
+    let invalid = |why: String| Err(ControllerError::InvalidArgument(why));
+    if name.is_empty() {
+        return invalid("an experiment name must not be empty".into());
+    }
+    // Bounded count: a megabyte of name is refused without walking it all.
+    let chars = name.chars().take(MAX_EXPERIMENT_NAME + 1).count();
+    if chars > MAX_EXPERIMENT_NAME {
+        return invalid(format!(
+            "experiment names are at most {MAX_EXPERIMENT_NAME} characters; {} is longer",
+            quoted(name)
+        ));
+    }
+    if let Some(bad) = name
+        .chars()
+        .find(|c| !c.is_alphanumeric() && !EXPERIMENT_NAME_PUNCTUATION.contains(*c))
+    {
+        return invalid(format!(
+            "experiment names hold letters, digits, spaces and {:?}; {bad:?} in {} is not allowed",
+            EXPERIMENT_NAME_PUNCTUATION.trim_end(),
+            quoted(name)
+        ));
+    }
+    if name.starts_with(' ') || name.ends_with(' ') {
+        return invalid(format!(
+            "experiment names do not begin or end with a space: {}",
+            quoted(name)
+        ));
+    }
+    Ok(())
+}
+
+/// The last bookable instant, Unix ms: 9999-12-31T23:59:59.999Z (a later
+/// date has no RFC 3339 form). No stored booking lies outside
+/// `0..=LATEST_BOOKABLE_MS`.
+pub const LATEST_BOOKABLE_MS: i64 = 253_402_300_799_999;
+
+/// A Unix time in ms as RFC 3339 (seconds), for messages. Total: a time
+/// outside years 1970-9999 is written as a number instead of panicking.
+pub fn format_unix_ms(ms: i64) -> String {
+    if (0..=LATEST_BOOKABLE_MS).contains(&ms) {
+        let t = std::time::UNIX_EPOCH + std::time::Duration::from_millis(ms.unsigned_abs());
+        let mut text = String::new();
+        if write!(text, "{}", humantime::format_rfc3339_seconds(t)).is_ok() {
+            return text;
+        }
+    }
+    format!("{ms} ms after the Unix epoch (outside years 1970-9999)")
+}
+
+/// A span in ms, for messages (`4h`, `30days`); total.
+fn format_span(ms: i64) -> String {
+    humantime::format_duration(std::time::Duration::from_millis(ms.max(0).unsigned_abs()))
+        .to_string()
+}
+
+/// Limits on bookings: a site's policy (see [`crate::EnvOptions`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BookingRules {
-    /// Longest slot.
+    /// Longest slot, ms.
     pub max_slot_ms: i64,
-    /// How far ahead a slot may start.
+    /// How far ahead a slot may start, ms.
     pub horizon_ms: i64,
+    /// How far in the past a slot may start (clock skew, a request in
+    /// flight), ms; such a slot begins when it is made.
+    pub past_grace_ms: i64,
 }
 
 impl Default for BookingRules {
@@ -437,13 +560,181 @@ impl Default for BookingRules {
         Self {
             max_slot_ms: 4 * 3600 * 1000,
             horizon_ms: 30 * 24 * 3600 * 1000,
+            past_grace_ms: 60 * 1000,
         }
     }
 }
 
-fn format_ms(ms: i64) -> String {
-    let t = std::time::UNIX_EPOCH + std::time::Duration::from_millis(ms.max(0) as u64);
-    humantime::format_rfc3339_seconds(t).to_string()
+/// Why a requested slot is refused (400: [`ControllerError::InvalidArgument`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SlotError {
+    /// A time lies outside years 1970-9999.
+    #[error(
+        "slot times lie between 1970-01-01T00:00:00Z and 9999-12-31T23:59:59Z (Unix ms 0..={LATEST_BOOKABLE_MS}); got {start_ms} .. {end_ms}"
+    )]
+    OutOfRange {
+        /// Requested start, Unix ms.
+        start_ms: i64,
+        /// Requested end, Unix ms.
+        end_ms: i64,
+    },
+    /// Empty or reversed.
+    #[error("a slot must end after it starts; got {} .. {}", format_unix_ms(*start_ms), format_unix_ms(*end_ms))]
+    EndNotAfterStart {
+        /// Requested start, Unix ms.
+        start_ms: i64,
+        /// Requested end, Unix ms.
+        end_ms: i64,
+    },
+    /// Longer than the site allows.
+    #[error("slots are at most {} long; this one is {}", format_span(*max_ms), format_span(*length_ms))]
+    TooLong {
+        /// Requested length, ms.
+        length_ms: i64,
+        /// The site's maximum, ms.
+        max_ms: i64,
+    },
+    /// Starts further in the past than the grace allows.
+    #[error("the slot starts at {}, in the past (now {}); book from now on", format_unix_ms(*start_ms), format_unix_ms(*now_ms))]
+    StartsInPast {
+        /// Requested start, Unix ms.
+        start_ms: i64,
+        /// The server's clock, Unix ms.
+        now_ms: i64,
+    },
+    /// Over before it is made.
+    #[error("the slot ended already at {}", format_unix_ms(*end_ms))]
+    AlreadyEnded {
+        /// Requested end, Unix ms.
+        end_ms: i64,
+    },
+    /// Starts beyond the site's horizon.
+    #[error("slots may start at most {} ahead, by {}; this one starts at {}", format_span(*horizon_ms), format_unix_ms(*latest_start_ms), format_unix_ms(*start_ms))]
+    TooFarAhead {
+        /// Requested start, Unix ms.
+        start_ms: i64,
+        /// The latest start allowed now, Unix ms.
+        latest_start_ms: i64,
+        /// The site's horizon, ms.
+        horizon_ms: i64,
+    },
+}
+
+impl From<SlotError> for ControllerError {
+    fn from(e: SlotError) -> Self {
+        ControllerError::InvalidArgument(e.to_string())
+    }
+}
+
+impl BookingRules {
+    /// Checks the rules themselves (a site's configuration).
+    pub fn check(&self) -> Result<(), ControllerError> {
+        if self.max_slot_ms <= 0 {
+            return Err(ControllerError::Config(format!(
+                "the longest booking slot must be positive, got {} ms",
+                self.max_slot_ms
+            )));
+        }
+        if self.horizon_ms < 0 || self.past_grace_ms < 0 {
+            return Err(ControllerError::Config(format!(
+                "the booking horizon ({} ms) and past grace ({} ms) must not be negative",
+                self.horizon_ms, self.past_grace_ms
+            )));
+        }
+        Ok(())
+    }
+
+    /// Validates a requested slot `[start_ms, end_ms)` at `now_ms` and
+    /// returns the slot to store (one starting within the grace in the
+    /// past begins at `now_ms`). Total: checked arithmetic, no panic for
+    /// any input, and every slot returned lies in `0..=LATEST_BOOKABLE_MS`.
+    pub fn validate(
+        &self,
+        start_ms: i64,
+        end_ms: i64,
+        now_ms: i64,
+    ) -> Result<(i64, i64), SlotError> {
+        let bookable = 0..=LATEST_BOOKABLE_MS;
+        if !bookable.contains(&start_ms) || !bookable.contains(&end_ms) {
+            return Err(SlotError::OutOfRange { start_ms, end_ms });
+        }
+        if end_ms <= start_ms {
+            return Err(SlotError::EndNotAfterStart { start_ms, end_ms });
+        }
+        let length_ms = end_ms.checked_sub(start_ms).unwrap_or(i64::MAX);
+        if length_ms > self.max_slot_ms {
+            return Err(SlotError::TooLong {
+                length_ms,
+                max_ms: self.max_slot_ms,
+            });
+        }
+        if start_ms < now_ms.saturating_sub(self.past_grace_ms.max(0)) {
+            return Err(SlotError::StartsInPast { start_ms, now_ms });
+        }
+        if end_ms <= now_ms {
+            return Err(SlotError::AlreadyEnded { end_ms });
+        }
+        let latest_start_ms = now_ms.saturating_add(self.horizon_ms.max(0));
+        if start_ms > latest_start_ms {
+            return Err(SlotError::TooFarAhead {
+                start_ms,
+                latest_start_ms,
+                horizon_ms: self.horizon_ms,
+            });
+        }
+        Ok((start_ms.max(now_ms), end_ms))
+    }
+}
+
+/// Why a booking row read back from the database cannot be a booking, if
+/// it cannot. Every slot [`BookingRules::validate`] returns passes; a row
+/// written by an older version (or by hand) may not.
+pub fn booking_violation(b: &Booking) -> Option<&'static str> {
+    if b.end_unix_ms <= b.start_unix_ms {
+        Some("it does not end after it starts")
+    } else if b.start_unix_ms < 0 || b.end_unix_ms > LATEST_BOOKABLE_MS {
+        Some("its times lie outside years 1970-9999")
+    } else {
+        None
+    }
+}
+
+/// Booking rows that break the invariants: skipped by every reader, and
+/// reported once each.
+#[derive(Default)]
+struct Quarantine(RefCell<HashSet<String>>);
+
+impl Quarantine {
+    /// `row` if it is a valid booking; otherwise `None`, warned about the
+    /// first time.
+    fn admit(&self, row: rusqlite::Result<(Booking, i64)>) -> Option<(Booking, i64)> {
+        let (key, why) = match &row {
+            Err(e) => (e.to_string(), format!("unreadable: {e}")),
+            Ok((b, _)) => match booking_violation(b) {
+                None => return row.ok(),
+                Some(why) => (format!("booking {}", b.id), why.to_owned()),
+            },
+        };
+        // Never re-entered; should it be, warning twice beats panicking.
+        let first = self
+            .0
+            .try_borrow_mut()
+            .map_or(true, |mut seen| seen.insert(key));
+        if first {
+            match &row {
+                Ok((b, _)) => tracing::warn!(
+                    id = b.id,
+                    env = %b.env_id,
+                    user = %b.user,
+                    start_ms = b.start_unix_ms,
+                    end_ms = b.end_unix_ms,
+                    "booking quarantined: {why}; it is ignored (an operator may cancel it by its id)"
+                ),
+                Err(_) => tracing::warn!("booking row quarantined: {why}; it is ignored"),
+            }
+        }
+        None
+    }
 }
 
 /// The booking situation of an env at a time (see [`Store::slot_at`]).
@@ -473,7 +764,8 @@ fn booking_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<(Booking, i64)> {
 
 impl Store {
     /// Reserves `[start_ms, end_ms)` on `env_id` for `user`, atomically
-    /// against overlapping slots.
+    /// against overlapping slots. The slot is validated by `rules` first
+    /// (see [`BookingRules::validate`]).
     pub fn book(
         &mut self,
         user: &User,
@@ -488,50 +780,27 @@ impl Store {
                 "bookings need a registered user's token".into(),
             ));
         }
-        if end_ms <= start_ms {
-            return Err(ControllerError::Config(format!(
-                "a slot must end after it starts ({} .. {})",
-                format_ms(start_ms),
-                format_ms(end_ms)
-            )));
-        }
-        if end_ms <= now_ms {
-            return Err(ControllerError::Config(format!(
-                "the slot ended already at {}",
-                format_ms(end_ms)
-            )));
-        }
-        if end_ms - start_ms > rules.max_slot_ms {
-            return Err(ControllerError::Config(format!(
-                "slots are at most {} min long",
-                rules.max_slot_ms / 60_000
-            )));
-        }
-        if start_ms > now_ms + rules.horizon_ms {
-            return Err(ControllerError::Config(format!(
-                "slots may start at most {} days ahead",
-                rules.horizon_ms / 86_400_000
-            )));
-        }
-        // A slot that started already begins now.
-        let start_ms = start_ms.max(now_ms);
+        // A slot that started already (within the grace) begins now.
+        let (start_ms, end_ms) = rules.validate(start_ms, end_ms, now_ms)?;
+        let quarantine = &self.quarantine;
         let tx = self.conn.transaction().map_err(db)?;
-        let clash = tx
-            .query_row(
-                &format!(
-                    "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.start_ms < ?3 AND b.end_ms > ?2 ORDER BY b.start_ms LIMIT 1"
-                ),
-                params![env_id, start_ms, end_ms],
-                booking_row,
-            )
-            .optional()
-            .map_err(db)?;
+        let clash = {
+            let mut stmt = tx
+                .prepare(&format!(
+                    "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.start_ms < ?3 AND b.end_ms > ?2 ORDER BY b.start_ms"
+                ))
+                .map_err(db)?;
+            let mut rows = stmt
+                .query_map(params![env_id, start_ms, end_ms], booking_row)
+                .map_err(db)?;
+            rows.find_map(|row| quarantine.admit(row))
+        };
         if let Some((b, _)) = clash {
             return Err(ControllerError::Busy(format!(
                 "{env_id} is booked by {} from {} to {}",
                 b.user,
-                format_ms(b.start_unix_ms),
-                format_ms(b.end_unix_ms)
+                format_unix_ms(b.start_unix_ms),
+                format_unix_ms(b.end_unix_ms)
             )));
         }
         tx.execute(
@@ -550,18 +819,34 @@ impl Store {
         })
     }
 
-    /// Slots of `env_id` ending after `from_ms`, earliest first.
-    pub fn bookings(&self, env_id: &str, from_ms: i64) -> Result<Vec<Booking>, ControllerError> {
+    /// The valid bookings of `env_id` matching `filter` (SQL over `b.`,
+    /// `?1` the env, `?2` the time), earliest first; invalid rows are
+    /// quarantined.
+    fn valid_bookings<T>(
+        &self,
+        env_id: &str,
+        at_ms: i64,
+        filter: &str,
+        take: impl FnOnce(&mut dyn Iterator<Item = (Booking, i64)>) -> T,
+    ) -> Result<T, ControllerError> {
         let mut stmt = self
             .conn
             .prepare(&format!(
-                "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.end_ms > ?2 ORDER BY b.start_ms"
+                "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND {filter} ORDER BY b.start_ms, b.id"
             ))
             .map_err(db)?;
         let rows = stmt
-            .query_map(params![env_id, from_ms], booking_row)
+            .query_map(params![env_id, at_ms], booking_row)
             .map_err(db)?;
-        rows.map(|r| r.map(|(b, _)| b).map_err(db)).collect()
+        let mut valid = rows.filter_map(|row| self.quarantine.admit(row));
+        Ok(take(&mut valid))
+    }
+
+    /// Slots of `env_id` ending after `from_ms`, earliest first.
+    pub fn bookings(&self, env_id: &str, from_ms: i64) -> Result<Vec<Booking>, ControllerError> {
+        self.valid_bookings(env_id, from_ms, "b.end_ms > ?2", |rows| {
+            rows.map(|(b, _)| b).collect()
+        })
     }
 
     /// The slot of `env_id` covering `at_ms`, with its holder's user id.
@@ -570,16 +855,12 @@ impl Store {
         env_id: &str,
         at_ms: i64,
     ) -> Result<Option<(Booking, i64)>, ControllerError> {
-        self.conn
-            .query_row(
-                &format!(
-                    "SELECT {BOOKING_COLUMNS} WHERE b.env_id = ?1 AND b.start_ms <= ?2 AND b.end_ms > ?2 LIMIT 1"
-                ),
-                params![env_id, at_ms],
-                booking_row,
-            )
-            .optional()
-            .map_err(db)
+        self.valid_bookings(
+            env_id,
+            at_ms,
+            "b.start_ms <= ?2 AND b.end_ms > ?2",
+            |rows| rows.next(),
+        )
     }
 
     /// The slot of `env_id` covering `at_ms` and until when that answer
@@ -590,13 +871,9 @@ impl Store {
         let until_ms = match &slot {
             Some((booking, _)) => booking.end_unix_ms,
             None => self
-                .conn
-                .query_row(
-                    "SELECT MIN(start_ms) FROM bookings WHERE env_id = ?1 AND start_ms > ?2",
-                    params![env_id, at_ms],
-                    |r| r.get::<_, Option<i64>>(0),
-                )
-                .map_err(db)?
+                .valid_bookings(env_id, at_ms, "b.start_ms > ?2", |rows| {
+                    rows.next().map(|(b, _)| b.start_unix_ms)
+                })?
                 .unwrap_or(i64::MAX),
         };
         Ok(SlotAt { slot, until_ms })
@@ -680,5 +957,289 @@ mod tests {
             store.slot_at("sim/b", now + 15_000).expect("query").slot,
             None
         );
+    }
+
+    /// A registered user of `store` (a booking needs one).
+    fn user(store: &Store, name: &str) -> User {
+        let token = store.add_user(name, false).expect("user");
+        store
+            .authenticate(&token)
+            .expect("db")
+            .expect("the user is known")
+    }
+
+    /// Writes a booking row as an older version (or a hand edit) could
+    /// have: around the validation and the table's CHECK.
+    fn plant(store: &Store, env: &str, user: &User, start_ms: i64, end_ms: i64) -> i64 {
+        store
+            .conn
+            .execute_batch("PRAGMA ignore_check_constraints = ON")
+            .expect("pragma");
+        store
+            .conn
+            .execute(
+                "INSERT INTO bookings (env_id, user_id, start_ms, end_ms, created_ms) VALUES (?1, ?2, ?3, ?4, 0)",
+                params![env, user.id, start_ms, end_ms],
+            )
+            .expect("planted");
+        store
+            .conn
+            .execute_batch("PRAGMA ignore_check_constraints = OFF")
+            .expect("pragma");
+        store.conn.last_insert_rowid()
+    }
+
+    #[test]
+    fn invalid_booking_rows_are_quarantined_by_every_reader() {
+        let mut store = Store::in_memory().expect("store");
+        let (mallory, ada) = (user(&store, "mallory"), user(&store, "ada"));
+        let (env, now) = ("sim/a", 1_700_000_000_000);
+        // What the [i64::MIN, i64::MAX) booking of old versions stored, a
+        // reversed slot, an empty one and one before 1970.
+        let hostile = [
+            (now - 1_000, i64::MAX),
+            (now + 60_000, now - 60_000),
+            (now, now),
+            (-5_000, now + 5_000),
+        ];
+        for (start, end) in hostile {
+            plant(&store, env, &mallory, start, end);
+        }
+        // None of them is listed, holds the env now, or ends the free time.
+        assert_eq!(store.bookings(env, i64::MIN).expect("list"), vec![]);
+        assert_eq!(store.booking_at(env, now).expect("at"), None);
+        assert_eq!(
+            store.slot_at(env, now).expect("slot"),
+            SlotAt {
+                slot: None,
+                until_ms: i64::MAX
+            }
+        );
+        // Nor does any block a valid booking over the same time.
+        let rules = BookingRules::default();
+        let made = store
+            .book(&ada, env, now, now + 60_000, now, rules)
+            .expect("booked over quarantined rows");
+        assert_eq!(store.bookings(env, 0).expect("list"), vec![made.clone()]);
+        let at = store.slot_at(env, now + 1).expect("slot");
+        assert_eq!(at.slot, Some((made, ada.id)));
+        assert_eq!(at.until_ms, now + 60_000);
+    }
+
+    #[test]
+    fn a_hostile_booking_is_refused_and_never_stored() {
+        let mut store = Store::in_memory().expect("store");
+        let mallory = user(&store, "mallory");
+        let (env, now) = ("sim/a", 1_700_000_000_000);
+        let rules = BookingRules::default();
+        let after_9999 = LATEST_BOOKABLE_MS + 1_000_000;
+        for (start, end) in [
+            (i64::MIN, i64::MAX),
+            (after_9999, after_9999 - 1),
+            (after_9999, after_9999 + 1),
+            (now, i64::MAX),
+            (now + 10_000, now),
+            (now, now + rules.max_slot_ms + 1),
+            (now + rules.horizon_ms + 1, now + rules.horizon_ms + 60_000),
+            (now - 3_600_000, now + 60_000),
+        ] {
+            let refused = store
+                .book(&mallory, env, start, end, now, rules)
+                .expect_err("refused");
+            assert!(
+                matches!(refused, ControllerError::InvalidArgument(_)),
+                "{start} .. {end}: {refused}"
+            );
+            assert_eq!(
+                offworld_runtime::WireError::from(refused).code,
+                offworld_runtime::ErrorCode::BadRequest
+            );
+        }
+        assert_eq!(store.bookings(env, i64::MIN).expect("list"), vec![]);
+    }
+
+    #[test]
+    fn dates_outside_years_1970_to_9999_format_without_panicking() {
+        assert_eq!(format_unix_ms(0), "1970-01-01T00:00:00Z");
+        assert_eq!(format_unix_ms(LATEST_BOOKABLE_MS), "9999-12-31T23:59:59Z");
+        for ms in [LATEST_BOOKABLE_MS + 1, i64::MAX, -1, i64::MIN] {
+            assert!(
+                format_unix_ms(ms).contains("outside years 1970-9999"),
+                "{ms}"
+            );
+        }
+    }
+
+    #[test]
+    fn names_and_tokens() {
+        for good in ["alice", "ops.team", "a_b-c@site"] {
+            validate_user_name(good).expect(good);
+        }
+        for bad in ["", "a b", "x\n", &"a".repeat(MAX_USER_NAME + 1), "ünï"] {
+            assert!(validate_user_name(bad).is_err(), "{bad:?}");
+        }
+        for good in [
+            "dqn-depth",
+            "Demo",
+            "run-1712345678901",
+            "ppo (v2) seed=3",
+            "実験-1",
+        ] {
+            validate_experiment_name(good).expect(good);
+        }
+        let long = "x".repeat(MAX_EXPERIMENT_NAME + 1);
+        for bad in [
+            "",
+            " lead",
+            "trail ",
+            "bell\u{7}",
+            "rtl\u{202e}txt",
+            &long,
+            "semi;colon",
+        ] {
+            let e = validate_experiment_name(bad).expect_err(bad);
+            assert!(matches!(e, ControllerError::InvalidArgument(_)), "{e}");
+            // The message quotes at most 40 characters of the name.
+            assert!(e.to_string().len() < 300, "{e}");
+        }
+        // A token longer than any issued is unknown, unhashed.
+        let store = Store::in_memory().expect("store");
+        let huge = "t".repeat(MAX_TOKEN_LEN + 1);
+        assert_eq!(store.authenticate(&huge).expect("db"), None);
+        assert!(store.add_user_with_token("eve", &huge, false).is_err());
+        assert!(store
+            .add_user_with_token("bad name", "long-enough-token", false)
+            .is_err());
+    }
+
+    mod properties {
+        use super::super::*;
+        use crate::test_strategies::{any_text, text, ALNUM};
+        use proptest::prelude::*;
+
+        const NAME_CHARS: &[char] = &[
+            'a', 'Z', '7', 'é', '実', '-', '_', '.', ':', '+', '=', '@', '#', '/', ',', '(', ')',
+            '[', ']', ' ',
+        ];
+        const USER_CHARS: &[char] = &['a', 'Z', '0', '9', '.', '_', '@', '-'];
+
+        fn rules() -> impl Strategy<Value = BookingRules> {
+            (any::<i64>(), any::<i64>(), any::<i64>()).prop_map(
+                |(max_slot_ms, horizon_ms, past_grace_ms)| BookingRules {
+                    max_slot_ms,
+                    horizon_ms,
+                    past_grace_ms,
+                },
+            )
+        }
+
+        /// Times where the edges are: around now, 0, year 9999 and i64's ends.
+        fn time() -> impl Strategy<Value = i64> {
+            prop_oneof![
+                any::<i64>(),
+                (-10_000_000i64..10_000_000).prop_map(|d| 1_700_000_000_000 + d),
+                (-10_000i64..10_000).prop_map(|d| LATEST_BOOKABLE_MS.saturating_add(d)),
+                (-10_000i64..10_000),
+                Just(i64::MIN),
+                Just(i64::MAX),
+            ]
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(4096))]
+
+            /// Any input: an answer, never a panic, and a slot accepted only
+            /// if it meets every rule (checked with i128, no overflow).
+            #[test]
+            fn validate_is_total_and_sound(
+                rules in prop_oneof![Just(BookingRules::default()), rules()],
+                start in time(),
+                end in time(),
+                now in time(),
+            ) {
+                match rules.validate(start, end, now) {
+                    Ok((s, e)) => {
+                        let (start, end, now) = (i128::from(start), i128::from(end), i128::from(now));
+                        let bookable = 0..=i128::from(LATEST_BOOKABLE_MS);
+                        prop_assert!(bookable.contains(&start) && bookable.contains(&end));
+                        prop_assert!(end > start);
+                        prop_assert!(end - start <= i128::from(rules.max_slot_ms));
+                        prop_assert!(start >= now - i128::from(rules.past_grace_ms.max(0)));
+                        prop_assert!(start <= now + i128::from(rules.horizon_ms.max(0)));
+                        prop_assert!(end > now);
+                        // Stored: begins no earlier than now, same end.
+                        prop_assert_eq!(i128::from(s), start.max(now));
+                        prop_assert_eq!(i128::from(e), end);
+                        let stored = Booking {
+                            id: 1,
+                            env_id: String::new(),
+                            user: String::new(),
+                            start_unix_ms: s,
+                            end_unix_ms: e,
+                        };
+                        prop_assert_eq!(booking_violation(&stored), None);
+                    }
+                    Err(refused) => {
+                        // The message is total too, and maps to 400.
+                        prop_assert!(!refused.to_string().is_empty());
+                        let wire = offworld_runtime::WireError::from(ControllerError::from(refused));
+                        prop_assert_eq!(wire.code, offworld_runtime::ErrorCode::BadRequest);
+                    }
+                }
+            }
+
+            /// Every slot that meets the default rules is accepted.
+            #[test]
+            fn validate_accepts_every_valid_slot(
+                now in 0i64..LATEST_BOOKABLE_MS - 40 * 86_400_000,
+                offset in -60_000i64..=30 * 86_400_000,
+                length in 1i64..=4 * 3_600_000,
+            ) {
+                let (start, end) = (now + offset, now + offset + length);
+                prop_assume!(start >= 0 && end > now);
+                let rules = BookingRules::default();
+                prop_assert_eq!(rules.validate(start, end, now), Ok((start.max(now), end)));
+            }
+
+            #[test]
+            fn format_unix_ms_is_total(ms in time()) {
+                let text = format_unix_ms(ms);
+                if (0..=LATEST_BOOKABLE_MS).contains(&ms) {
+                    prop_assert_eq!(text.len(), 20, "{}", text);
+                    prop_assert!(text.ends_with('Z'));
+                } else {
+                    prop_assert!(text.contains("outside years 1970-9999"));
+                }
+            }
+
+            /// Names made of the allowed characters pass; any string gets
+            /// an answer, and an accepted one keeps to the rules.
+            #[test]
+            fn experiment_names(
+                (first, middle, last) in (text(ALNUM, 1..=1), text(NAME_CHARS, 0..=126), text(ALNUM, 1..=1)),
+                any_name in any_text(),
+            ) {
+                let good = format!("{first}{middle}{last}");
+                prop_assert!(validate_experiment_name(&good).is_ok(), "{:?}", good);
+                if validate_experiment_name(&any_name).is_ok() {
+                    prop_assert!(!any_name.is_empty());
+                    prop_assert!(any_name.chars().count() <= MAX_EXPERIMENT_NAME);
+                    prop_assert!(any_name.chars().all(|c| !c.is_control()));
+                    prop_assert!(!any_name.starts_with(' ') && !any_name.ends_with(' '));
+                }
+            }
+
+            #[test]
+            fn user_names(
+                good in text(USER_CHARS, 1..=64),
+                any_name in any_text(),
+            ) {
+                prop_assert!(validate_user_name(&good).is_ok(), "{:?}", good);
+                if validate_user_name(&any_name).is_ok() {
+                    prop_assert!(!any_name.is_empty() && any_name.len() <= MAX_USER_NAME);
+                    prop_assert!(any_name.is_ascii());
+                }
+            }
+        }
     }
 }

@@ -747,3 +747,140 @@ async fn a_sim_env_under_an_estop_refuses_motion_and_shows_it() {
     // The interrupted episode and the new one.
     assert_eq!(closed.experiment.episodes, 2, "{:?}", closed.experiment);
 }
+
+/// Issue 22: hostile bookings (after year 9999, reversed, `[i64::MIN,
+/// i64::MAX)`, too long, too far ahead, long past) are refused 400 with a
+/// message saying what is wrong, nothing is stored, and another user's
+/// open/reset/step go on working; so do they after a panic (here: forced)
+/// while the store was held.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hostile_bookings_are_refused_and_the_env_keeps_serving() {
+    let dir = ScratchDir::new();
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let now = offworld_env_controller::store::now_ms();
+    let (day, after_9999) = (86_400_000, 300_000_000_000_000);
+    for (request, says) in [
+        (make(BOB, after_9999, after_9999 - 1), "between 1970"),
+        (make(BOB, after_9999, now), "between 1970"),
+        (make(BOB, i64::MIN, i64::MAX), "between 1970"),
+        (make(BOB, now + 1_000, i64::MAX), "between 1970"),
+        (
+            make(BOB, now + 10_000, now + 5_000),
+            "must end after it starts",
+        ),
+        (
+            make(BOB, now + 1_000, now + 1_000 + 4 * 3_600_000 + 1),
+            "at most 4h long",
+        ),
+        (
+            make(BOB, now + 31 * day, now + 31 * day + 60_000),
+            "at most 30days ahead",
+        ),
+        (make(BOB, now - 3_600_000, now + 60_000), "in the past"),
+    ] {
+        let shown = format!("{request:?}");
+        let err = booking(&session, &d.env, request)
+            .await
+            .expect_err("refused");
+        assert_eq!(err.code, ErrorCode::BadRequest, "{shown}: {err}");
+        assert!(err.message.contains(says), "{shown}: {err}");
+    }
+    let listed = booking(&session, &d.env, BookingRequest::List { from_unix_ms: 0 })
+        .await
+        .expect("list");
+    assert!(listed.is_empty(), "{listed:?}");
+
+    // Another user is served as before.
+    let mut alice = open(&session, &d.env, ALICE, "after-hostile-bookings")
+        .await
+        .expect("open after hostile bookings");
+    alice.reset(Seed::Fixed(1)).await.expect("reset");
+    alice.step(Action::Discrete(2)).await.expect("step");
+
+    // A panic while the store is held poisons its mutex: requests are
+    // served regardless (closing records the aborted episode in it).
+    let store = d._embedded.controller.store();
+    let poisoner = store.clone();
+    let _ = std::thread::spawn(move || {
+        let _held = poisoner.lock();
+        panic!("a bug while the store is held");
+    })
+    .join();
+    assert!(store.is_poisoned());
+    alice.close().await.expect("close after the panic");
+    let mut bob = open(&session, &d.env, BOB, "after-the-panic")
+        .await
+        .expect("open after the panic");
+    bob.reset(Seed::Fixed(2))
+        .await
+        .expect("reset after the panic");
+    bob.close().await.expect("close");
+    let later = offworld_env_controller::store::now_ms() + 60_000;
+    let made = booking(&session, &d.env, make(ALICE, later, later + 60_000))
+        .await
+        .expect("a valid booking after the panic");
+    assert_eq!(made.len(), 1);
+}
+
+/// Issue 22: booking rows an older version stored (the `[i64::MIN,
+/// i64::MAX)` one became `[then, i64::MAX)`), reversed or before 1970 are
+/// quarantined by every reader: never listed, never holding the env, never
+/// clashing; `open` works, across a restart too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn invalid_booking_rows_on_disk_are_quarantined_and_open_works() {
+    let dir = ScratchDir::new();
+    let db = dir.path().join("gym.db");
+    {
+        let store = Store::open(&db).expect("store");
+        for (name, token, operator) in users() {
+            store
+                .add_user_with_token(name, token, operator)
+                .expect("user");
+        }
+    }
+    let now = offworld_env_controller::store::now_ms();
+    {
+        let conn = rusqlite::Connection::open(&db).expect("db");
+        let bob: i64 = conn
+            .query_row("SELECT id FROM users WHERE name = 'bob'", [], |r| r.get(0))
+            .expect("bob");
+        conn.execute_batch("PRAGMA ignore_check_constraints = ON")
+            .expect("pragma");
+        for (start, end) in [
+            (now - 1_000, i64::MAX),
+            (now + 60_000, now - 60_000),
+            (-5_000, now + 5_000),
+            (i64::MIN, i64::MIN + 1),
+        ] {
+            conn.execute(
+                "INSERT INTO bookings (env_id, user_id, start_ms, end_ms, created_ms) VALUES ('sim/gym-test', ?1, ?2, ?3, 0)",
+                rusqlite::params![bob, start, end],
+            )
+            .expect("planted");
+        }
+    }
+    for restart in 0..2 {
+        let d = deploy(&db, "MonolithDiscrete", &users()).await;
+        assert_eq!(d.env.to_string(), "sim/gym-test");
+        let session = client_session(&d).await;
+        let listed = booking(&session, &d.env, BookingRequest::List { from_unix_ms: 0 })
+            .await
+            .expect("list");
+        assert!(listed.is_empty(), "restart {restart}: {listed:?}");
+        let mut alice = open(&session, &d.env, ALICE, &format!("quarantine-{restart}"))
+            .await
+            .expect("open despite the invalid rows");
+        alice.reset(Seed::Fixed(3)).await.expect("reset");
+        alice.step(Action::Discrete(1)).await.expect("step");
+        alice.close().await.expect("close");
+    }
+    // Nor do they clash with a valid booking over the same time.
+    let d = deploy(&db, "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let start = offworld_env_controller::store::now_ms() + 30_000;
+    let made = booking(&session, &d.env, make(ALICE, start, start + 60_000))
+        .await
+        .expect("booked over quarantined rows");
+    assert_eq!(made[0].user, "alice");
+}

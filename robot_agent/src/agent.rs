@@ -683,10 +683,14 @@ impl<H: RobotHardware> Agent<H> {
         self.send(Velocity::ZERO).await;
         match std::mem::replace(&mut self.activity, Activity::Idle) {
             Activity::Driving { seq, .. } => {
-                self.activity = Activity::Settling {
+                // Cut short: answering it would score a motion that did not
+                // happen as commanded. The controller fails the step.
+                let fault = MotionFault {
                     seq,
-                    still_since: None,
-                }
+                    reason: format!("motion stopped before the command's end: {reason}"),
+                };
+                tracing::warn!(seq, "{}", fault.reason);
+                self.outbox.send(Outgoing::Fault(fault));
             }
             Activity::Navigating(mut nav) if on_nav == OnHalt::Hold => {
                 tracing::warn!(env = %self.env, %reason, "reset navigation held");
@@ -820,8 +824,9 @@ impl<H: RobotHardware> Agent<H> {
             ),
         };
         tracing::error!(seq, "{}: command failed", fault.reason);
-        self.halt(&fault.reason, OnHalt::Abandon).await;
+        // Idle first: this fault, not the halt's, tells the controller why.
         self.activity = Activity::Idle;
+        self.halt(&fault.reason, OnHalt::Abandon).await;
         self.outbox.send(Outgoing::Fault(fault));
     }
 

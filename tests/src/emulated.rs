@@ -29,6 +29,8 @@ use offworld_runtime::session::{loopback_endpoint, Mode};
 use offworld_runtime::{EnvId, SessionConfig, Topic};
 use offworld_sim_twin::enclosure::default_world_from_tracking;
 
+use crate::link::ImpairedLink;
+use crate::netns::RobotNamespace;
 use crate::{binary_dir, Process};
 
 /// What to start.
@@ -51,6 +53,11 @@ pub struct Options {
     /// Run the robot's `base_guard` (default). Without it the robot agent
     /// is started with `require_base_guard = false`.
     pub base_guard: bool,
+    /// Run the robot computer (its router, the hardware, robot agent, base
+    /// guard and tracker agent) in a network namespace of its own, which
+    /// the controller reaches only through [`EmulatedEnclosure::robot_link`]:
+    /// a link a test can cut, delay or make lossy. Needs CAP_NET_ADMIN.
+    pub isolated_robot: bool,
     /// Log filter of the children (default: this process's `RUST_LOG`, else `warn`).
     pub log: String,
 }
@@ -66,6 +73,7 @@ impl Options {
             watchdog_ms: 200,
             base_cmd_timeout_ms: None,
             base_guard: true,
+            isolated_robot: false,
             log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
         })
     }
@@ -98,6 +106,9 @@ pub enum Part {
     BaseGuard,
     /// The tracker agent.
     TrackerAgent,
+    /// Not a process: the network link between the site (controller) and
+    /// the robot computer, with [`Options::isolated_robot`].
+    RobotLink,
 }
 
 impl Part {
@@ -121,7 +132,14 @@ impl Part {
             Part::RobotAgent => "robot_agent",
             Part::BaseGuard => "base_guard",
             Part::TrackerAgent => "tracker_agent",
+            Part::RobotLink => "robot_link",
         }
+    }
+
+    /// Whether the part runs on the robot computer (in its namespace, with
+    /// [`Options::isolated_robot`]).
+    pub fn on_robot(self) -> bool {
+        !matches!(self, Part::Controller | Part::RobotLink)
     }
 }
 
@@ -143,9 +161,17 @@ pub struct EmulatedEnclosure {
     pub dir: PathBuf,
     /// The tracker stream proxy, when requested.
     pub tracker_proxy: Option<LineProxy>,
+    /// The link between the site's router and the robot's, with
+    /// [`Options::isolated_robot`].
+    pub robot_link: Option<ImpairedLink>,
+    /// The site's router and its endpoint, with [`Options::isolated_robot`]:
+    /// the controller connects here.
+    site_router: Option<(Process, String)>,
     options: Options,
     tracker_listen: String,
     processes: BTreeMap<Part, Process>,
+    /// Declared last: removed after the processes stopped.
+    robot_netns: Option<RobotNamespace>,
 }
 
 impl EmulatedEnclosure {
@@ -158,12 +184,46 @@ impl EmulatedEnclosure {
             offworld_runtime::client::random_id()
         ));
         std::fs::create_dir_all(&dir)?;
+        if options.isolated_robot && options.pausable_tracker {
+            return Err(std::io::Error::other(
+                "a pausable tracker needs the tracker stream on this host: not with an isolated robot",
+            ));
+        }
+        let robot_netns = if options.isolated_robot {
+            Some(RobotNamespace::create().map_err(|e| {
+                std::io::Error::other(format!("the robot's network namespace: {e:#}"))
+            })?)
+        } else {
+            None
+        };
         let db = dir.join("gym.db");
         let token = register_user(&db.to_string_lossy(), "researcher")?;
         std::fs::write(
             dir.join("tracker_calibration.toml"),
             emulator_calibration_toml(),
         )?;
+        // An isolated robot meets the site as a robot on a radio link
+        // does: its router connects to the site's router through the link
+        // (a proxy on the host's side of the namespace); nothing on the
+        // host can reach the robot's own loopback, where its nodes meet,
+        // so no Zenoh peer finds a way around the link.
+        let (site_router, robot_link) = match &robot_netns {
+            Some(ns) => {
+                let endpoint = loopback_endpoint()?;
+                let router = Process::spawn_from_path(
+                    "zenohd",
+                    &["--listen", &endpoint, "--no-multicast-scouting"],
+                    &options.log,
+                )?;
+                wait_until_listening(&endpoint, Duration::from_secs(20))?;
+                let host_ip = ns.host_ip.parse().map_err(std::io::Error::other)?;
+                let upstream = endpoint_addr(&endpoint)?;
+                let seed = std::process::id().into();
+                let link = ImpairedLink::start(host_ip, upstream, seed)?;
+                (Some((router, endpoint)), Some(link))
+            }
+            None => (None, None),
+        };
         let mut deployment = Self {
             endpoint: loopback_endpoint()?,
             robot_endpoint: loopback_endpoint()?,
@@ -172,9 +232,12 @@ impl EmulatedEnclosure {
             token,
             dir,
             tracker_proxy: None,
+            robot_link,
+            site_router,
             options: options.clone(),
             tracker_listen: format!("127.0.0.1:{}", free_port()?),
             processes: BTreeMap::new(),
+            robot_netns,
         };
         for part in Part::ALL {
             deployment.start_part(part)?;
@@ -212,6 +275,9 @@ impl EmulatedEnclosure {
         let binary = match part {
             Part::Router => {
                 push(&["--listen", robot, "--no-multicast-scouting"]);
+                if let Some(link) = &self.robot_link {
+                    push(&["--connect", &link.endpoint()]);
+                }
                 "zenohd"
             }
             Part::Hardware => {
@@ -234,7 +300,12 @@ impl EmulatedEnclosure {
                 let db = self.dir.join("gym.db");
                 push(&["--db", &db.to_string_lossy(), "serve"]);
                 push(&["--env", &format!("{env}={}", options.task)]);
-                push(&["--listen", &self.endpoint, "--connect", robot]);
+                push(&[
+                    "--listen",
+                    &self.endpoint,
+                    "--connect",
+                    self.site_endpoint(),
+                ]);
                 "env_controller"
             }
             Part::TrackerAgent => {
@@ -256,6 +327,7 @@ impl EmulatedEnclosure {
                 push(&peer);
                 "base_guard"
             }
+            Part::RobotLink => return Ok(()),
             Part::RobotAgent => {
                 let config = self.dir.join("robot.toml");
                 std::fs::write(
@@ -272,15 +344,21 @@ impl EmulatedEnclosure {
             }
         };
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let netns = self.robot_netns().filter(|_| part.on_robot());
         let process = if part == Part::Router {
-            Process::spawn_from_path(binary, &args, &options.log)?
+            Process::spawn_from_path_in(netns, binary, &args, &options.log)?
         } else {
-            Process::spawn_logged(binary, &args, &options.log)?
+            Process::spawn_in(netns, binary, &args, &options.log)?
         };
         self.processes.insert(part, process);
         // Zenoh clients give up when their router is not there yet.
         match part {
-            Part::Router => wait_until_listening(&self.robot_endpoint, Duration::from_secs(20)),
+            Part::Router => match self.robot_netns() {
+                Some(ns) => {
+                    wait_until_listening_in(ns, &self.robot_endpoint, Duration::from_secs(20))
+                }
+                None => wait_until_listening(&self.robot_endpoint, Duration::from_secs(20)),
+            },
             Part::Controller => wait_until_listening(&self.endpoint, Duration::from_secs(20)),
             _ => Ok(()),
         }
@@ -289,7 +367,7 @@ impl EmulatedEnclosure {
     /// Waits (bounded) until the env is online and the tracker agent reports
     /// tracking, so a first `reset` can navigate.
     pub async fn ready(&self, limit: Duration) -> Result<(), String> {
-        let mut config = SessionConfig::connecting(&self.robot_endpoint);
+        let mut config = SessionConfig::connecting(self.site_endpoint());
         config.mode = Mode::Client;
         let session = config.open().await.map_err(|e| e.to_string())?;
         let tracking = session
@@ -324,6 +402,20 @@ impl EmulatedEnclosure {
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
         Err(format!("{} stayed offline for {limit:?}", self.env))
+    }
+
+    /// Where the site reaches the robot's data: the site's router with an
+    /// isolated robot, else the robot's router.
+    pub fn site_endpoint(&self) -> &str {
+        match &self.site_router {
+            Some((_, endpoint)) => endpoint,
+            None => &self.robot_endpoint,
+        }
+    }
+
+    /// The robot's network namespace, with [`Options::isolated_robot`].
+    pub fn robot_netns(&self) -> Option<&str> {
+        self.robot_netns.as_ref().map(|ns| ns.name.as_str())
     }
 
     /// Sends a signal (`STOP`, `CONT`, `TERM`, …) to one part.
@@ -406,12 +498,40 @@ fn register_user(db: &str, name: &str) -> std::io::Result<String> {
     Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
 }
 
-/// Waits until something accepts TCP connections at `tcp/HOST:PORT`.
-fn wait_until_listening(endpoint: &str, limit: Duration) -> std::io::Result<()> {
-    let addr: SocketAddr = endpoint
+fn endpoint_addr(endpoint: &str) -> std::io::Result<SocketAddr> {
+    endpoint
         .trim_start_matches("tcp/")
         .parse()
-        .map_err(|e| std::io::Error::other(format!("{endpoint}: {e}")))?;
+        .map_err(|e| std::io::Error::other(format!("{endpoint}: {e}")))
+}
+
+/// Waits until something accepts TCP connections at `tcp/HOST:PORT` inside
+/// network namespace `netns`.
+fn wait_until_listening_in(netns: &str, endpoint: &str, limit: Duration) -> std::io::Result<()> {
+    let addr = endpoint_addr(endpoint)?;
+    let probe = format!("exec 3<>/dev/tcp/{}/{}", addr.ip(), addr.port());
+    let deadline = std::time::Instant::now() + limit;
+    loop {
+        let connected = Command::new("ip")
+            .args(["netns", "exec", netns, "bash", "-c", &probe])
+            .stderr(std::process::Stdio::null())
+            .status()?
+            .success();
+        if connected {
+            return Ok(());
+        }
+        if std::time::Instant::now() >= deadline {
+            return Err(std::io::Error::other(format!(
+                "nothing listens at {endpoint} in {netns} after {limit:?}"
+            )));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Waits until something accepts TCP connections at `tcp/HOST:PORT`.
+fn wait_until_listening(endpoint: &str, limit: Duration) -> std::io::Result<()> {
+    let addr = endpoint_addr(endpoint)?;
     let deadline = std::time::Instant::now() + limit;
     loop {
         if TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok() {

@@ -7,6 +7,7 @@
 //! the report program (`fault_matrix`, figures for `docs/safety.md`).
 
 use std::fmt;
+use std::io::{BufRead, BufReader};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -22,7 +23,11 @@ use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig, WireError};
 
+use anyhow::Context;
+
 use crate::emulated::{EmulatedEnclosure, Part};
+use crate::link::Impairment;
+use crate::Process;
 
 /// What is done to a part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -33,6 +38,9 @@ pub enum Fault {
     Terminate,
     /// SIGSTOP for this long, then SIGCONT: a hang, a debugger, swap.
     Freeze(Duration),
+    /// The robot's link impaired for this long, then clear again (the part
+    /// is [`Part::RobotLink`]).
+    Link(Impairment, Duration),
 }
 
 impl fmt::Display for Fault {
@@ -41,37 +49,137 @@ impl fmt::Display for Fault {
             Fault::Kill => f.write_str("kill -9"),
             Fault::Terminate => f.write_str("SIGTERM"),
             Fault::Freeze(d) => write!(f, "SIGSTOP {} s", d.as_secs()),
+            Fault::Link(impairment, d) => {
+                let s = d.as_secs();
+                match impairment {
+                    Impairment::Clear => write!(f, "clear {s} s"),
+                    Impairment::Cut => write!(f, "cut {s} s"),
+                    Impairment::Delay(by) => write!(f, "{} ms delay {s} s", by.as_millis()),
+                    Impairment::Loss { percent } => write!(f, "{percent} % loss {s} s"),
+                }
+            }
         }
     }
 }
 
-/// The base's odometry as published by the emulated hardware.
+/// The base as its odometry shows it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaseState {
+    /// Heading, rad.
+    pub yaw: f64,
+    /// Position, m.
+    pub x: f64,
+    /// Position, m.
+    pub y: f64,
+    /// Whether the base reports a velocity.
+    pub moving: bool,
+}
+
+impl BaseState {
+    /// Reads an odometry message.
+    pub fn of(odom: &Odometry) -> Self {
+        let (pose, twist) = (&odom.pose.pose, &odom.twist.twist);
+        Self {
+            yaw: pose.orientation.yaw(),
+            x: pose.position.x,
+            y: pose.position.y,
+            moving: twist.linear.x.abs() > 1e-3 || twist.angular.z.abs() > 1e-3,
+        }
+    }
+}
+
+/// One line of `base_probe`'s output: `yaw x y moving`.
+impl fmt::Display for BaseState {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let moving = u8::from(self.moving);
+        write!(f, "{} {} {} {moving}", self.yaw, self.x, self.y)
+    }
+}
+
+impl std::str::FromStr for BaseState {
+    type Err = String;
+
+    fn from_str(line: &str) -> Result<Self, String> {
+        let fields: Vec<f64> = line
+            .split_whitespace()
+            .map(|f| f.parse().map_err(|e| format!("{line:?}: {e}")))
+            .collect::<Result<_, _>>()?;
+        match fields[..] {
+            [yaw, x, y, moving] => Ok(Self {
+                yaw,
+                x,
+                y,
+                moving: moving != 0.0,
+            }),
+            _ => Err(format!("{line:?}: expected `yaw x y moving`")),
+        }
+    }
+}
+
+/// The base's state when it was heard.
 #[derive(Debug, Clone, Copy)]
 struct OdomSample {
     at: Instant,
-    yaw: f64,
-    x: f64,
-    y: f64,
-    moving: bool,
+    base: BaseState,
 }
 
 /// Watches the base's odometry over a direct link to the hardware (it
-/// keeps working while the robot's router is down).
+/// keeps working while the robot's router or link is down).
 pub struct BaseObserver {
     samples: Arc<Mutex<Vec<OdomSample>>>,
-    _subscriber: Subscriber<()>,
-    _session: Session,
+    _feed: Feed,
+}
+
+/// Where the samples come from.
+enum Feed {
+    /// A Zenoh peer session of this process.
+    Direct {
+        _subscriber: Subscriber<()>,
+        _session: Session,
+    },
+    /// A `base_probe` inside the robot's network namespace.
+    Probe { _process: Process },
+}
+
+fn record(samples: &Mutex<Vec<OdomSample>>, sample: OdomSample) {
+    if let Ok(mut v) = samples.lock() {
+        v.push(sample);
+    }
 }
 
 impl BaseObserver {
-    /// Connects to the deployment's hardware as a peer.
+    /// Connects to the deployment's hardware as a peer, or through a probe
+    /// inside the robot's namespace when the robot runs in one.
     pub async fn connect(deployment: &EmulatedEnclosure) -> anyhow::Result<Self> {
+        let samples = Arc::new(Mutex::new(Vec::new()));
+        if let Some(netns) = deployment.robot_netns() {
+            let mut probe = Process::spawn_piped_in(
+                Some(netns),
+                "base_probe",
+                &["--connect", &deployment.hardware_endpoint],
+                "warn",
+            )?;
+            let stdout = probe.0.stdout.take().context("the probe's stdout")?;
+            let sink = samples.clone();
+            std::thread::spawn(move || {
+                for line in BufReader::new(stdout).lines() {
+                    let Ok(line) = line else { return };
+                    if let Ok(base) = line.parse() {
+                        let at = Instant::now();
+                        record(&sink, OdomSample { at, base });
+                    }
+                }
+            });
+            return Ok(Self {
+                samples,
+                _feed: Feed::Probe { _process: probe },
+            });
+        }
         let mut config = SessionConfig::connecting(&deployment.hardware_endpoint);
         config.mode = Mode::Peer;
         let session = config.open().await.map_err(|e| anyhow::anyhow!("{e}"))?;
         let key = RosGraph::new(Default::default(), "")?
             .subscription_key(&RobotTopics::default().odom, RosType::Odometry)?;
-        let samples = Arc::new(Mutex::new(Vec::new()));
         let sink = samples.clone();
         let subscriber = session
             .declare_subscriber(key)
@@ -79,25 +187,23 @@ impl BaseObserver {
                 let Ok(odom) = codec::decode_payload::<Odometry>(s.payload()) else {
                     return;
                 };
-                let twist = &odom.twist.twist;
-                let pose = &odom.pose.pose;
-                let sample = OdomSample {
-                    at: Instant::now(),
-                    yaw: pose.orientation.yaw(),
-                    x: pose.position.x,
-                    y: pose.position.y,
-                    moving: twist.linear.x.abs() > 1e-3 || twist.angular.z.abs() > 1e-3,
-                };
-                if let Ok(mut v) = sink.lock() {
-                    v.push(sample);
-                }
+                let at = Instant::now();
+                record(
+                    &sink,
+                    OdomSample {
+                        at,
+                        base: BaseState::of(&odom),
+                    },
+                );
             })
             .await
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         Ok(Self {
             samples,
-            _subscriber: subscriber,
-            _session: session,
+            _feed: Feed::Direct {
+                _subscriber: subscriber,
+                _session: session,
+            },
         })
     }
 
@@ -113,7 +219,7 @@ impl BaseObserver {
         self.samples
             .lock()
             .ok()
-            .and_then(|v| v.last().map(|s| s.moving))
+            .and_then(|v| v.last().map(|s| s.base.moving))
             .unwrap_or(false)
     }
 
@@ -233,11 +339,20 @@ pub async fn inject(
     match fault {
         Fault::Kill => deployment.kill(part),
         Fault::Terminate => deployment.signal(part, "TERM"),
-        Fault::Freeze(_) => deployment.signal(part, "STOP"),
-    }
-    if let Fault::Freeze(d) = fault {
-        tokio::time::sleep(d).await;
-        deployment.signal(part, "CONT");
+        Fault::Freeze(d) => {
+            deployment.signal(part, "STOP");
+            tokio::time::sleep(d).await;
+            deployment.signal(part, "CONT");
+        }
+        Fault::Link(impairment, d) => {
+            let link = deployment
+                .robot_link
+                .as_ref()
+                .expect("a link fault needs Options::isolated_robot");
+            link.impair(impairment);
+            tokio::time::sleep(d).await;
+            link.impair(Impairment::Clear);
+        }
     }
     let (gym, result, returned) =
         match tokio::time::timeout(Duration::from_secs(40), stepping).await {
@@ -249,7 +364,7 @@ pub async fn inject(
         tokio::time::sleep(window - elapsed).await;
     }
     let after = base.since(at);
-    let moved_for = match after.iter().rposition(|s| s.moving) {
+    let moved_for = match after.iter().rposition(|s| s.base.moving) {
         Some(i) if i + 1 == after.len() => None,
         Some(i) => Some(after[i].at.saturating_duration_since(at)),
         None => Some(Duration::ZERO),
@@ -257,9 +372,10 @@ pub async fn inject(
     let mut turned = 0.0;
     let mut travelled = 0.0;
     for pair in after.windows(2) {
-        let d = pair[1].yaw - pair[0].yaw;
+        let (a, b) = (pair[0].base, pair[1].base);
+        let d = b.yaw - a.yaw;
         turned += d.sin().atan2(d.cos()).abs();
-        travelled += (pair[1].x - pair[0].x).hypot(pair[1].y - pair[0].y);
+        travelled += (b.x - a.x).hypot(b.y - a.y);
     }
     let outcome = FaultOutcome {
         part,
@@ -275,8 +391,8 @@ pub async fn inject(
 }
 
 /// Brings a faulted part back: a killed or terminated one is started
-/// again (a frozen one was continued by [`inject`]); then waits until the
-/// env is online and tracked again.
+/// again (a frozen one was continued, a link cleared, by [`inject`]); then
+/// waits until the env is online and tracked again.
 pub async fn recover(
     deployment: &mut EmulatedEnclosure,
     part: Part,

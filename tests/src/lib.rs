@@ -5,6 +5,7 @@
 
 pub mod emulated;
 pub mod faults;
+pub mod link;
 pub mod netns;
 pub mod site;
 
@@ -40,7 +41,29 @@ impl Process {
     /// Starts a program found on `PATH` (e.g. `zenohd`, installed by
     /// `.ci/setup`) with arguments and a `RUST_LOG` filter.
     pub fn spawn_from_path(program: &str, args: &[&str], log: &str) -> std::io::Result<Self> {
-        Self::spawn_path(None, PathBuf::from(program), args, log)
+        Self::spawn_from_path_in(None, program, args, log)
+    }
+
+    /// Like [`Process::spawn_from_path`], inside network namespace `netns`
+    /// if given.
+    pub fn spawn_from_path_in(
+        netns: Option<&str>,
+        program: &str,
+        args: &[&str],
+        log: &str,
+    ) -> std::io::Result<Self> {
+        Self::spawn_path(netns, PathBuf::from(program), args, log, Stdio::null())
+    }
+
+    /// Like [`Process::spawn_in`], with the child's standard output piped
+    /// to the caller (`self.0.stdout`).
+    pub fn spawn_piped_in(
+        netns: Option<&str>,
+        binary: &str,
+        args: &[&str],
+        log: &str,
+    ) -> std::io::Result<Self> {
+        Self::spawn_path(netns, binary_dir().join(binary), args, log, Stdio::piped())
     }
 
     /// Like [`Process::spawn_logged`], inside network namespace `netns` if
@@ -51,7 +74,7 @@ impl Process {
         args: &[&str],
         log: &str,
     ) -> std::io::Result<Self> {
-        Self::spawn_path(netns, binary_dir().join(binary), args, log)
+        Self::spawn_path(netns, binary_dir().join(binary), args, log, Stdio::null())
     }
 
     fn spawn_path(
@@ -59,6 +82,7 @@ impl Process {
         path: PathBuf,
         args: &[&str],
         log: &str,
+        stdout: Stdio,
     ) -> std::io::Result<Self> {
         let mut command = match netns {
             Some(ns) => {
@@ -74,7 +98,7 @@ impl Process {
                 "RUST_LOG",
                 std::env::var("OFFWORLD_CHILD_LOG").unwrap_or_else(|_| log.to_owned()),
             )
-            .stdout(Stdio::null())
+            .stdout(stdout)
             .stderr(Stdio::inherit())
             .spawn()
             .map(Self)

@@ -113,3 +113,72 @@ impl Drop for Namespaces {
         self.remove();
     }
 }
+
+/// One namespace for the robot computer, reachable from the host (the
+/// site: controller, trainers) over one veth pair. What runs inside listens
+/// on the namespace's own loopback for its neighbours, which the host
+/// cannot reach: the host meets the robot only through the addresses it is
+/// given, so a test can put a [`crate::link::ImpairedLink`] in that path.
+pub struct RobotNamespace {
+    /// The namespace's name (`ip netns exec <name> …`).
+    pub name: String,
+    /// The robot's address on the link.
+    pub robot_ip: String,
+    /// The host's address on the link.
+    pub host_ip: String,
+    host_link: String,
+}
+
+impl RobotNamespace {
+    /// Creates the namespace and its link; an error says why (no `ip`, no
+    /// privilege), and leaves nothing behind.
+    pub fn create() -> anyhow::Result<Self> {
+        let id = std::process::id() % 100_000;
+        // Disjoint from [`Namespaces`]' 10.16–215 subnets.
+        let net = 216 + id % 39;
+        let sub = (id / 39) % 250;
+        let ns = Self {
+            name: format!("ow-robot-{id}"),
+            robot_ip: format!("10.{net}.{sub}.2"),
+            host_ip: format!("10.{net}.{sub}.1"),
+            host_link: format!("owb-{id}"),
+        };
+        ns.build(id).inspect_err(|_| ns.remove())?;
+        Ok(ns)
+    }
+
+    fn build(&self, id: u32) -> anyhow::Result<()> {
+        let inside = format!("owbr-{id}");
+        ip(&["netns", "add", &self.name])?;
+        ip(&[
+            "link",
+            "add",
+            &self.host_link,
+            "type",
+            "veth",
+            "peer",
+            "name",
+            &inside,
+        ])?;
+        ip(&["link", "set", &inside, "netns", &self.name])?;
+        let host_ip = format!("{}/24", self.host_ip);
+        ip(&["addr", "add", &host_ip, "dev", &self.host_link])?;
+        ip(&["link", "set", &self.host_link, "up"])?;
+        let robot_ip = format!("{}/24", self.robot_ip);
+        ip(&["-n", &self.name, "addr", "add", &robot_ip, "dev", &inside])?;
+        ip(&["-n", &self.name, "link", "set", &inside, "up"])?;
+        ip(&["-n", &self.name, "link", "set", "lo", "up"])?;
+        Ok(())
+    }
+
+    fn remove(&self) {
+        let _ = ip(&["netns", "del", &self.name]);
+        let _ = ip(&["link", "del", &self.host_link]);
+    }
+}
+
+impl Drop for RobotNamespace {
+    fn drop(&mut self) {
+        self.remove();
+    }
+}

@@ -19,6 +19,7 @@ use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::{
     inject, open_request, recover, reset_when_ready, BaseObserver, Fault,
 };
+use offworld_tests::link::Impairment;
 
 /// How long the base is watched after each fault. A base that held its
 /// velocity would turn 1.5 rad/s × 3 s = 4.5 rad in it.
@@ -167,4 +168,92 @@ async fn without_the_guard_a_killed_agent_leaves_the_worst_case_base_moving() {
         "kept turning at 1.5 rad/s: {:.2} rad in {WINDOW:?}",
         outcome.turned_rad
     );
+}
+
+/// The robot's network link, between the site (controller) and the robot
+/// computer: cut, lossy (30 %), slow (500 ms each way). Whatever the link
+/// does, the worst-case base stops and the client gets an answer it can
+/// act on; once the link is clear again, training resumes with every
+/// episode recorded.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_base_stops_and_the_client_gets_an_answer_on_robot_link_faults() {
+    let mut options = Options::new("MonolithContinuous").expect("options");
+    options.isolated_robot = true;
+    let (mut deployment, base, session, mut gym) = deploy(&options, "link-faults").await;
+    let held = Duration::from_secs(4);
+    let faults = [
+        Fault::Link(Impairment::Cut, held),
+        Fault::Link(Impairment::Loss { percent: 30 }, held),
+        Fault::Link(Impairment::Delay(Duration::from_millis(500)), held),
+    ];
+    let mut resets = 0u64;
+    for (seed, fault) in (20u64..).zip(faults) {
+        reset_when_ready(&mut gym, seed, Duration::from_secs(90))
+            .await
+            .unwrap_or_else(|e| panic!("{fault}: no reset: {e}"));
+        resets += 1;
+        let (back, outcome) = inject(
+            &mut deployment,
+            gym,
+            &base,
+            Part::RobotLink,
+            fault,
+            WINDOW + held,
+        )
+        .await;
+        gym = back;
+        eprintln!(
+            "robot_link {:<22} moved for {:?}, turned {:.2} rad, client {:?} after {:?}",
+            fault.to_string(),
+            outcome.moved_for,
+            outcome.turned_rad,
+            outcome.client_error.as_ref().map(|e| e.to_string()),
+            outcome.result_after
+        );
+        assert!(outcome.observed, "{fault}: odometry heard after the fault");
+        assert!(
+            outcome.moved_for.is_some(),
+            "{fault}: the base still moves at the end of the window"
+        );
+        if matches!(fault, Fault::Link(Impairment::Cut, _)) {
+            // Nothing reaches the robot: its watchdog stops it.
+            assert!(
+                outcome.stopped_within(Duration::from_secs(1)),
+                "{fault}: the base kept moving ({:?})",
+                outcome.moved_for
+            );
+            assert!(
+                outcome.turned_rad < TURN_BOUND_RAD,
+                "{fault}: turned {:.2} rad after the fault",
+                outcome.turned_rad
+            );
+        }
+        if let Some(error) = &outcome.client_error {
+            assert!(
+                matches!(error.code, ErrorCode::Unavailable | ErrorCode::Timeout),
+                "{fault}: a transient, typed error: {error}"
+            );
+        }
+        recover(&mut deployment, Part::RobotLink, fault)
+            .await
+            .unwrap_or_else(|e| panic!("{fault}: no recovery: {e}"));
+    }
+    gym.close().await.expect("close");
+    let store = Store::open(&deployment.dir.join("gym.db")).expect("store");
+    let experiment = store
+        .experiments()
+        .expect("experiments")
+        .into_iter()
+        .find(|e| e.name == "link-faults")
+        .expect("the experiment");
+    assert_eq!(experiment.episodes, resets, "no episode record lost");
+    let resumed = EnvClient::open(
+        &session,
+        &deployment.env,
+        open_request(&deployment.token, "link-faults", true),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("resume");
+    assert_eq!(resumed.opened().experiment.episodes, resets);
 }
