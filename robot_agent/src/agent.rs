@@ -26,6 +26,7 @@ use offworld_runtime::WireError;
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
 
+use crate::base_check::{BaseCheck, CheckStep};
 use crate::config::AgentConfig;
 use crate::error::AgentError;
 use crate::hardware::{RobotHardware, Sensors};
@@ -44,6 +45,8 @@ const MAX_GOTO_S: f64 = 300.0;
 const ZERO_TAIL: Duration = Duration::from_millis(500);
 /// Event queue bound.
 const QUEUE: usize = 256;
+/// Odometry older than this says nothing about the base now.
+const ODOM_STALE: Duration = Duration::from_millis(200);
 /// How long a starting agent asks the network for the e-stop latches.
 const RECALL: Duration = Duration::from_millis(500);
 
@@ -125,6 +128,7 @@ pub async fn spawn<H: RobotHardware>(
             Watchdog::new(config.watchdog())
         },
         limiter: VelocityLimiter::new(config.limits),
+        base_check: config.base_check(),
         sensors: robot.sensors(),
         robot,
         grid,
@@ -406,6 +410,7 @@ struct Agent<H: RobotHardware> {
     grid: OccupancyGrid,
     poses: watch::Receiver<Option<(Pose2D, Instant)>>,
     watchdog: Watchdog,
+    base_check: BaseCheck,
     limiter: VelocityLimiter,
     /// The site and env e-stop latches in force.
     estops: EStopState,
@@ -522,7 +527,40 @@ impl<H: RobotHardware> Agent<H> {
                     .unwrap_or_else(|| "not armed".into())
             ));
         }
-        None
+        self.base_check.refusal()
+    }
+
+    /// Runs the start-up check of the base's command timeout; `true` when
+    /// it drove (or silenced) the base this tick.
+    async fn check_base(&mut self, now: Instant, dt: f64) -> bool {
+        let may_move = self.estops.refusal().is_none()
+            && self.watchdog.armed()
+            && matches!(self.activity, Activity::Idle);
+        let moving = self.sensors.borrow().odom.as_ref().and_then(|odom| {
+            let fresh = now.saturating_duration_since(odom.at) < ODOM_STALE;
+            let twist = &odom.msg.twist.twist;
+            fresh.then(|| twist.linear.x.abs() > 1e-3 || twist.angular.z.abs() > 1e-3)
+        });
+        match self.base_check.step(now, may_move, moving) {
+            CheckStep::Idle => false,
+            CheckStep::Drive(velocity) => {
+                let velocity = self.limiter.ramp(velocity, dt);
+                self.send(velocity).await;
+                true
+            }
+            CheckStep::Hold => {
+                // Silence: the base must stop by itself. Nothing to ramp
+                // down from afterwards.
+                self.limiter.halt();
+                self.last_motion = None;
+                true
+            }
+            CheckStep::Stop => {
+                self.limiter.halt();
+                self.send(Velocity::ZERO).await;
+                true
+            }
+        }
     }
 
     async fn command(&mut self, cmd: MotionCommand, now: Instant) {
@@ -710,6 +748,9 @@ impl<H: RobotHardware> Agent<H> {
         let now = Instant::now();
         self.check_watchdog(now).await;
         self.check_camera(now).await;
+        if self.check_base(now, dt).await {
+            return;
+        }
         let settle = Duration::from_millis(self.config.settle_ms);
         let still = self.limiter.current().is_zero();
         let mut target = Velocity::ZERO;

@@ -9,6 +9,7 @@ use offworld_runtime::ros2::{KeyStyle, RobotTopics, RosGraph};
 use offworld_runtime::WorldSpec;
 use serde::{Deserialize, Serialize};
 
+use crate::base_check::BaseCheck;
 use crate::error::AgentError;
 use crate::guard::GuardConfig;
 use crate::nav::NavConfig;
@@ -86,6 +87,12 @@ pub struct AgentConfig {
     /// own command timeout (e.g. ros2_control's `cmd_vel_timeout`) was
     /// verified.
     pub require_base_guard: bool,
+    /// Without the base guard: the base driver's own command timeout, ms,
+    /// which the agent verifies before the first motion (a slow turn, then
+    /// silence: the base must stop within it, see [`crate::base_check`]).
+    pub base_cmd_timeout_ms: u64,
+    /// Skip that check: the operator vouches for the base's timeout.
+    pub skip_base_timeout_check: bool,
     /// The base guard's timings (read by `base_guard`).
     pub guard: GuardConfig,
 }
@@ -108,6 +115,8 @@ impl Default for AgentConfig {
             nav: NavConfig::default(),
             estop_latch: None,
             require_base_guard: true,
+            base_cmd_timeout_ms: 500,
+            skip_base_timeout_check: false,
             guard: GuardConfig::default(),
         }
     }
@@ -168,6 +177,12 @@ impl AgentConfig {
                 self.nav_hold_ms
             )));
         }
+        if self.base_cmd_timeout_ms == 0 || self.base_cmd_timeout_ms > 5_000 {
+            return Err(AgentError::Config(format!(
+                "base_cmd_timeout_ms must be in 1..=5000, got {}",
+                self.base_cmd_timeout_ms
+            )));
+        }
         self.guard.validate()?;
         self.graph()?;
         Ok(())
@@ -186,6 +201,16 @@ impl AgentConfig {
             WorldSpec::builtin(&self.world)
         };
         world.map_err(|e| AgentError::Config(e.to_string()))
+    }
+
+    /// The start-up check of the base's own command timeout: only when no
+    /// base guard is required and the operator did not skip it.
+    pub fn base_check(&self) -> BaseCheck {
+        if self.require_base_guard || self.skip_base_timeout_check {
+            BaseCheck::skipped()
+        } else {
+            BaseCheck::new(Duration::from_millis(self.base_cmd_timeout_ms))
+        }
     }
 
     /// The watchdog window.

@@ -26,6 +26,7 @@
 //! runs the node.
 
 pub mod agent;
+pub mod base_check;
 pub mod config;
 mod error;
 pub mod guard;

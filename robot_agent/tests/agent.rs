@@ -19,7 +19,7 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
-    MotionFault, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
+    MotionFault, Odometry, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
 };
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
@@ -50,6 +50,9 @@ fn config() -> AgentConfig {
     AgentConfig {
         watchdog_ms: 1_000,
         require_base_guard: false,
+        // The double has no odometry to check a command timeout on (the
+        // check has tests of its own).
+        skip_base_timeout_check: true,
         ..AgentConfig::default()
     }
 }
@@ -127,6 +130,36 @@ impl RecordingRobot {
                         msg: Arc::new(depth),
                         at,
                     });
+                });
+            }
+        })
+    }
+}
+
+impl RecordingRobot {
+    /// Publishes wheel odometry at 50 Hz showing the last velocity sent,
+    /// as a base does that holds it until `timeout` after the last command
+    /// (`None`: forever, a base without a command timeout).
+    fn simulate_base(&self, timeout: Option<Duration>) -> JoinHandle<()> {
+        let (sensors, sent) = (self.sensors.clone(), self.sent.clone());
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_millis(20));
+            loop {
+                tick.tick().await;
+                let last = sent.lock().expect("log").last().copied();
+                let velocity = match last {
+                    Some(s) if timeout.is_none_or(|t| s.at.elapsed() < t) => s.velocity,
+                    _ => Velocity::ZERO,
+                };
+                let mut odom = Odometry::default();
+                odom.twist.twist.linear.x = velocity.linear;
+                odom.twist.twist.angular.z = velocity.angular;
+                let at = Instant::now();
+                sensors.send_modify(|s| {
+                    s.odom = Some(Received {
+                        msg: Arc::new(odom),
+                        at,
+                    })
                 });
             }
         })
@@ -1426,5 +1459,72 @@ async fn a_camera_silent_mid_drive_fails_the_command_at_once() {
         "failed after {after:?}, not at the motion's end"
     );
     assert_braked(&rig.robot.sent(), silenced, cruise, "camera silent");
+    rig.finish().await;
+}
+
+/// Without a base guard, the agent checks the base's own command timeout
+/// before the first motion: a slow turn, then silence. A base that stops
+/// by itself passes, and commands move it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_base_that_honours_its_command_timeout_passes_the_start_check() {
+    let config = AgentConfig {
+        skip_base_timeout_check: false,
+        base_cmd_timeout_ms: 300,
+        ..config()
+    };
+    let mut rig = Rig::launch("base-check-ok", config).await;
+    let base = rig.robot.simulate_base(Some(Duration::from_millis(300)));
+    rig.tasks.push(base);
+    let robot = rig.robot.clone();
+    assert!(
+        wait_until(Duration::from_secs(10), || robot.sent().iter().any(|s| s
+            .velocity
+            .angular
+            == 0.3
+            && s.velocity.linear == 0.0))
+        .await,
+        "the check's slow turn"
+    );
+    rig.until_motion_allowed().await;
+    rig.finish().await;
+}
+
+/// A base that holds its last velocity forever fails the check: the agent
+/// stops it and refuses every motion, saying what to do.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_base_without_a_command_timeout_is_never_armed() {
+    let config = AgentConfig {
+        skip_base_timeout_check: false,
+        base_cmd_timeout_ms: 300,
+        ..config()
+    };
+    let mut rig = Rig::launch("base-check-fails", config).await;
+    let base = rig.robot.simulate_base(None);
+    rig.tasks.push(base);
+    let deadline = Instant::now() + Duration::from_secs(15);
+    let mut reason = String::new();
+    for probe in 4_000_000u64.. {
+        assert!(Instant::now() < deadline, "never refused: {reason}");
+        rig.cmd(probe, CRUISE, 0.0, 0.3).await;
+        if let Ok(Some(fault)) =
+            tokio::time::timeout(Duration::from_millis(1500), rig.faults.recv()).await
+        {
+            reason = fault.reason;
+            if reason.contains("no working command timeout") {
+                break;
+            }
+        }
+    }
+    assert!(
+        reason.contains("within 600 ms of its last command (it kept moving)"),
+        "{reason}"
+    );
+    assert!(reason.contains("require_base_guard = true"), "{reason}");
+    assert_eq!(rig.robot.last(), Velocity::ZERO, "stopped by the agent");
+    let sent = rig.robot.sent();
+    assert!(
+        sent.iter().all(|s| s.velocity.linear == 0.0),
+        "only the check's turn ever moved the base: {sent:?}"
+    );
     rig.finish().await;
 }

@@ -51,7 +51,9 @@ pub struct Options {
     /// forever — the worst case, the default, what fault tests run against.
     pub base_cmd_timeout_ms: Option<u64>,
     /// Run the robot's `base_guard` (default). Without it the robot agent
-    /// is started with `require_base_guard = false`.
+    /// is started with `require_base_guard = false` and checks the base's
+    /// command timeout before the first motion (skipped, on the operator's
+    /// override, for the worst-case base).
     pub base_guard: bool,
     /// Run the robot computer (its router, the hardware, robot agent, base
     /// guard and tracker agent) in a network namespace of its own, which
@@ -330,10 +332,7 @@ impl EmulatedEnclosure {
             Part::RobotLink => return Ok(()),
             Part::RobotAgent => {
                 let config = self.dir.join("robot.toml");
-                std::fs::write(
-                    &config,
-                    format!("require_base_guard = {}\n", options.base_guard),
-                )?;
+                std::fs::write(&config, robot_config_toml(options))?;
                 push(&["--env", &env, "--world", options.world()]);
                 push(&["--robot-config", &config.to_string_lossy()]);
                 push(&["--watchdog-ms", &options.watchdog_ms.to_string()]);
@@ -464,6 +463,21 @@ impl Drop for EmulatedEnclosure {
         self.processes.clear();
         let _ = std::fs::remove_dir_all(&self.dir);
     }
+}
+
+/// The robot agent's settings: without the base guard, the base's own
+/// command timeout is what the agent checks before the first motion; the
+/// worst-case base (none) is run on the operator's override, so that tests
+/// can show what it does.
+fn robot_config_toml(options: &Options) -> String {
+    let mut toml = format!("require_base_guard = {}\n", options.base_guard);
+    if !options.base_guard {
+        match options.base_cmd_timeout_ms {
+            Some(ms) => toml += &format!("base_cmd_timeout_ms = {ms}\n"),
+            None => toml += "skip_base_timeout_check = true\n",
+        }
+    }
+    toml
 }
 
 /// The tracker agent's calibration matching the emulator's lighthouse

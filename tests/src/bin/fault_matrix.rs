@@ -12,7 +12,11 @@
 //! fault_matrix --part robot_agent    # one part
 //! fault_matrix --base-timeout-ms 300 # against a base with a command timeout
 //! fault_matrix --no-guard --base-timeout-ms 300 --part robot_agent  # the base's timeout alone
+//! fault_matrix --part robot_link     # the robot's network link: cut, 30 % loss, 500 ms delay
 //! ```
+//!
+//! With the robot's link among the parts (the default), the robot runs in
+//! a network namespace of its own behind an impaired link (root needed).
 
 use std::time::Duration;
 
@@ -25,6 +29,7 @@ use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::{
     inject, open_request, recover, reset_when_ready, BaseObserver, Fault, FaultOutcome,
 };
+use offworld_tests::link::Impairment;
 
 #[derive(Parser)]
 #[command(
@@ -33,7 +38,7 @@ use offworld_tests::faults::{
 )]
 struct Args {
     /// Only this part (router, hardware, env_controller, robot_agent,
-    /// base_guard, tracker_agent).
+    /// base_guard, tracker_agent, robot_link).
     #[arg(long)]
     part: Option<String>,
     /// The emulated base stops after this long without a command (default:
@@ -58,15 +63,21 @@ async fn main() -> anyhow::Result<()> {
     options.base_guard = !args.no_guard;
     let parts: Vec<Part> = Part::ALL
         .into_iter()
+        .chain([Part::RobotLink])
         .filter(|p| args.part.as_deref().is_none_or(|name| name == p.name()))
         .filter(|p| *p != Part::BaseGuard || !args.no_guard)
         .collect();
     anyhow::ensure!(!parts.is_empty(), "no such part: {:?}", args.part);
-    let faults = [
-        Fault::Kill,
-        Fault::Terminate,
-        Fault::Freeze(Duration::from_secs(5)),
-    ];
+    options.isolated_robot = parts.contains(&Part::RobotLink);
+    let held = Duration::from_secs(5);
+    let faults = |part: Part| match part {
+        Part::RobotLink => vec![
+            Fault::Link(Impairment::Cut, held),
+            Fault::Link(Impairment::Loss { percent: 30 }, held),
+            Fault::Link(Impairment::Delay(Duration::from_millis(500)), held),
+        ],
+        _ => vec![Fault::Kill, Fault::Terminate, Fault::Freeze(held)],
+    };
     eprintln!("starting the emulated enclosure…");
     let mut deployment = EmulatedEnclosure::start(&options)?;
     deployment
@@ -76,12 +87,12 @@ async fn main() -> anyhow::Result<()> {
     let base = BaseObserver::connect(&deployment).await?;
     let mut outcomes: Vec<FaultOutcome> = Vec::new();
     let mut resets = 0u64;
-    let total = parts.len() * faults.len();
-    for (i, (part, fault)) in parts
+    let matrix: Vec<(Part, Fault)> = parts
         .iter()
-        .flat_map(|p| faults.iter().map(move |f| (*p, *f)))
-        .enumerate()
-    {
+        .flat_map(|p| faults(*p).into_iter().map(move |f| (*p, f)))
+        .collect();
+    let total = matrix.len();
+    for (i, (part, fault)) in matrix.into_iter().enumerate() {
         eprintln!("[{}/{total}] {} {fault}", i + 1, part.name());
         // A fresh client session each time: the controller may be the part.
         let session = SessionConfig::connecting(&deployment.endpoint)
@@ -101,7 +112,11 @@ async fn main() -> anyhow::Result<()> {
             .await
             .map_err(|e| anyhow::anyhow!("reset: {e}"))?;
         resets += 1;
-        let (mut gym, outcome) = inject(&mut deployment, gym, &base, part, fault, window).await;
+        let watched = match fault {
+            Fault::Link(_, d) => window + d,
+            _ => window,
+        };
+        let (mut gym, outcome) = inject(&mut deployment, gym, &base, part, fault, watched).await;
         outcomes.push(outcome);
         recover(&mut deployment, part, fault).await?;
         // The session may be gone with a restarted controller.
@@ -114,7 +129,7 @@ async fn main() -> anyhow::Result<()> {
         .find(|e| e.name == "fault-matrix")
         .map_or(0, |e| e.episodes);
     println!(
-        "Base: {}{}. Each fault hits a step turning the robot at 1.5 rad/s; the base is watched for {:.0} s.\n",
+        "Base: {}{}. Each fault hits a step turning the robot at 1.5 rad/s; the base is watched for {:.0} s after each fault (after the link clears, for a link fault).\n",
         match args.base_timeout_ms {
             Some(ms) => format!("stops after {ms} ms without a command"),
             None => "holds the last velocity forever (worst case)".into(),
