@@ -9,7 +9,7 @@
 # Usage: deploy/certs/generate.sh OUT_DIR [ROUTER_SAN]
 #   ROUTER_SAN: subjectAltName of the router certificate
 #   (default: DNS:localhost plus 127.0.0.1-127.0.0.9).
-# Writes OUT_DIR/{ca,router,env_controller,robot_agent,tracker_agent,sim_twin,operator}.{pem,key}.
+# Writes OUT_DIR/{ca,router,env_controller,sim_controller,robot_agent,tracker_agent,sim_twin,operator}.{pem,key}.
 set -euo pipefail
 out=${1:?usage: generate.sh OUT_DIR [ROUTER_SAN]}
 router_san=${2:-DNS:localhost,$(printf 'IP:127.0.0.%d,' 1 2 3 4 5 6 7 8 9 | sed 's/,$//')}
@@ -35,7 +35,7 @@ issue() {
 }
 
 issue router "$router_san" serverAuth,clientAuth
-for role in env_controller robot_agent tracker_agent sim_twin operator; do
+for role in env_controller sim_controller robot_agent tracker_agent sim_twin operator; do
     issue "$role" "DNS:$role" clientAuth
 done
 rm -f ca.srl

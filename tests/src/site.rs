@@ -24,8 +24,10 @@ use crate::Process;
 pub enum Role {
     /// A researcher's client: gym queries and spectator keys only.
     Trainer,
-    /// The gym server.
+    /// The gym server of the real site.
     Controller,
+    /// The gym server of a sim-farm host (confined to `sim/`).
+    SimController,
     /// A sim twin (an agent).
     SimTwin,
     /// The robot agent.
@@ -42,6 +44,7 @@ impl Role {
         match self {
             Role::Trainer => "trainer",
             Role::Controller => "env_controller",
+            Role::SimController => "sim_controller",
             Role::SimTwin => "sim_twin",
             Role::RobotAgent => "robot_agent",
             Role::TrackerAgent => "tracker_agent",
@@ -54,9 +57,10 @@ impl Role {
         self != Role::Trainer
     }
 
-    const ALL: [Role; 6] = [
+    const ALL: [Role; 7] = [
         Role::Trainer,
         Role::Controller,
+        Role::SimController,
         Role::SimTwin,
         Role::RobotAgent,
         Role::TrackerAgent,

@@ -15,7 +15,7 @@ use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::ControllerError;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
-use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
+use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::*;
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::sample::Sample;
@@ -713,5 +713,135 @@ async fn agents_never_command_even_past_an_open_router() -> anyhow::Result<()> {
         1,
         "the open router passes e-stops"
     );
+    Ok(())
+}
+
+/// Realms: no credential reaches beyond its own. Each role tries what the
+/// router's ACL must drop — a sim credential commanding or posing as the
+/// real robot, an agent publishing another's data or commands, a controller
+/// declaring an agent's presence — beside what the same role may do (the
+/// positive controls); an operator watching everything sees exactly the
+/// allowed ones.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = RouterSite::start("realms")?;
+    let open = |role: Role| {
+        let config = site.session(role);
+        async move {
+            config
+                .open()
+                .await
+                .unwrap_or_else(|e| panic!("{} session: {e}", role.name()))
+        }
+    };
+    let operator = open(Role::Operator).await;
+    let (spy, _spy_sub) = Seen::watch(&operator, "offworld/@v1/**").await;
+    let (real, sim) = (EnvId::real("enclosure")?, EnvId::sim("farm-0")?);
+    // (role, key, allowed): a put of the action's name on the key.
+    let puts = [
+        (Role::Controller, real.key(Topic::Cmd), true),
+        (Role::Controller, real.key(Topic::Pose), false),
+        (Role::SimController, sim.key(Topic::Cmd), true),
+        (Role::SimController, real.key(Topic::Cmd), false),
+        (Role::SimController, real.key(Topic::Heartbeat), false),
+        (Role::SimTwin, sim.key(Topic::Pose), true),
+        (Role::SimTwin, real.key(Topic::Pose), false),
+        (Role::SimTwin, real.key(Topic::Obs), false),
+        (Role::SimTwin, sim.key(Topic::Cmd), false),
+        (Role::RobotAgent, real.key(Topic::Obs), true),
+        (Role::RobotAgent, real.key(Topic::Pose), false),
+        (Role::RobotAgent, real.key(Topic::Cmd), false),
+        (Role::RobotAgent, sim.key(Topic::Obs), false),
+        (Role::TrackerAgent, real.key(Topic::Pose), true),
+        (Role::TrackerAgent, real.key(Topic::Cmd), false),
+        (Role::TrackerAgent, real.key(Topic::Obs), false),
+        (Role::TrackerAgent, sim.key(Topic::Pose), false),
+        (Role::Trainer, real.key(Topic::Cmd), false),
+    ];
+    // (role, token key, allowed).
+    let tokens = [
+        (
+            Role::RobotAgent,
+            real.alive_key(Component::RobotAgent),
+            true,
+        ),
+        (Role::SimTwin, sim.alive_key(Component::SimTwin), true),
+        (Role::SimTwin, real.alive_key(Component::RobotAgent), false),
+        (
+            Role::SimController,
+            real.alive_key(Component::RobotAgent),
+            false,
+        ),
+        (
+            Role::Controller,
+            real.alive_key(Component::TrackerAgent),
+            false,
+        ),
+        (
+            Role::TrackerAgent,
+            real.alive_key(Component::RobotAgent),
+            false,
+        ),
+    ];
+    let mut sessions = Vec::new();
+    let mut held = Vec::new();
+    for (role, key, _) in &tokens {
+        let session = open(*role).await;
+        held.push(session.liveliness().declare_token(key.as_str()).await);
+        sessions.push(session);
+    }
+    settle().await;
+    for (role, key, _) in &puts {
+        let session = open(*role).await;
+        // Clients send only where a subscriber is known: let the spy's
+        // subscription reach the new session first.
+        settle().await;
+        session
+            .put(key.as_str(), role.name())
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        sessions.push(session);
+    }
+    settle().await;
+
+    let heard: Vec<(String, String)> = spy
+        .0
+        .lock()
+        .map(|v| {
+            v.iter()
+                .map(|(k, _, p)| (String::from_utf8_lossy(p).into_owned(), k.clone()))
+                .collect()
+        })
+        .unwrap_or_default();
+    let expected: Vec<(String, String)> = puts
+        .iter()
+        .filter(|(_, _, allowed)| *allowed)
+        .map(|(role, key, _)| (role.name().to_owned(), key.clone()))
+        .collect();
+    assert_eq!(
+        heard, expected,
+        "exactly the allowed puts crossed the router"
+    );
+
+    let alive: Vec<String> = operator
+        .liveliness()
+        .get("offworld/@v1/*/*/alive/**")
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?
+        .into_iter()
+        .filter_map(|reply| reply.into_result().ok())
+        .map(|sample| sample.key_expr().as_str().to_owned())
+        .collect();
+    let mut alive = alive;
+    alive.sort();
+    let mut expected: Vec<String> = tokens
+        .iter()
+        .filter(|(_, _, allowed)| *allowed)
+        .map(|(_, key, _)| key.clone())
+        .collect();
+    expected.sort();
+    assert_eq!(alive, expected, "exactly the allowed tokens are seen");
+    drop(held);
     Ok(())
 }
