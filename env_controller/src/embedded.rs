@@ -8,6 +8,7 @@ use offworld_runtime::keys::EnvId;
 use offworld_runtime::zenoh::Session;
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
 
+use crate::admission::RequestLimits;
 use crate::env::{EnvOptions, EnvServer};
 use crate::error::ControllerError;
 use crate::server::Controller;
@@ -45,18 +46,27 @@ impl Embedded {
         envs: &[SimEnv],
         store: Store,
     ) -> Result<Self, ControllerError> {
-        Self::start_with(session, envs, store, EnvOptions::default()).await
+        Self::start_with(
+            session,
+            envs,
+            store,
+            EnvOptions::default(),
+            RequestLimits::default(),
+        )
+        .await
     }
 
     /// [`Embedded::start`] with a site's policy (`options`; anonymous
-    /// access is always allowed and the seed is each `SimEnv`'s).
+    /// access is always allowed and the seed is each `SimEnv`'s) and
+    /// request limits.
     pub async fn start_with(
         session: &Session,
         envs: &[SimEnv],
         store: Store,
         options: EnvOptions,
+        limits: RequestLimits,
     ) -> Result<Self, ControllerError> {
-        let mut controller = Controller::new(session.clone(), store);
+        let mut controller = Controller::with_limits(session.clone(), store, limits)?;
         let mut twins = Vec::new();
         for sim in envs {
             if sim.env.realm() != offworld_runtime::Realm::Sim {

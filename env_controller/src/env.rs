@@ -18,7 +18,7 @@ use offworld_runtime::zenoh::query::Query;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
 use rand::Rng;
-use tokio::sync::Mutex as AsyncMutex;
+use tokio::sync::{watch, Mutex as AsyncMutex};
 
 use crate::episode::{judge, EndReason, Outcome, SpawnSampler};
 use crate::estops::EnvEStops;
@@ -26,7 +26,7 @@ use crate::link::{Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived
 use crate::observation::{shape, validate_options};
 use crate::store::{
     format_unix_ms, lock_store, now_ms, validate_experiment_name, BookingRules, EpisodeRecord,
-    Experiment, SlotAt, Store, User, ANONYMOUS,
+    Experiment, SlotAt, Store, User, ANONYMOUS, IN_PROGRESS,
 };
 use crate::task::Task;
 
@@ -113,13 +113,51 @@ struct Episode {
     started_ms: i64,
 }
 
+impl Episode {
+    /// Its record, ended by `end` at `ended_ms` (`None`: in progress).
+    fn record(&self, experiment_id: i64, end: Option<&EndReason>, ended_ms: i64) -> EpisodeRecord {
+        EpisodeRecord {
+            experiment_id,
+            episode_index: self.index,
+            seed: self.seed,
+            steps: self.steps,
+            episode_return: self.episode_return,
+            success: end == Some(&EndReason::Success),
+            end_reason: end.map_or(IN_PROGRESS, EndReason::as_str).to_owned(),
+            requested_start: [self.requested.x, self.requested.y, self.requested.yaw],
+            achieved_start: [self.achieved.x, self.achieved.y, self.achieved.yaw],
+            started_ms: self.started_ms,
+            ended_ms,
+        }
+    }
+}
+
 struct State {
     lease: Option<Lease>,
     maintenance: Option<String>,
     episode: Option<Episode>,
     sampler: SpawnSampler,
     seq: u64,
-    last_status: Option<EnvStatus>,
+}
+
+/// What `status` needs of the state, posted (under the state lock) at
+/// every change, so `status` is answered without the lock — a real reset
+/// holds it for seconds. The rest of a status (robot present, e-stops,
+/// lease lapsed) is read live.
+#[derive(Debug, Clone, Default)]
+struct Posted {
+    maintenance: Option<String>,
+    /// The lease's end: when it lapses, and in Unix ms.
+    lease: Option<(Instant, i64)>,
+}
+
+impl Posted {
+    fn of(state: &State) -> Self {
+        Self {
+            maintenance: state.maintenance.clone(),
+            lease: state.lease.as_ref().map(|l| (l.expires, l.expires_unix_ms)),
+        }
+    }
 }
 
 /// One env: its task, robot link, state and store.
@@ -136,6 +174,11 @@ pub struct EnvServer {
     estops: EnvEStops,
     store: Arc<Mutex<Store>>,
     state: AsyncMutex<State>,
+    /// The state as `status` shows it (see [`Posted`]).
+    posted: watch::Sender<Posted>,
+    /// The status last put on `status`; held while putting, so puts go out
+    /// in order.
+    published: AsyncMutex<Option<EnvStatus>>,
     /// The last booking answer, valid until its `until_ms`: a step never
     /// queries the database. Cleared when this env's bookings change.
     slots: Mutex<Option<SlotAt>>,
@@ -167,6 +210,13 @@ impl EnvServer {
         store: Arc<Mutex<Store>>,
     ) -> Result<Self, crate::ControllerError> {
         options.check()?;
+        let abandoned = lock_store(&store).abandon_in_progress(
+            &env.to_string(),
+            "aborted: the controller stopped before the episode ended (killed or power cut)",
+        )?;
+        if abandoned > 0 {
+            tracing::warn!(%env, abandoned, "episodes left in progress by the previous run recorded as aborted");
+        }
         let link = RobotLink::connect(session, &env, options.timeouts).await?;
         let estops = EnvEStops::follow(session, &env).await?;
         // Spectators' view: a slow one must never stall a step.
@@ -189,8 +239,9 @@ impl EnvServer {
                 episode: None,
                 sampler: SpawnSampler::new(options.seed),
                 seq: 0,
-                last_status: None,
             }),
+            posted: watch::Sender::new(Posted::default()),
+            published: AsyncMutex::new(None),
         })
     }
 
@@ -245,8 +296,8 @@ impl EnvServer {
         *self.slots.lock().unwrap_or_else(PoisonError::into_inner) = None;
     }
 
-    fn state_of(&self, state: &State) -> EnvState {
-        if let Some(message) = &state.maintenance {
+    fn state_from(&self, posted: &Posted) -> EnvState {
+        if let Some(message) = &posted.maintenance {
             return EnvState::Maintenance {
                 message: message.clone(),
             };
@@ -256,46 +307,52 @@ impl EnvServer {
                 reason: "no robot or sim twin is serving this env".into(),
             };
         }
-        match &state.lease {
-            Some(l) if l.expires > Instant::now() => EnvState::Leased {
-                until_unix_ms: l.expires_unix_ms,
-            },
+        match posted.lease {
+            Some((expires, until_unix_ms)) if expires > Instant::now() => {
+                EnvState::Leased { until_unix_ms }
+            }
             _ => EnvState::Free,
         }
     }
 
-    fn status_of(&self, state: &State) -> EnvStatus {
+    fn status_from(&self, posted: &Posted) -> EnvStatus {
         EnvStatus {
             env_id: self.env.to_string(),
-            state: self.state_of(state),
+            state: self.state_from(posted),
             estop: self.estops.state(),
         }
     }
 
-    /// Current status.
-    pub async fn status(&self) -> EnvStatus {
-        let state = self.state.lock().await;
-        self.status_of(&state)
+    fn status_of(&self, state: &State) -> EnvStatus {
+        self.status_from(&Posted::of(state))
     }
 
+    /// Current status, without waiting for a request in progress (from
+    /// what the state last posted, the robot's presence and the e-stops).
+    pub fn status(&self) -> EnvStatus {
+        self.status_from(&self.posted.borrow())
+    }
+
+    /// Posts the state for `status` and publishes the status if it changed.
     async fn publish_status(&self, state: &mut State) {
-        let status = self.status_of(state);
-        if state.last_status.as_ref() == Some(&status) {
+        self.posted.send_replace(Posted::of(state));
+        self.refresh_status().await;
+    }
+
+    /// Publishes the status if it changed (liveliness of the robot side,
+    /// e-stops, a lapsed lease). Never waits for a request in progress (a
+    /// real reset takes seconds and the caller also drives the robot's
+    /// heartbeat): the status comes from what the state last posted.
+    pub async fn refresh_status(&self) {
+        let mut published = self.published.lock().await;
+        let status = self.status();
+        if published.as_ref() == Some(&status) {
             return;
         }
-        state.last_status = Some(status.clone());
         if let Err(e) = wire::put(&self.session, &self.env.key(Topic::Status), &status).await {
             tracing::warn!("status publish failed: {e}");
         }
-    }
-
-    /// Publishes the status if it changed (liveliness of the robot side).
-    /// Never waits for a request in progress (a real step takes seconds and
-    /// the caller also drives the robot's heartbeat): skipped when busy.
-    pub async fn refresh_status(&self) {
-        if let Ok(mut state) = self.state.try_lock() {
-            self.publish_status(&mut state).await;
-        }
+        *published = Some(status);
     }
 
     fn authenticate(&self, token: &str) -> Result<User, WireError> {
@@ -326,6 +383,8 @@ impl EnvServer {
             Some(l) if l.session_id == session_id && l.expires > now && !l.disconnected => {
                 l.expires = now + self.options.lease_idle;
                 l.expires_unix_ms = unix_ms_in(self.options.lease_idle);
+                let end = (l.expires, l.expires_unix_ms);
+                self.posted.send_modify(|p| p.lease = Some(end));
                 Ok(l)
             }
             Some(l) if l.session_id == session_id => Err(WireError::unauthorized(
@@ -487,7 +546,7 @@ impl EnvServer {
         let experiment = lease.experiment.name.clone();
         let achieved = answered.pose().planar();
         tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, "reset");
-        state.episode = Some(Episode {
+        let episode = Episode {
             index,
             seed,
             steps: 0,
@@ -496,7 +555,15 @@ impl EnvServer {
             requested: target,
             achieved,
             started_ms: now_ms(),
-        });
+        };
+        // On record from its first moment: a controller killed mid-episode
+        // leaves it, closed as aborted at the next start.
+        let started = episode.record(lease.experiment.id, None, episode.started_ms);
+        lock_store(&self.store)
+            .begin_episode(&started)
+            .map_err(WireError::from)?;
+        lease.experiment.episodes += 1;
+        state.episode = Some(episode);
         let reply = ResetReply {
             info: StepInfo {
                 episode_id: index,
@@ -792,27 +859,10 @@ impl EnvServer {
             return Ok(());
         };
         episode.over = true;
-        let record = EpisodeRecord {
-            experiment_id: lease.experiment.id,
-            episode_index: episode.index,
-            seed: episode.seed,
-            steps: episode.steps,
-            episode_return: episode.episode_return,
-            success: *end == EndReason::Success,
-            end_reason: end.as_str().to_owned(),
-            requested_start: [
-                episode.requested.x,
-                episode.requested.y,
-                episode.requested.yaw,
-            ],
-            achieved_start: [episode.achieved.x, episode.achieved.y, episode.achieved.yaw],
-            started_ms: episode.started_ms,
-            ended_ms: now_ms(),
-        };
+        let record = episode.record(lease.experiment.id, Some(end), now_ms());
         lock_store(&self.store)
             .record_episode(&record)
             .map_err(WireError::from)?;
-        lease.experiment.episodes += 1;
         lease.experiment.steps += u64::from(episode.steps);
         Ok(())
     }

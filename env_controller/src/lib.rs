@@ -13,10 +13,13 @@
 //! - [`estops`]: the site and env e-stop latches each env obeys.
 //! - [`store`]: users, experiments, episodes, leaderboard.
 //! - [`env`]: one env's sessions, leases and request handlers.
+//! - [`admission`]: request limits (size, per-client rate and queue, per-env
+//!   queue), decided without waiting.
 //! - [`server`]: many envs served over Zenoh.
 //! - [`embedded`]: twins + controller in one process.
 //! - [`operator`]: the operator's e-stops.
 
+pub mod admission;
 pub mod deployment;
 pub mod embedded;
 pub mod env;
@@ -32,6 +35,7 @@ pub mod task;
 #[cfg(test)]
 mod test_strategies;
 
+pub use admission::RequestLimits;
 pub use env::{EnvOptions, EnvServer};
 pub use error::ControllerError;
 pub use server::Controller;

@@ -16,7 +16,9 @@ use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv};
 use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::store::BookingRules;
-use offworld_env_controller::{Controller, ControllerError, EnvOptions, Store, Task};
+use offworld_env_controller::{
+    Controller, ControllerError, EnvOptions, RequestLimits, Store, Task,
+};
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
 #[derive(Parser)]
@@ -53,6 +55,23 @@ enum Command {
         /// How far ahead a booking may start, days.
         #[arg(long, default_value_t = 30)]
         booking_horizon_days: u32,
+        /// Requests queued or running per env (waiting for its state or the
+        /// store); more are answered Busy at once. `status` and `spec`
+        /// never queue.
+        #[arg(long, default_value_t = RequestLimits::default().env_queue)]
+        env_queue: usize,
+        /// Requests one client may have queued or running per env.
+        #[arg(long, default_value_t = RequestLimits::default().client_queue)]
+        client_queue: usize,
+        /// Requests per second one client may send, sustained.
+        #[arg(long, default_value_t = RequestLimits::default().client_rate_per_s)]
+        client_rate: u32,
+        /// Requests one client may send at once above `--client-rate`.
+        #[arg(long, default_value_t = RequestLimits::default().client_burst)]
+        client_burst: u32,
+        /// Largest request accepted, bytes (larger: BadRequest, undecoded).
+        #[arg(long, default_value_t = RequestLimits::default().max_request_bytes)]
+        max_request_bytes: usize,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -140,6 +159,11 @@ async fn main() -> anyhow::Result<()> {
             lease_idle_s,
             max_slot_minutes,
             booking_horizon_days,
+            env_queue,
+            client_queue,
+            client_rate,
+            client_burst,
+            max_request_bytes,
             common,
         } => {
             let envs: Vec<(EnvId, Task)> = envs
@@ -157,8 +181,16 @@ async fn main() -> anyhow::Result<()> {
                 },
                 ..EnvOptions::default()
             };
+            let limits = RequestLimits {
+                env_queue,
+                client_queue,
+                client_rate_per_s: client_rate,
+                client_burst,
+                max_request_bytes,
+            };
             // Refused here, before anything starts, rather than per env.
             site.check()?;
+            limits.check()?;
             let options = |env: &EnvId| EnvOptions {
                 allow_anonymous: env.realm() == Realm::Sim,
                 ..site
@@ -174,9 +206,9 @@ async fn main() -> anyhow::Result<()> {
                         seed: 0,
                     })
                     .collect();
-                Running::Embedded(Embedded::start_with(&session, &sims, store, site).await?)
+                Running::Embedded(Embedded::start_with(&session, &sims, store, site, limits).await?)
             } else {
-                let mut controller = Controller::new(session.clone(), store);
+                let mut controller = Controller::with_limits(session.clone(), store, limits)?;
                 for (env, task) in envs {
                     let opts = options(&env);
                     controller.serve(env, task, opts).await?;

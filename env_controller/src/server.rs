@@ -1,9 +1,14 @@
 //! The controller: serves any number of envs from one process on one Zenoh
-//! session. Per env: one task per queryable (requests to an env are
-//! serialised by its state lock), a watcher of client liveliness tokens, a
-//! heartbeat for the robot's watchdog, and status publication. A handler
-//! that panics (a bug) answers `Internal` and its queryable keeps serving
-//! ([`answer_supervised`]).
+//! session. Per env: its queryables, a watcher of client liveliness tokens,
+//! a heartbeat for the robot's watchdog, and status publication.
+//!
+//! A query is taken in Zenoh's callback, which never waits: there it is
+//! admitted ([`crate::admission`]: size, client rate, a place in the env's
+//! bounded queue) or refused at once (`BadRequest`, `Busy`); `status` and
+//! `spec` are answered there and then from a snapshot. An admitted request
+//! runs on its own task (requests to an env are serialised by its state
+//! lock); a handler that panics (a bug) answers `Internal` and serving goes
+//! on ([`answer_supervised`]).
 
 use std::any::Any;
 use std::future::Future;
@@ -20,12 +25,14 @@ use offworld_runtime::msg::{
     Time,
 };
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::query::Query;
+use offworld_runtime::zenoh::query::{Query, Queryable};
 use offworld_runtime::zenoh::sample::SampleKind;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, WireError};
+use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
+use crate::admission::{self, ClientRates, Gate, RequestLimits};
 use crate::env::{EnvOptions, EnvServer};
 use crate::error::ControllerError;
 use crate::store::Store;
@@ -39,11 +46,17 @@ pub struct Controller {
     session: Session,
     store: Arc<Mutex<Store>>,
     envs: Vec<ServedEnv>,
+    limits: RequestLimits,
+    rates: Arc<ClientRates>,
 }
 
 struct ServedEnv {
     server: Arc<EnvServer>,
     tasks: Vec<JoinHandle<()>>,
+    /// Undeclared on drop: no new request is taken.
+    _queryables: Vec<Queryable<()>>,
+    /// Dropped with the env: the requests still running end with it.
+    _serving: watch::Sender<()>,
     _token: LivelinessToken,
 }
 
@@ -55,14 +68,142 @@ impl Drop for ServedEnv {
     }
 }
 
+/// What an env's queryable does with a request once admitted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Lane {
+    /// Answered in Zenoh's callback from a snapshot (`status`, `spec`).
+    Now,
+    /// Queued for the env's state (`open`, `reset`, `step`, `close`, `admin`).
+    State,
+    /// Queued for the store (`leaderboard`, `book`).
+    Store,
+}
+
+fn lane(topic: Topic) -> Lane {
+    match topic {
+        Topic::Status | Topic::Spec => Lane::Now,
+        Topic::Leaderboard | Topic::Book => Lane::Store,
+        _ => Lane::State,
+    }
+}
+
+/// Everything one env's queryable callbacks share.
+struct Admission {
+    server: Arc<EnvServer>,
+    limits: RequestLimits,
+    rates: Arc<ClientRates>,
+    state: Arc<Gate>,
+    store: Arc<Gate>,
+    /// Where admitted requests run (the callback runs on Zenoh's threads).
+    runtime: tokio::runtime::Handle,
+    serving: watch::Receiver<()>,
+}
+
+impl Admission {
+    /// [`Admission::take`]; should it panic (a bug), the query is answered
+    /// `Internal` and Zenoh's receive path goes on.
+    fn take_supervised(self: &Arc<Self>, topic: Topic, query: Query) {
+        let kept = query.clone();
+        let taken = std::panic::catch_unwind(AssertUnwindSafe(|| self.take(topic, query)));
+        if let Err(panic) = taken {
+            tracing::error!(
+                key = %kept.key_expr(),
+                "request admission panicked (a bug): {}",
+                panic_message(panic.as_ref())
+            );
+            refuse(
+                &kept,
+                WireError::internal(
+                    "the controller failed on this request (a bug, logged); it goes on serving",
+                ),
+            );
+        }
+    }
+
+    /// Takes `query` on `topic` without waiting: refused, answered, or
+    /// handed to a task with its place in the queue.
+    fn take(self: &Arc<Self>, topic: Topic, query: Query) {
+        let admitted = self
+            .limits
+            .check_size(admission::request_size(&query))
+            .and_then(|()| admission::client_of(self.server.env(), &query))
+            .and_then(|client| self.rates.check(&client).map(|()| client));
+        let client = match admitted {
+            Ok(client) => client,
+            Err(refused) => return refuse(&query, refused),
+        };
+        let gate = match lane(topic) {
+            Lane::Now => return answer_now(&self.server, topic, &query),
+            Lane::State => &self.state,
+            Lane::Store => &self.store,
+        };
+        let ticket = match gate.enter(&client) {
+            Ok(ticket) => ticket,
+            Err(refused) => return refuse(&query, refused),
+        };
+        let (server, mut serving) = (self.server.clone(), self.serving.clone());
+        self.runtime.spawn(async move {
+            let _place = ticket;
+            tokio::select! {
+                () = answer_supervised(&query, handle(&server, topic, &query)) => {}
+                // The env stopped serving (the controller was dropped).
+                _ = serving.changed() => {}
+            }
+        });
+    }
+}
+
+/// Answers `query` with `refused`, from Zenoh's callback.
+fn refuse(query: &Query, refused: WireError) {
+    tracing::debug!(key = %query.key_expr(), "request refused: {refused}");
+    if let Err(e) = wire::reply_encoded_now::<()>(query, Err(refused)) {
+        tracing::warn!(key = %query.key_expr(), "reply failed: {e}");
+    }
+}
+
+/// Answers `status` or `spec` from Zenoh's callback: neither waits for
+/// anything (see [`EnvServer::status`]).
+fn answer_now(server: &EnvServer, topic: Topic, query: &Query) {
+    let sent = match topic {
+        Topic::Status => wire::reply_now(query, Ok(&server.status())),
+        _ => wire::reply_now(query, Ok(&server.spec())),
+    };
+    if let Err(e) = sent {
+        tracing::warn!(env = %server.env(), ?topic, "reply failed: {e}");
+    }
+}
+
 impl Controller {
-    /// A controller on `session` recording into `store`.
+    /// A controller on `session` recording into `store`, with the default
+    /// [`RequestLimits`].
     pub fn new(session: Session, store: Store) -> Self {
+        let limits = RequestLimits::default();
         Self {
             session,
             store: Arc::new(Mutex::new(store)),
             envs: Vec::new(),
+            rates: Arc::new(ClientRates::new(&limits)),
+            limits,
         }
+    }
+
+    /// [`Controller::new`] with a site's request limits (checked).
+    pub fn with_limits(
+        session: Session,
+        store: Store,
+        limits: RequestLimits,
+    ) -> Result<Self, ControllerError> {
+        limits.check()?;
+        Ok(Self {
+            rates: Arc::new(ClientRates::new(&limits)),
+            limits,
+            ..Self::new(session, store)
+        })
+    }
+
+    /// The request limits in force.
+    pub fn limits(&self) -> &RequestLimits {
+        &self.limits
     }
 
     /// The shared store.
@@ -94,6 +235,17 @@ impl Controller {
         );
         let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
         let mut tasks = Vec::new();
+        let (serving, serving_rx) = watch::channel(());
+        let admission = Arc::new(Admission {
+            server: server.clone(),
+            limits: self.limits,
+            rates: self.rates.clone(),
+            state: Gate::new(env.clone(), "its state", &self.limits),
+            store: Gate::new(env.clone(), "the store", &self.limits),
+            runtime: tokio::runtime::Handle::current(),
+            serving: serving_rx,
+        });
+        let mut queryables = Vec::new();
         for topic in [
             Topic::Open,
             Topic::Spec,
@@ -105,17 +257,14 @@ impl Controller {
             Topic::Leaderboard,
             Topic::Book,
         ] {
-            let queryable = self
-                .session
-                .declare_queryable(env.key(topic))
-                .await
-                .map_err(zerr)?;
-            let server = server.clone();
-            tasks.push(tokio::spawn(async move {
-                while let Ok(query) = queryable.recv_async().await {
-                    answer_supervised(&query, handle(&server, topic, &query)).await;
-                }
-            }));
+            let admission = admission.clone();
+            queryables.push(
+                self.session
+                    .declare_queryable(env.key(topic))
+                    .callback(move |query| admission.take_supervised(topic, query))
+                    .await
+                    .map_err(zerr)?,
+            );
         }
         // Client liveliness: a vanished lease holder stops the robot; one
         // back within the grace period gets its lease back.
@@ -180,6 +329,8 @@ impl Controller {
         self.envs.push(ServedEnv {
             server: server.clone(),
             tasks,
+            _queryables: queryables,
+            _serving: serving,
             _token: token,
         });
         Ok(server)
@@ -253,7 +404,6 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
             })
             .await
         }
-        Topic::Spec => respond(query, async { Ok(server.spec()) }).await,
         Topic::Reset => {
             respond_encoded(query, async {
                 server
@@ -277,7 +427,6 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
             })
             .await
         }
-        Topic::Status => respond(query, async { Ok(server.status().await) }).await,
         Topic::Admin => {
             respond(query, async {
                 server

@@ -99,6 +99,39 @@ pub struct EpisodeRecord {
     pub ended_ms: i64,
 }
 
+/// The end reason of an episode that has not ended (yet).
+pub const IN_PROGRESS: &str = "in_progress";
+
+fn insert_episode(
+    tx: &rusqlite::Transaction<'_>,
+    ep: &EpisodeRecord,
+) -> Result<(), ControllerError> {
+    tx.execute(
+        "INSERT INTO episodes (experiment_id, episode_index, seed, steps, episode_return, success, end_reason,
+            requested_x, requested_y, requested_yaw, achieved_x, achieved_y, achieved_yaw, started_ms, ended_ms)
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
+        params![
+            ep.experiment_id,
+            ep.episode_index as i64,
+            ep.seed.map(|s| s as i64),
+            ep.steps,
+            ep.episode_return,
+            ep.success,
+            ep.end_reason,
+            ep.requested_start[0],
+            ep.requested_start[1],
+            ep.requested_start[2],
+            ep.achieved_start[0],
+            ep.achieved_start[1],
+            ep.achieved_start[2],
+            ep.started_ms,
+            ep.ended_ms
+        ],
+    )
+    .map_err(db)?;
+    Ok(())
+}
+
 const SCHEMA: &str = "
 PRAGMA journal_mode = WAL;
 PRAGMA synchronous = NORMAL;
@@ -332,39 +365,77 @@ impl Store {
             .map_err(db)
     }
 
-    /// Records a finished episode and advances its experiment's counters,
-    /// atomically.
-    pub fn record_episode(&mut self, ep: &EpisodeRecord) -> Result<(), ControllerError> {
+    /// Records an episode that starts now (end reason [`IN_PROGRESS`]) and
+    /// counts it in its experiment, so a controller killed before the end
+    /// still leaves its record: [`Store::abandon_in_progress`] closes it
+    /// at the next start.
+    pub fn begin_episode(&mut self, ep: &EpisodeRecord) -> Result<(), ControllerError> {
+        let started = EpisodeRecord {
+            steps: 0,
+            episode_return: 0.0,
+            success: false,
+            end_reason: IN_PROGRESS.to_owned(),
+            ended_ms: ep.started_ms,
+            ..ep.clone()
+        };
         let tx = self.conn.transaction().map_err(db)?;
+        insert_episode(&tx, &started)?;
         tx.execute(
-            "INSERT INTO episodes (experiment_id, episode_index, seed, steps, episode_return, success, end_reason,
-                requested_x, requested_y, requested_yaw, achieved_x, achieved_y, achieved_yaw, started_ms, ended_ms)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
-            params![
-                ep.experiment_id,
-                ep.episode_index as i64,
-                ep.seed.map(|s| s as i64),
-                ep.steps,
-                ep.episode_return,
-                ep.success,
-                ep.end_reason,
-                ep.requested_start[0],
-                ep.requested_start[1],
-                ep.requested_start[2],
-                ep.achieved_start[0],
-                ep.achieved_start[1],
-                ep.achieved_start[2],
-                ep.started_ms,
-                ep.ended_ms
-            ],
-        )
-        .map_err(db)?;
-        tx.execute(
-            "UPDATE experiments SET episodes = episodes + 1, steps = steps + ?2, updated_ms = ?3 WHERE id = ?1",
-            params![ep.experiment_id, ep.steps, ep.ended_ms],
+            "UPDATE experiments SET episodes = episodes + 1, updated_ms = ?2 WHERE id = ?1",
+            params![ep.experiment_id, ep.started_ms],
         )
         .map_err(db)?;
         tx.commit().map_err(db)
+    }
+
+    /// Records a finished episode and advances its experiment's counters,
+    /// atomically: completes the row [`Store::begin_episode`] wrote, or
+    /// adds one.
+    pub fn record_episode(&mut self, ep: &EpisodeRecord) -> Result<(), ControllerError> {
+        let tx = self.conn.transaction().map_err(db)?;
+        let completed = tx
+            .execute(
+                "UPDATE episodes SET steps = ?3, episode_return = ?4, success = ?5, end_reason = ?6, ended_ms = ?7
+                 WHERE experiment_id = ?1 AND episode_index = ?2 AND end_reason = ?8",
+                params![
+                    ep.experiment_id,
+                    ep.episode_index as i64,
+                    ep.steps,
+                    ep.episode_return,
+                    ep.success,
+                    ep.end_reason,
+                    ep.ended_ms,
+                    IN_PROGRESS
+                ],
+            )
+            .map_err(db)?;
+        if completed == 0 {
+            insert_episode(&tx, ep)?;
+        }
+        tx.execute(
+            "UPDATE experiments SET episodes = episodes + ?4, steps = steps + ?2, updated_ms = ?3 WHERE id = ?1",
+            params![ep.experiment_id, ep.steps, ep.ended_ms, i64::from(completed == 0)],
+        )
+        .map_err(db)?;
+        tx.commit().map_err(db)
+    }
+
+    /// Closes the episodes of `env_id` still in progress (their controller
+    /// stopped without ending them: killed, power cut) as aborted with
+    /// `reason`; returns how many.
+    pub fn abandon_in_progress(
+        &mut self,
+        env_id: &str,
+        reason: &str,
+    ) -> Result<usize, ControllerError> {
+        self.conn
+            .execute(
+                "UPDATE episodes SET end_reason = ?2
+                 WHERE end_reason = ?3
+                   AND experiment_id IN (SELECT id FROM experiments WHERE env_id = ?1)",
+                params![env_id, reason, IN_PROGRESS],
+            )
+            .map_err(db)
     }
 
     /// All experiments, newest first.
@@ -915,6 +986,83 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_episode_is_on_record_from_its_start_and_closed_after_a_crash() {
+        let mut store = Store::in_memory().expect("store");
+        let token = store.add_user("ada", false).expect("user");
+        let ada = store.authenticate(&token).expect("db").expect("ada");
+        let open = |store: &Store| {
+            store
+                .open_experiment(
+                    &ada,
+                    "real/a",
+                    "MonolithDiscrete",
+                    "crash",
+                    true,
+                    LearningType::EndToEnd,
+                    AlgorithmMode::Train,
+                )
+                .expect("experiment")
+        };
+        let experiment = store
+            .open_experiment(
+                &ada,
+                "real/a",
+                "MonolithDiscrete",
+                "crash",
+                false,
+                LearningType::EndToEnd,
+                AlgorithmMode::Train,
+            )
+            .expect("experiment");
+        let episode = |index, steps, end_reason: &str| EpisodeRecord {
+            experiment_id: experiment.id,
+            episode_index: index,
+            seed: Some(7),
+            steps,
+            episode_return: 1.0,
+            success: end_reason == "success",
+            end_reason: end_reason.into(),
+            requested_start: [1.0, 2.0, 0.5],
+            achieved_start: [1.01, 2.0, 0.5],
+            started_ms: 1_000,
+            ended_ms: 2_000,
+        };
+        // Episode 0 ends normally: one row, counted once, its steps added.
+        store
+            .begin_episode(&episode(0, 0, IN_PROGRESS))
+            .expect("begin");
+        assert_eq!(open(&store).episodes, 1, "counted from its start");
+        store
+            .record_episode(&episode(0, 12, "success"))
+            .expect("end");
+        // Episode 1 is cut by a crash.
+        store
+            .begin_episode(&episode(1, 0, IN_PROGRESS))
+            .expect("begin");
+        let in_progress = store.episodes(experiment.id).expect("episodes");
+        assert_eq!(in_progress[1].end_reason, IN_PROGRESS);
+        // Another env's controller starting leaves it alone; its own closes it.
+        assert_eq!(store.abandon_in_progress("real/b", "x").expect("sweep"), 0);
+        let why = "aborted: the controller stopped";
+        assert_eq!(store.abandon_in_progress("real/a", why).expect("sweep"), 1);
+        assert_eq!(store.abandon_in_progress("real/a", why).expect("sweep"), 0);
+        let episodes = store.episodes(experiment.id).expect("episodes");
+        let summary: Vec<_> = episodes
+            .iter()
+            .map(|e| (e.index, e.steps, e.success, e.end_reason.as_str()))
+            .collect();
+        assert_eq!(summary, vec![(0, 12, true, "success"), (1, 0, false, why)]);
+        let resumed = open(&store);
+        assert_eq!((resumed.episodes, resumed.steps), (2, 12));
+        // A record without a begun row (an older caller) is added whole.
+        store
+            .record_episode(&episode(2, 5, "step_limit"))
+            .expect("record");
+        let resumed = open(&store);
+        assert_eq!((resumed.episodes, resumed.steps), (3, 17));
+    }
 
     #[test]
     fn slot_at_says_until_when_the_answer_holds() {

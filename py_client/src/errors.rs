@@ -38,7 +38,7 @@ create_exception!(
     offworld_gym.errors,
     Busy,
     OffWorldGymError,
-    "The env is leased by someone else (409)."
+    "The env is leased or booked by someone else, or the controller is at a request limit (409): nothing was done; retry later."
 );
 create_exception!(
     offworld_gym.errors,

@@ -8,8 +8,8 @@ use rand::Rng;
 
 use crate::keys::{Component, EnvId, Topic};
 use crate::msg::{
-    Action, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, Leaderboard, OpenReply,
-    OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
+    Action, ClientTag, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, Leaderboard,
+    OpenReply, OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
 };
 use crate::wire;
 use crate::{ErrorCode, WireError};
@@ -45,6 +45,16 @@ pub fn random_id() -> String {
         .collect()
 }
 
+/// Who this process is to a controller for the requests it sends outside
+/// an open session (`spec`, `status`, `leaderboard`, `book`, discovery):
+/// one random id per process. An [`EnvClient`] says its own client id.
+pub fn process_tag() -> &'static ClientTag {
+    static TAG: std::sync::OnceLock<ClientTag> = std::sync::OnceLock::new();
+    TAG.get_or_init(|| ClientTag {
+        client_id: random_id(),
+    })
+}
+
 /// An open session on one env (holds its lease until closed).
 pub struct EnvClient {
     session: Session,
@@ -53,6 +63,8 @@ pub struct EnvClient {
     timeouts: ClientTimeouts,
     seq: u64,
     closed: Option<CloseReply>,
+    /// This client's id (its liveliness token's), on every request.
+    tag: ClientTag,
     _alive: LivelinessToken,
 }
 
@@ -74,7 +86,18 @@ impl EnvClient {
             .declare_token(alive_key)
             .await
             .map_err(|e| WireError::internal(format!("zenoh: {e}")))?;
-        let reply: OpenReply = ask(session, env, Topic::Open, &request, timeouts.control).await?;
+        let tag = ClientTag {
+            client_id: request.client_id.clone(),
+        };
+        let reply: OpenReply = wire::request_as(
+            session,
+            &env.key(Topic::Open),
+            &request,
+            timeouts.control,
+            &tag,
+        )
+        .await
+        .map_err(wire::RequestError::into_wire)?;
         Ok(Self {
             session: session.clone(),
             env: env.clone(),
@@ -82,6 +105,7 @@ impl EnvClient {
             timeouts,
             seq: 0,
             closed: None,
+            tag,
             _alive: alive,
         })
     }
@@ -143,9 +167,15 @@ impl EnvClient {
             seed,
         };
         let key = self.env.key(Topic::Reset);
-        wire::request_tail(&self.session, &key, &request, self.timeouts.reset)
-            .await
-            .map_err(|e| self.in_session(e))
+        wire::request_tail_as(
+            &self.session,
+            &key,
+            &request,
+            self.timeouts.reset,
+            &self.tag,
+        )
+        .await
+        .map_err(|e| self.in_session(e))
     }
 
     /// Takes one step.
@@ -158,7 +188,7 @@ impl EnvClient {
             action,
         };
         let key = self.env.key(Topic::Step);
-        wire::request_tail(&self.session, &key, &request, self.timeouts.step)
+        wire::request_tail_as(&self.session, &key, &request, self.timeouts.step, &self.tag)
             .await
             .map_err(|e| self.in_session(e))
     }
@@ -172,9 +202,15 @@ impl EnvClient {
             session_id: self.reply.session_id.clone(),
         };
         let key = self.env.key(Topic::Close);
-        let reply: CloseReply = wire::request(&self.session, &key, &request, self.timeouts.control)
-            .await
-            .map_err(|e| self.in_session(e))?;
+        let reply: CloseReply = wire::request_as(
+            &self.session,
+            &key,
+            &request,
+            self.timeouts.control,
+            &self.tag,
+        )
+        .await
+        .map_err(|e| self.in_session(e))?;
         self.closed = Some(reply.clone());
         Ok(reply)
     }
@@ -196,7 +232,8 @@ impl EnvClient {
     }
 }
 
-/// One request to an env's queryable, every failure as a typed error.
+/// One request to an env's queryable from this process (outside a
+/// session), every failure as a typed error.
 async fn ask<Req: serde::Serialize, Rep: serde::de::DeserializeOwned>(
     session: &Session,
     env: &EnvId,
@@ -204,7 +241,7 @@ async fn ask<Req: serde::Serialize, Rep: serde::de::DeserializeOwned>(
     request: &Req,
     timeout: Duration,
 ) -> Result<Rep, WireError> {
-    wire::request(session, &env.key(topic), request, timeout)
+    wire::request_as(session, &env.key(topic), request, timeout, process_tag())
         .await
         .map_err(wire::RequestError::into_wire)
 }

@@ -15,7 +15,11 @@ pub enum ErrorCode {
     Unauthorized = 401,
     /// The env, session or experiment does not exist.
     NotFound = 404,
-    /// The env is leased by someone else (the message says until when).
+    /// Not now, someone else first: the env is leased or booked by someone
+    /// else (the message says until when), or the controller is at one of
+    /// its request limits — this env's queue is full, or this client has
+    /// too many requests queued or sends them too fast (the message says
+    /// which limit and when to retry). Nothing was done; retry later.
     Busy = 409,
     /// The request is valid but not now: step before reset, step after the episode ended.
     InvalidState = 412,

@@ -13,7 +13,7 @@ use zenoh::Wait;
 
 use crate::codec;
 use crate::error::{DecodeError, EncodeError, WireError};
-use crate::msg::SeqTag;
+use crate::msg::{ClientTag, SeqTag};
 
 /// Why a request got no usable answer.
 #[derive(Debug, thiserror::Error)]
@@ -170,6 +170,49 @@ pub async fn request<Req: Serialize, Rep: DeserializeOwned>(
     request_raw(session, key, payload, timeout).await
 }
 
+/// [`request`] saying who asks: `tag` travels as the query's attachment
+/// (the controller's per-client quotas are keyed on it).
+pub async fn request_as<Req: Serialize, Rep: DeserializeOwned>(
+    session: &Session,
+    key: &str,
+    req: &Req,
+    timeout: Duration,
+    tag: &ClientTag,
+) -> Result<Rep, RequestError> {
+    let payload = codec::encode(req)?;
+    let tag = codec::encode(tag)?;
+    request_decoded(
+        session,
+        key,
+        payload,
+        Some(tag),
+        timeout,
+        codec::decode_payload,
+    )
+    .await
+}
+
+/// [`request_tail`] saying who asks (see [`request_as`]).
+pub async fn request_tail_as<Req: Serialize, Rep: DeserializeOwned + codec::ByteTail>(
+    session: &Session,
+    key: &str,
+    req: &Req,
+    timeout: Duration,
+    tag: &ClientTag,
+) -> Result<Rep, RequestError> {
+    let payload = codec::encode(req)?;
+    let tag = codec::encode(tag)?;
+    request_decoded(
+        session,
+        key,
+        payload,
+        Some(tag),
+        timeout,
+        codec::decode_payload_tail,
+    )
+    .await
+}
+
 /// [`request`] for a reply whose last field is an observation: its pixels
 /// are copied once out of the received fragments ([`codec::decode_payload_tail`]).
 pub async fn request_tail<Req: Serialize, Rep: DeserializeOwned + codec::ByteTail>(
@@ -179,7 +222,15 @@ pub async fn request_tail<Req: Serialize, Rep: DeserializeOwned + codec::ByteTai
     timeout: Duration,
 ) -> Result<Rep, RequestError> {
     let payload = codec::encode(req)?;
-    request_decoded(session, key, payload, timeout, codec::decode_payload_tail).await
+    request_decoded(
+        session,
+        key,
+        payload,
+        None,
+        timeout,
+        codec::decode_payload_tail,
+    )
+    .await
 }
 
 /// Like [`request`] with an already encoded payload (empty for `spec`).
@@ -189,13 +240,14 @@ pub async fn request_raw<Rep: DeserializeOwned>(
     payload: Vec<u8>,
     timeout: Duration,
 ) -> Result<Rep, RequestError> {
-    request_decoded(session, key, payload, timeout, codec::decode_payload).await
+    request_decoded(session, key, payload, None, timeout, codec::decode_payload).await
 }
 
 async fn request_decoded<Rep: DeserializeOwned>(
     session: &Session,
     key: &str,
     payload: Vec<u8>,
+    attachment: Option<Vec<u8>>,
     timeout: Duration,
     decode: fn(&ZBytes) -> Result<Rep, DecodeError>,
 ) -> Result<Rep, RequestError> {
@@ -204,6 +256,7 @@ async fn request_decoded<Rep: DeserializeOwned>(
         .get(key)
         .payload(payload)
         .encoding(Encoding::APPLICATION_CDR)
+        .attachment(attachment.map(ZBytes::from))
         .target(QueryTarget::BestMatching)
         .timeout(timeout)
         .await

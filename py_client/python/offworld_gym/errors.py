@@ -15,6 +15,11 @@ class                 code  also a
 ``Timeout``           504   ``TimeoutError``
 ``Internal``          500   ``OffWorldGymError``
 ====================  ====  =====================================
+
+``Busy`` means "not now, someone else first": the env is leased or booked
+by someone else, or the controller is at one of its request limits (this
+env's queue is full, or this client has too many requests queued or sends
+them too fast). Nothing was done; the message says which and when to retry.
 """
 
 from offworld_gym._native import (

@@ -492,6 +492,17 @@ pub struct Bookings {
     pub bookings: Vec<Booking>,
 }
 
+/// Who asks: attached (as the Zenoh attachment) to every gym request that
+/// [`crate::client`] sends, so the controller can hold each client to its
+/// share (requests queued per env, requests per second). A request without
+/// it counts as the shared `anonymous` client. Not a credential: the token
+/// in the request is.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClientTag {
+    /// 1 to 64 characters of `A-Z a-z 0-9 _ -` (the rule of a key chunk).
+    pub client_id: String,
+}
+
 impl crate::codec::ByteTail for StepReply {
     fn tail_mut(&mut self) -> &mut Vec<u8> {
         &mut self.observation.data

@@ -297,6 +297,12 @@ macro_rules! for_each_sample {
         $f("CameraFrame", camera_frame());
         $f("SeqTag", SeqTag { seq: 5 });
         $f(
+            "ClientTag",
+            ClientTag {
+                client_id: "3fa9c0d1e2b4a567".into(),
+            },
+        );
+        $f(
             "MotionFault",
             MotionFault {
                 seq: 12,
