@@ -227,6 +227,11 @@ pub struct LinkTimeouts {
     pub pose_wait: Duration,
     /// Longest reset drive.
     pub goto: Duration,
+    /// A step in flight fails when the embodiment's heartbeat echoes
+    /// (`heartbeat_echo`) stopped this long: the link to it is cut or it
+    /// is frozen. Three times the robot's watchdog window, which has
+    /// stopped the robot by then.
+    pub silence: Duration,
 }
 
 impl Default for LinkTimeouts {
@@ -235,6 +240,7 @@ impl Default for LinkTimeouts {
             answer_margin: Duration::from_secs(5),
             pose_wait: Duration::from_millis(500),
             goto: Duration::from_secs(60),
+            silence: Duration::from_millis(600),
         }
     }
 }
@@ -254,6 +260,9 @@ pub struct RobotLink {
     /// tracking is lost; a step in flight wakes on it.
     tracking_lost: Arc<watch::Sender<bool>>,
     embodiment_alive: watch::Receiver<bool>,
+    /// When the embodiment last echoed a heartbeat (`None`: never, e.g. an
+    /// embodiment from before the echo existed: not held against it).
+    heard: watch::Receiver<Option<Instant>>,
     /// Set when the controller stops: commands in flight fail at once.
     closing: watch::Sender<bool>,
     timeouts: LinkTimeouts,
@@ -383,6 +392,14 @@ impl RobotLink {
             })
             .await
             .map_err(zerr)?;
+        let (heard_tx, heard) = watch::channel(None);
+        let echo = session
+            .declare_subscriber(env.key(Topic::HeartbeatEcho))
+            .callback(move |_: Sample| {
+                heard_tx.send_replace(Some(Instant::now()));
+            })
+            .await
+            .map_err(zerr)?;
         let cmd = wire::publisher(session, env.key(Topic::Cmd), Delivery::Every)
             .priority(wire::CONTROL_PRIORITY)
             .await
@@ -398,10 +415,18 @@ impl RobotLink {
             poses,
             tracking_lost,
             embodiment_alive,
+            heard,
             closing: watch::channel(false).0,
             timeouts,
-            _subscribers: vec![obs, fault, pose, tracking, liveliness],
+            _subscribers: vec![obs, fault, pose, tracking, liveliness, echo],
         })
+    }
+
+    /// How long the embodiment has been silent, when longer than the
+    /// link's `silence` limit.
+    fn silent_for(&self) -> Option<Duration> {
+        let heard = (*self.heard.borrow())?;
+        Some(heard.elapsed()).filter(|d| *d > self.timeouts.silence)
     }
 
     /// Whether a twin or robot agent is present.
@@ -504,9 +529,21 @@ impl RobotLink {
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
         let seq = cmd.seq;
+        let period = self.timeouts.silence / 6;
+        let mut listen = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
         let answer = tokio::time::timeout(limit, async {
             loop {
                 tokio::select! {
+                    _ = listen.tick() => {
+                        if let Some(silent) = self.silent_for() {
+                            return Some(Err(WireError::unavailable(format!(
+                                "no word from the robot of {} for {} ms (its heartbeat echoes stopped): \
+                                 the link to it is cut or it is frozen",
+                                self.env,
+                                silent.as_millis()
+                            ))));
+                        }
+                    }
                     changed = frames.changed() => {
                         if changed.is_err() {
                             return None;

@@ -17,11 +17,13 @@ use offworld_runtime::msg::{
     Pose2D, PoseStamped, SeqTag, Time, TrackingStatus,
 };
 use offworld_runtime::wire::{self, Delivery};
+use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::pubsub::Subscriber;
 use offworld_runtime::zenoh::query::{Query, Queryable};
 use offworld_runtime::zenoh::sample::{Sample, SampleKind};
 use offworld_runtime::zenoh::Session;
+use offworld_runtime::zenoh::Wait;
 use offworld_runtime::WireError;
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
@@ -53,7 +55,8 @@ const RECALL: Duration = Duration::from_millis(500);
 /// Everything that reaches the agent from the network.
 enum Event {
     Command(MotionCommand),
-    Heartbeat,
+    /// The controller's heartbeat, as received (echoed back).
+    Heartbeat(ZBytes),
     EStop(Latch, EStop),
     ControllerPresent(bool),
     GuardPresent(bool),
@@ -185,7 +188,7 @@ impl Declarations {
         subscribers.push(
             session
                 .declare_subscriber(env.key(Topic::Heartbeat))
-                .callback(move |_: Sample| enqueue(&t, Event::Heartbeat))
+                .callback(move |s: Sample| enqueue(&t, Event::Heartbeat(s.payload().clone())))
                 .await?,
         );
         for (key, latch) in [
@@ -304,6 +307,8 @@ enum Outgoing {
     },
     Fault(MotionFault),
     Ack(EStopAck),
+    /// A controller heartbeat echoed back.
+    Echo(ZBytes),
 }
 
 /// The agent's outgoing messages, published in order by a thread of their
@@ -321,6 +326,9 @@ impl Outbox {
         let odom_out = wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?;
         let fault = wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?;
         let ack = wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?;
+        let echo = wire::publisher(session, env.key(Topic::HeartbeatEcho), Delivery::Latest)
+            .priority(wire::CONTROL_PRIORITY)
+            .await?;
         let (queue, outgoing) = std::sync::mpsc::channel::<Outgoing>();
         std::thread::Builder::new()
             .name("robot_agent/outbox".into())
@@ -339,6 +347,12 @@ impl Outbox {
                         }
                         Outgoing::Fault(f) => wire::publish(&fault, &f),
                         Outgoing::Ack(a) => wire::publish(&ack, &a),
+                        Outgoing::Echo(beat) => {
+                            if let Err(e) = echo.put(beat).wait() {
+                                tracing::warn!("heartbeat echo failed: {e}");
+                            }
+                            continue;
+                        }
                     };
                     if let Err(e) = result {
                         tracing::warn!("robot agent publication failed: {e}");
@@ -456,7 +470,9 @@ impl<H: RobotHardware> Agent<H> {
     async fn handle(&mut self, event: Event) {
         let now = Instant::now();
         match event {
-            Event::Heartbeat => {
+            Event::Heartbeat(beat) => {
+                // Echoed from the control loop: proof that it runs.
+                self.outbox.send(Outgoing::Echo(beat));
                 self.watchdog.sign_of_life(now);
                 self.check_watchdog(now).await;
             }

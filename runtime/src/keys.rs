@@ -179,6 +179,10 @@ pub enum Topic {
     Status,
     /// Controller → robot: [`crate::msg::Heartbeat`] keeping the watchdog armed.
     Heartbeat,
+    /// Robot agent / twin → controller: each [`crate::msg::Heartbeat`]
+    /// echoed as received, so the controller knows within a fraction of a
+    /// second when it stops hearing the robot (a cut or frozen link).
+    HeartbeatEcho,
     /// Operator/controller → robot: [`crate::msg::EStop`] (acts immediately).
     EStop,
     /// Robot agent / twin → operators: [`crate::msg::EStopAck`], one per
@@ -212,7 +216,7 @@ pub enum Topic {
 
 impl Topic {
     /// Every topic, in declaration order.
-    pub const ALL: [Topic; 21] = [
+    pub const ALL: [Topic; 22] = [
         Topic::Cmd,
         Topic::Obs,
         Topic::Odom,
@@ -222,6 +226,7 @@ impl Topic {
         Topic::Reward,
         Topic::Status,
         Topic::Heartbeat,
+        Topic::HeartbeatEcho,
         Topic::EStop,
         Topic::EStopAck,
         Topic::EStopState,
@@ -248,6 +253,7 @@ impl Topic {
             Topic::Reward => "reward",
             Topic::Status => "status",
             Topic::Heartbeat => "heartbeat",
+            Topic::HeartbeatEcho => "heartbeat_echo",
             Topic::EStop => "estop",
             Topic::EStopAck => "estop_ack",
             Topic::EStopState => "estop_state",

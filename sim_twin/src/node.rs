@@ -118,6 +118,7 @@ pub struct TwinNode {
 
 struct Declarations {
     _cmd: Subscriber<()>,
+    _heartbeat: Subscriber<()>,
     _estop: Subscriber<()>,
     _global_estop: Subscriber<()>,
     _goto: Queryable<()>,
@@ -146,6 +147,21 @@ impl TwinNode {
         let cmd = session
             .declare_subscriber(env.key(Topic::Cmd))
             .callback(forward(&tx, Event::Command))
+            .wait()
+            .map_err(zerr)?;
+        // The controller's heartbeats, echoed as received: how it knows it
+        // still hears the embodiment (the same for twins and robots).
+        let echo = wire::publisher(session, env.key(Topic::HeartbeatEcho), Delivery::Latest)
+            .priority(wire::CONTROL_PRIORITY)
+            .wait()
+            .map_err(zerr)?;
+        let heartbeat = session
+            .declare_subscriber(env.key(Topic::Heartbeat))
+            .callback(move |sample: Sample| {
+                if let Err(e) = echo.put(sample.payload().clone()).wait() {
+                    tracing::warn!("heartbeat echo failed: {e}");
+                }
+            })
             .wait()
             .map_err(zerr)?;
         let estop_subscriber = |key: String, latch: Latch| {
@@ -207,6 +223,7 @@ impl TwinNode {
             thread: Some(thread),
             _declarations: Declarations {
                 _cmd: cmd,
+                _heartbeat: heartbeat,
                 _estop: estop,
                 _global_estop: global_estop,
                 _goto: goto,

@@ -55,6 +55,33 @@ async fn deploy(
     (deployment, base, session, gym)
 }
 
+/// Every episode started on `experiment` was recorded (each ended aborted
+/// by its fault), and the experiment resumes with all of them.
+async fn assert_every_episode_recorded(
+    deployment: &EmulatedEnclosure,
+    session: &Session,
+    experiment: &str,
+    started: u64,
+) {
+    let store = Store::open(&deployment.dir.join("gym.db")).expect("store");
+    let recorded = store
+        .experiments()
+        .expect("experiments")
+        .into_iter()
+        .find(|e| e.name == experiment)
+        .expect("the experiment");
+    assert_eq!(recorded.episodes, started, "no episode record lost");
+    let resumed = EnvClient::open(
+        session,
+        &deployment.env,
+        open_request(&deployment.token, experiment, true),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("resume");
+    assert_eq!(resumed.opened().experiment.episodes, started);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
     let options = Options::new("MonolithContinuous").expect("options");
@@ -116,26 +143,8 @@ async fn the_base_stops_and_the_client_gets_a_typed_error_on_every_fault() {
             .unwrap_or_else(|e| panic!("{part:?} {fault}: no recovery: {e}"));
     }
 
-    // Every episode was recorded (each ended aborted by its fault), and the
-    // experiment resumes with all of them.
     gym.close().await.expect("close");
-    let store = Store::open(&deployment.dir.join("gym.db")).expect("store");
-    let experiment = store
-        .experiments()
-        .expect("experiments")
-        .into_iter()
-        .find(|e| e.name == "faults")
-        .expect("the experiment");
-    assert_eq!(experiment.episodes, resets, "no episode record lost");
-    let resumed = EnvClient::open(
-        &session,
-        &deployment.env,
-        open_request(&deployment.token, "faults", true),
-        ClientTimeouts::default(),
-    )
-    .await
-    .expect("resume");
-    assert_eq!(resumed.opened().experiment.episodes, resets);
+    assert_every_episode_recorded(&deployment, &session, "faults", resets).await;
 }
 
 /// The control: without the base guard, a killed robot agent leaves the
@@ -216,6 +225,16 @@ async fn the_base_stops_and_the_client_gets_an_answer_on_robot_link_faults() {
             "{fault}: the base still moves at the end of the window"
         );
         if matches!(fault, Fault::Link(Impairment::Cut, _)) {
+            // The controller stops hearing the robot's heartbeat echoes: the
+            // step fails while the link is still cut, not when it returns.
+            let error = outcome.client_error.as_ref().expect("the cut step failed");
+            assert_eq!(error.code, ErrorCode::Unavailable, "{error}");
+            assert!(error.message.contains("no word from the robot"), "{error}");
+            assert!(
+                outcome.result_after < held,
+                "{fault}: failed during the cut, after {:?}",
+                outcome.result_after
+            );
             // Nothing reaches the robot: its watchdog stops it.
             assert!(
                 outcome.stopped_within(Duration::from_secs(1)),
@@ -239,21 +258,5 @@ async fn the_base_stops_and_the_client_gets_an_answer_on_robot_link_faults() {
             .unwrap_or_else(|e| panic!("{fault}: no recovery: {e}"));
     }
     gym.close().await.expect("close");
-    let store = Store::open(&deployment.dir.join("gym.db")).expect("store");
-    let experiment = store
-        .experiments()
-        .expect("experiments")
-        .into_iter()
-        .find(|e| e.name == "link-faults")
-        .expect("the experiment");
-    assert_eq!(experiment.episodes, resets, "no episode record lost");
-    let resumed = EnvClient::open(
-        &session,
-        &deployment.env,
-        open_request(&deployment.token, "link-faults", true),
-        ClientTimeouts::default(),
-    )
-    .await
-    .expect("resume");
-    assert_eq!(resumed.opened().experiment.episodes, resets);
+    assert_every_episode_recorded(&deployment, &session, "link-faults", resets).await;
 }

@@ -216,3 +216,167 @@ async fn every_service_exits_cleanly_on_sigterm_sigint_and_sighup() {
     }
     let _ = std::fs::remove_dir_all(&scratch);
 }
+
+/// Durability: the controller is killed (`kill -9`) at random points while
+/// a client runs episode after episode, and restarted. Every episode the
+/// client saw end is in the store as it ended (steps, end reason); every
+/// episode started is on record, the ones cut by a kill as aborted; the
+/// experiment resumes with all of them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_completed_episode_survives_kill_9_at_random_points() {
+    use offworld_env_controller::store::IN_PROGRESS;
+    use offworld_env_controller::Store;
+    use rand::{Rng, SeedableRng};
+
+    let scratch = std::env::temp_dir().join(format!("offworld-durable-{}", client::random_id()));
+    std::fs::create_dir_all(&scratch).expect("scratch");
+    let db = scratch.join("gym.db");
+    let endpoint = loopback_endpoint().expect("port");
+    let env = EnvId::sim("durable-0").expect("env");
+    let env_arg = format!("{env}=MonolithDiscrete");
+    let serve = [
+        "--db",
+        db.to_str().expect("utf8"),
+        "serve",
+        "--env",
+        &env_arg,
+        "--embedded-twins",
+        "--listen",
+        &endpoint,
+    ];
+    let session = SessionConfig::connecting(&endpoint)
+        .open()
+        .await
+        .expect("client session");
+    let request = |resume: bool| OpenRequest {
+        token: String::new(),
+        client_id: String::new(),
+        experiment_name: "durable".into(),
+        resume_experiment: resume,
+        learning_type: LearningType::EndToEnd,
+        algorithm_mode: AlgorithmMode::Train,
+        obs: ObsOptions {
+            channels: Channels::DepthOnly,
+            height: 24,
+            width: 32,
+            depth_format: DepthFormat::Uint8,
+        },
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+    // (episode index, steps) of every episode the client saw end.
+    let mut completed: Vec<(u64, u32)> = Vec::new();
+    let mut started = 0u64;
+    const KILLS: usize = 4;
+    for round in 0..=KILLS {
+        let controller = Process::spawn("env_controller", &serve).expect("controller");
+        let deadline = std::time::Instant::now() + Duration::from_secs(30);
+        let mut gym = loop {
+            match EnvClient::open(
+                &session,
+                &env,
+                request(round > 0),
+                ClientTimeouts::default(),
+            )
+            .await
+            {
+                Ok(gym) => break gym,
+                Err(e) if std::time::Instant::now() < deadline => {
+                    let _ = e;
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+                Err(e) => panic!("round {round}: no controller: {e}"),
+            }
+        };
+        // Every episode started is on record; one more when the kill fell
+        // between a reset's record and its reply.
+        let recorded = gym.opened().experiment.episodes;
+        assert!(
+            (started..=started + 1).contains(&recorded),
+            "round {round}: resumed with {recorded} episodes, {started} started"
+        );
+        started = recorded;
+        if round == KILLS {
+            gym.close().await.expect("close");
+            drop(controller);
+            break;
+        }
+        // Kill somewhere in the next 0.3–2 s, wherever the client is.
+        let kill_at =
+            tokio::time::Instant::now() + Duration::from_millis(rng.random_range(300..2_000));
+        let killer = tokio::spawn(async move {
+            tokio::time::sleep_until(kill_at).await;
+            drop(controller);
+        });
+        'episodes: loop {
+            let Ok(reset) = gym.reset(Seed::Fixed(rng.random())).await else {
+                break;
+            };
+            started += 1;
+            let index = reset.info.episode_id;
+            loop {
+                match gym.step(Action::Discrete(rng.random_range(0..4))).await {
+                    Ok(r) if r.terminated || r.truncated => {
+                        completed.push((index, r.info.step));
+                        break;
+                    }
+                    Ok(_) => {}
+                    Err(_) => break 'episodes,
+                }
+            }
+        }
+        killer.await.expect("killer");
+    }
+    assert!(
+        completed.len() >= 2,
+        "episodes completed between kills: {completed:?}"
+    );
+    assert!(
+        started > completed.len() as u64,
+        "some episode was cut by a kill"
+    );
+
+    let store = Store::open(&db).expect("store");
+    let experiment = store
+        .experiments()
+        .expect("experiments")
+        .into_iter()
+        .find(|e| e.name == "durable")
+        .expect("the experiment");
+    assert_eq!(
+        experiment.episodes, started,
+        "every episode started is on record"
+    );
+    let episodes = store.episodes(experiment.id).expect("episodes");
+    assert_eq!(episodes.len() as u64, started);
+    for (index, steps) in &completed {
+        let e = episodes
+            .iter()
+            .find(|e| e.index == *index)
+            .unwrap_or_else(|| panic!("completed episode {index} lost"));
+        assert_eq!(
+            e.steps, *steps,
+            "episode {index}: steps as the client saw them"
+        );
+        assert!(
+            ["success", "out_of_bounds", "step_limit"].contains(&e.end_reason.as_str()),
+            "episode {index} ended {:?}",
+            e.end_reason
+        );
+    }
+    // The others were cut by a kill (aborted), or ended just before one
+    // with the reply lost: none is left in progress.
+    for e in &episodes {
+        assert_ne!(
+            e.end_reason, IN_PROGRESS,
+            "episode {} left in progress",
+            e.index
+        );
+    }
+    let aborted = episodes
+        .iter()
+        .filter(|e| e.end_reason.starts_with("aborted"))
+        .count();
+    assert!(aborted >= 1, "the cut episodes are recorded as aborted");
+    drop(session);
+    let _ = std::fs::remove_dir_all(&scratch);
+}
