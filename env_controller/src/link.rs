@@ -422,9 +422,14 @@ impl RobotLink {
         })
     }
 
-    /// How long the embodiment has been silent, when longer than the
-    /// link's `silence` limit.
+    /// How long the robot has been silent, when longer than the link's
+    /// `silence` limit. Real robots only: a twin's silence moves nothing,
+    /// and a loaded training host must not fail sim steps for it (its
+    /// answer timeout still applies).
     fn silent_for(&self) -> Option<Duration> {
+        if self.env.realm() != offworld_runtime::Realm::Real {
+            return None;
+        }
         let heard = (*self.heard.borrow())?;
         Some(heard.elapsed()).filter(|d| *d > self.timeouts.silence)
     }
