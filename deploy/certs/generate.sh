@@ -9,7 +9,10 @@
 # Usage: deploy/certs/generate.sh OUT_DIR [ROUTER_SAN]
 #   ROUTER_SAN: subjectAltName of the router certificate
 #   (default: DNS:localhost plus 127.0.0.1-127.0.0.9).
-# Writes OUT_DIR/{ca,router,env_controller,sim_controller,robot_agent,tracker_agent,sim_twin,operator}.{pem,key}.
+# Writes OUT_DIR/{ca,router,env_controller,sim_controller,robot_agent,tracker_agent,sim_twin,operator}.{pem,key},
+# and the site's seal keys (runtime/src/seal.rs), kept if present:
+#   OUT_DIR/command.seal  for env_controller (real site) and robot_agent (--command-key)
+#   OUT_DIR/tracker.seal  for tracker_agent, env_controller and robot_agent (--tracker-key)
 set -euo pipefail
 out=${1:?usage: generate.sh OUT_DIR [ROUTER_SAN]}
 router_san=${2:-DNS:localhost,$(printf 'IP:127.0.0.%d,' 1 2 3 4 5 6 7 8 9 | sed 's/,$//')}
@@ -39,5 +42,8 @@ for role in env_controller sim_controller robot_agent tracker_agent sim_twin ope
     issue "$role" "DNS:$role" clientAuth
 done
 rm -f ca.srl
-chmod 600 ./*.key
+for seal in command tracker; do
+    [ -e "$seal.seal" ] || (umask 077 && openssl rand -hex 32 >"$seal.seal")
+done
+chmod 600 ./*.key ./*.seal
 echo "certificates in $(pwd)" >&2

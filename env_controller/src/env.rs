@@ -22,7 +22,9 @@ use tokio::sync::{watch, Mutex as AsyncMutex};
 
 use crate::episode::{judge, EndReason, Outcome, SpawnSampler};
 use crate::estops::EnvEStops;
-use crate::link::{Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink};
+use crate::link::{
+    Answered, LinkSeals, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink,
+};
 use crate::observation::{shape, validate_options};
 use crate::store::{
     format_unix_ms, lock_store, now_ms, validate_experiment_name, BookingRules, EpisodeRecord,
@@ -111,7 +113,14 @@ struct Episode {
     requested: Pose2D,
     achieved: Pose2D,
     started_ms: i64,
+    /// When its progress was last saved ([`PROGRESS_EVERY`]).
+    saved: Instant,
 }
+
+/// How often an episode's progress is saved while it runs: a controller
+/// killed mid-episode loses at most this much of its record (a save is a
+/// durable write, too slow for every step of a fast twin).
+const PROGRESS_EVERY: Duration = Duration::from_secs(1);
 
 impl Episode {
     /// Its record, ended by `end` at `ended_ms` (`None`: in progress).
@@ -207,6 +216,7 @@ impl EnvServer {
         env: EnvId,
         task: Task,
         options: EnvOptions,
+        seals: &LinkSeals,
         store: Arc<Mutex<Store>>,
     ) -> Result<Self, crate::ControllerError> {
         options.check()?;
@@ -217,7 +227,7 @@ impl EnvServer {
         if abandoned > 0 {
             tracing::warn!(%env, abandoned, "episodes left in progress by the previous run recorded as aborted");
         }
-        let link = RobotLink::connect(session, &env, options.timeouts).await?;
+        let link = RobotLink::connect(session, &env, options.timeouts, seals).await?;
         let estops = EnvEStops::follow(session, &env).await?;
         // Spectators' view: a slow one must never stall a step.
         let events = wire::publisher(session, env.key(Topic::Reward), Delivery::Latest)
@@ -555,6 +565,7 @@ impl EnvServer {
             requested: target,
             achieved,
             started_ms: now_ms(),
+            saved: Instant::now(),
         };
         // On record from its first moment: a controller killed mid-episode
         // leaves it, closed as aborted at the next start.
@@ -663,8 +674,9 @@ impl EnvServer {
             outcome.end.as_ref(),
         )
         .await;
-        if let Some(end) = &outcome.end {
-            self.finish_episode(&mut state, end)?;
+        match &outcome.end {
+            Some(end) => self.finish_episode(&mut state, end)?,
+            None => self.save_progress(&mut state),
         }
         Ok(reply)
     }
@@ -851,6 +863,22 @@ impl EnvServer {
             if let Err(e) = self.finish_episode(state, &EndReason::Aborted(reason.to_owned())) {
                 tracing::error!(env = %self.env, "could not record the aborted episode: {}", e.message);
             }
+        }
+    }
+
+    /// Saves the running episode's progress when [`PROGRESS_EVERY`] has
+    /// passed since the last save (a failure is logged: the step stands).
+    fn save_progress(&self, state: &mut State) {
+        let (Some(episode), Some(lease)) = (state.episode.as_mut(), state.lease.as_ref()) else {
+            return;
+        };
+        if episode.over || episode.saved.elapsed() < PROGRESS_EVERY {
+            return;
+        }
+        episode.saved = Instant::now();
+        let record = episode.record(lease.experiment.id, None, now_ms());
+        if let Err(e) = lock_store(&self.store).progress_episode(&record) {
+            tracing::error!(env = %self.env, "could not save the episode's progress: {e}");
         }
     }
 

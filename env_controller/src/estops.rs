@@ -3,7 +3,8 @@
 //! and steps while either is engaged — the same `InvalidState` for a sim
 //! env and a real one — shows them in the env's status, answers
 //! `estop_state` for its envs (so a restarted robot agent or twin learns
-//! them from the network), and on start learns them the same way.
+//! them from the network), and on start learns them the same way (asking
+//! again for a few seconds: a fresh session may not reach everyone yet).
 
 use std::time::Duration;
 
@@ -38,6 +39,13 @@ impl EnvEStops {
             tracing::warn!(%env, %reason, "e-stop in force at start (from the network)");
         }
         let (tx, state) = watch::channel(recalled);
+        // Answers that were not routable yet come in later.
+        tokio::spawn(estop::keep_recalling(
+            session.clone(),
+            env.clone(),
+            tx.clone(),
+            RECALL,
+        ));
         let subscribe = |key: String, latch: Latch| {
             let tx = tx.clone();
             let env = env.clone();
@@ -57,7 +65,7 @@ impl EnvEStops {
             .map_err(zerr)?;
         let queryable = session
             .declare_queryable(env.key(Topic::EStopState))
-            .callback(estop::state_replier(state.clone()))
+            .callback(estop::state_replier(env, state.clone()))
             .await
             .map_err(zerr)?;
         Ok(Self {

@@ -13,6 +13,7 @@ use offworld_runtime::msg::{
     PoseStamped, SeqTag, TrackingStatus,
 };
 use offworld_runtime::pool::BufferPool;
+use offworld_runtime::seal::{Gate, SealKey, Sealer};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
@@ -245,11 +246,35 @@ impl Default for LinkTimeouts {
     }
 }
 
+/// What a real site seals ([`offworld_runtime::seal`]); none by default.
+#[derive(Debug, Clone, Default)]
+pub struct LinkSeals {
+    /// Seals every command, heartbeat and reset drive sent to a robot (its
+    /// agent, given the same key, obeys nothing else).
+    pub command: Option<Arc<Sealer>>,
+    /// The tracker agent's key: a real env believes only poses and
+    /// tracking reports sealed with it.
+    pub tracker: Option<SealKey>,
+}
+
+impl LinkSeals {
+    /// The gate of a tracker stream of `env`, if the site seals them
+    /// (twins do not: a sim env's poses are the twin's own).
+    fn tracker_gate(&self, env: &EnvId, what: &'static str) -> Option<Gate> {
+        let key = self
+            .tracker
+            .clone()
+            .filter(|_| env.realm() == offworld_runtime::Realm::Real)?;
+        Some(Gate::new(key, what))
+    }
+}
+
 /// Subscriptions to one env's robot-side keys.
 pub struct RobotLink {
     session: Session,
     env: EnvId,
     cmd: Publisher<'static>,
+    sealer: Option<Arc<Sealer>>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
     pending: Pending,
     /// Observation buffers, recycled once a reply is sent.
@@ -276,6 +301,7 @@ impl RobotLink {
         session: &Session,
         env: &EnvId,
         timeouts: LinkTimeouts,
+        seals: &LinkSeals,
     ) -> Result<Self, ControllerError> {
         let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
         let (frame_tx, frames) = watch::channel(None);
@@ -331,15 +357,22 @@ impl RobotLink {
             .await
             .map_err(zerr)?;
         let (fault_tx, faults) = watch::channel(None);
-        let fault = subscribe_decoded(session, env.key(Topic::Fault), "fault", move |fault, _| {
-            fault_tx.send_replace(Some(fault));
-        })
+        let fault = subscribe_decoded(
+            session,
+            env.key(Topic::Fault),
+            "fault",
+            None,
+            move |fault, _| {
+                fault_tx.send_replace(Some(fault));
+            },
+        )
         .await
         .map_err(zerr)?;
         let pose = subscribe_decoded(
             session,
             env.key(Topic::Pose),
             "pose",
+            seals.tracker_gate(env, "tracker pose"),
             move |pose, sample| {
                 let seq = wire::decode_attachment::<SeqTag>(sample).map(|t| t.seq);
                 pose_tx.send_replace(Some(PoseSample {
@@ -356,6 +389,7 @@ impl RobotLink {
             session,
             env.key(Topic::Tracking),
             "tracking status",
+            seals.tracker_gate(env, "tracking status"),
             move |status: TrackingStatus, _| {
                 lost.send_replace(!status.tracking);
             },
@@ -408,6 +442,7 @@ impl RobotLink {
             session: session.clone(),
             env: env.clone(),
             cmd,
+            sealer: seals.command.clone(),
             frames,
             pending,
             observations,
@@ -530,7 +565,7 @@ impl RobotLink {
         lost.mark_unchanged();
         let mut closing = self.closing.subscribe();
         closing.mark_unchanged();
-        wire::publish(&self.cmd, cmd)
+        wire::publish_sealed(&self.cmd, cmd, self.sealer.as_deref())
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
         let seq = cmd.seq;
@@ -640,11 +675,12 @@ impl RobotLink {
         }
         let mut alive = self.embodiment_alive.clone();
         let key = self.env.key(Topic::Goto);
-        let drive = wire::request(
+        let drive = wire::request_sealed(
             &self.session,
             &key,
             &request,
             self.timeouts.goto + Duration::from_secs(1),
+            self.sealer.as_deref(),
         );
         tokio::select! {
             reply = drive => reply.map_err(|e| match e.into_wire() {
@@ -681,28 +717,32 @@ impl RobotLink {
             angular_z: 0.0,
             duration_s: 0.0,
         };
-        if let Err(e) = wire::publish(&self.cmd, &halt) {
+        if let Err(e) = wire::publish_sealed(&self.cmd, &halt, self.sealer.as_deref()) {
             tracing::error!(env = %self.env, "cannot send stop: {e}");
         }
     }
 }
 
 /// Subscribes to `key`, handing each sample that decodes as `T` (with the
-/// sample, for its attachment) to `on`; malformed ones are logged and
-/// dropped.
+/// sample, for its attachment) to `on`; malformed ones, and with a `gate`
+/// unsealed ones, are logged and dropped.
 async fn subscribe_decoded<T: serde::de::DeserializeOwned>(
     session: &Session,
     key: String,
     what: &'static str,
+    gate: Option<Gate>,
     on: impl Fn(T, &Sample) + Send + Sync + 'static,
 ) -> Result<Subscriber<()>, offworld_runtime::zenoh::Error> {
     session
         .declare_subscriber(key)
-        .callback(
-            move |sample: Sample| match codec::decode_payload::<T>(sample.payload()) {
+        .callback(move |sample: Sample| {
+            if gate.as_ref().is_some_and(|g| !g.admit(&sample)) {
+                return;
+            }
+            match codec::decode_payload::<T>(sample.payload()) {
                 Ok(msg) => on(msg, &sample),
                 Err(e) => tracing::warn!("rejected a malformed {what}: {e}"),
-            },
-        )
+            }
+        })
         .await
 }

@@ -10,15 +10,18 @@
 //! ```
 
 use std::path::PathBuf;
+use std::sync::Arc;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::link::LinkSeals;
 use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::store::BookingRules;
 use offworld_env_controller::{
     Controller, ControllerError, EnvOptions, RequestLimits, Store, Task,
 };
+use offworld_runtime::seal::{SealArgs, Sealer};
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
 #[derive(Parser)]
@@ -72,6 +75,8 @@ enum Command {
         /// Largest request accepted, bytes (larger: BadRequest, undecoded).
         #[arg(long, default_value_t = RequestLimits::default().max_request_bytes)]
         max_request_bytes: usize,
+        #[command(flatten)]
+        seals: SealArgs,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -164,12 +169,25 @@ async fn main() -> anyhow::Result<()> {
             client_rate,
             client_burst,
             max_request_bytes,
+            seals,
             common,
         } => {
             let envs: Vec<(EnvId, Task)> = envs
                 .iter()
                 .map(|e| parse_env(e))
                 .collect::<Result<_, _>>()?;
+            let seals = LinkSeals {
+                command: seals.command()?.map(|key| Arc::new(Sealer::new(key))),
+                tracker: seals.tracker()?,
+            };
+            if envs.iter().any(|(env, _)| env.realm() == Realm::Real) {
+                if seals.command.is_none() {
+                    tracing::warn!("commands to real robots are not sealed (no --command-key): the router's access control is their only guard");
+                }
+                if seals.tracker.is_none() {
+                    tracing::warn!("tracker poses are believed unsealed (no --tracker-key): the router's access control is their only guard");
+                }
+            }
             let store = Store::open(&args.db)?;
             let session = common.server_config().open().await?;
             let site = EnvOptions {
@@ -209,6 +227,7 @@ async fn main() -> anyhow::Result<()> {
                 Running::Embedded(Embedded::start_with(&session, &sims, store, site, limits).await?)
             } else {
                 let mut controller = Controller::with_limits(session.clone(), store, limits)?;
+                controller.seal_with(seals);
                 for (env, task) in envs {
                     let opts = options(&env);
                     controller.serve(env, task, opts).await?;

@@ -35,6 +35,7 @@ use tokio::task::JoinHandle;
 use crate::admission::{self, ClientRates, Gate, RequestLimits};
 use crate::env::{EnvOptions, EnvServer};
 use crate::error::ControllerError;
+use crate::link::LinkSeals;
 use crate::store::Store;
 use crate::task::Task;
 
@@ -48,6 +49,7 @@ pub struct Controller {
     envs: Vec<ServedEnv>,
     limits: RequestLimits,
     rates: Arc<ClientRates>,
+    seals: LinkSeals,
 }
 
 struct ServedEnv {
@@ -184,7 +186,14 @@ impl Controller {
             envs: Vec::new(),
             rates: Arc::new(ClientRates::new(&limits)),
             limits,
+            seals: LinkSeals::default(),
         }
+    }
+
+    /// Seals what moves real robots, and believes only sealed tracker
+    /// reports, for the envs served from now on ([`LinkSeals`]).
+    pub fn seal_with(&mut self, seals: LinkSeals) {
+        self.seals = seals;
     }
 
     /// [`Controller::new`] with a site's request limits (checked).
@@ -229,6 +238,7 @@ impl Controller {
                 env.clone(),
                 task,
                 options,
+                &self.seals,
                 self.store.clone(),
             )
             .await?,
@@ -301,6 +311,7 @@ impl Controller {
         let session = self.session.clone();
         let beat_server = server.clone();
         let heartbeat_key = env.key(Topic::Heartbeat);
+        let sealer = self.seals.command.clone();
         tasks.push(tokio::spawn(async move {
             let mut interval = tokio::time::interval(HEARTBEAT_PERIOD);
             let mut counter = 0u64;
@@ -311,7 +322,9 @@ impl Controller {
                     stamp: Time::now(),
                     counter,
                 };
-                if let Err(e) = wire::put_control(&session, &heartbeat_key, &beat).await {
+                let sent =
+                    wire::put_control_sealed(&session, &heartbeat_key, &beat, sealer.as_deref());
+                if let Err(e) = sent.await {
                     tracing::warn!("heartbeat failed: {e}");
                 }
                 if counter.is_multiple_of(10) {

@@ -424,6 +424,27 @@ impl Store {
         tx.commit().map_err(db)
     }
 
+    /// Saves how far the episode in progress `ep` got (steps, return, when),
+    /// so that a controller killed mid-episode loses at most what came
+    /// after the last save; the row stays in progress.
+    pub fn progress_episode(&mut self, ep: &EpisodeRecord) -> Result<(), ControllerError> {
+        self.conn
+            .execute(
+                "UPDATE episodes SET steps = ?3, episode_return = ?4, ended_ms = ?5
+                 WHERE experiment_id = ?1 AND episode_index = ?2 AND end_reason = ?6",
+                params![
+                    ep.experiment_id,
+                    ep.episode_index as i64,
+                    ep.steps,
+                    ep.episode_return,
+                    ep.ended_ms,
+                    IN_PROGRESS
+                ],
+            )
+            .map(|_| ())
+            .map_err(db)
+    }
+
     /// Closes the episodes of `env_id` still in progress (their controller
     /// stopped without ending them: killed, power cut) as aborted with
     /// `reason`; returns how many.
@@ -432,14 +453,26 @@ impl Store {
         env_id: &str,
         reason: &str,
     ) -> Result<usize, ControllerError> {
-        self.conn
+        let tx = self.conn.transaction().map_err(db)?;
+        // Their saved steps count for the experiment, as an ended episode's do.
+        tx.execute(
+            "UPDATE experiments SET steps = steps + (
+                 SELECT COALESCE(SUM(steps), 0) FROM episodes
+                 WHERE experiment_id = experiments.id AND end_reason = ?2)
+             WHERE env_id = ?1",
+            params![env_id, IN_PROGRESS],
+        )
+        .map_err(db)?;
+        let closed = tx
             .execute(
                 "UPDATE episodes SET end_reason = ?2
                  WHERE end_reason = ?3
                    AND experiment_id IN (SELECT id FROM experiments WHERE env_id = ?1)",
                 params![env_id, reason, IN_PROGRESS],
             )
-            .map_err(db)
+            .map_err(db)?;
+        tx.commit().map_err(db)?;
+        Ok(closed)
     }
 
     /// All experiments, newest first.
@@ -1041,10 +1074,13 @@ mod tests {
         store
             .record_episode(&episode(0, 12, "success"))
             .expect("end");
-        // Episode 1 is cut by a crash.
+        // Episode 1 is cut by a crash, after 4 of its steps were saved.
         store
             .begin_episode(&episode(1, 0, IN_PROGRESS))
             .expect("begin");
+        store
+            .progress_episode(&episode(1, 4, IN_PROGRESS))
+            .expect("progress");
         let in_progress = store.episodes(experiment.id).expect("episodes");
         assert_eq!(in_progress[1].end_reason, IN_PROGRESS);
         // Another env's controller starting leaves it alone; its own closes it.
@@ -1057,15 +1093,15 @@ mod tests {
             .iter()
             .map(|e| (e.index, e.steps, e.success, e.end_reason.as_str()))
             .collect();
-        assert_eq!(summary, vec![(0, 12, true, "success"), (1, 0, false, why)]);
+        assert_eq!(summary, vec![(0, 12, true, "success"), (1, 4, false, why)]);
         let resumed = open(&store);
-        assert_eq!((resumed.episodes, resumed.steps), (2, 12));
+        assert_eq!((resumed.episodes, resumed.steps), (2, 16));
         // A record without a begun row (an older caller) is added whole.
         store
             .record_episode(&episode(2, 5, "step_limit"))
             .expect("record");
         let resumed = open(&store);
-        assert_eq!((resumed.episodes, resumed.steps), (3, 17));
+        assert_eq!((resumed.episodes, resumed.steps), (3, 21));
     }
 
     #[test]

@@ -278,7 +278,7 @@ async fn connect_with_session(name: &str) -> (RobotLink, Session, Session, EnvId
         answer_margin: Duration::from_secs(60),
         ..LinkTimeouts::default()
     };
-    let link = RobotLink::connect(&controller, &env, timeouts)
+    let link = RobotLink::connect(&controller, &env, timeouts, &Default::default())
         .await
         .expect("link");
     let alive = robot

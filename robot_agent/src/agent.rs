@@ -16,6 +16,7 @@ use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault,
     Pose2D, PoseStamped, SeqTag, Time, TrackingStatus,
 };
+use offworld_runtime::seal::{Gate, SealKey, Sealed};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
@@ -58,6 +59,9 @@ enum Event {
     /// The controller's heartbeat, as received (echoed back).
     Heartbeat(ZBytes),
     EStop(Latch, EStop),
+    /// What the network remembers of the latches, asked again after the
+    /// start ([`estop::RECALL_AGAIN`]).
+    Recalled(EStopState),
     ControllerPresent(bool),
     GuardPresent(bool),
     Tracking(bool),
@@ -121,7 +125,19 @@ pub async fn spawn<H: RobotHardware>(
     let (estop_tx, estop_rx) = watch::channel(estops.clone());
     let (tx, events) = mpsc::channel::<Event>(QUEUE);
     let (pose_tx, poses) = watch::channel(None);
-    let declarations = Declarations::declare(session, &env, tx, pose_tx, estop_rx).await?;
+    let seals = Seals::load(&config)?;
+    // A fresh session may not reach every `estop_state` yet: ask again.
+    let (again_session, again_env, again_tx) = (session.clone(), env.clone(), tx.clone());
+    tokio::spawn(async move {
+        for delay in estop::RECALL_AGAIN {
+            tokio::time::sleep(delay).await;
+            let network = estop::recall(&again_session, &again_env, RECALL).await;
+            if again_tx.send(Event::Recalled(network)).await.is_err() {
+                return;
+            }
+        }
+    });
+    let declarations = Declarations::declare(session, &env, tx, pose_tx, estop_rx, seals).await?;
     let agent = Agent {
         outbox: Outbox::declare(session, &env).await?,
         env,
@@ -150,6 +166,47 @@ pub async fn spawn<H: RobotHardware>(
     Ok(NodeHandle::spawn(|stop| agent.run(events, stop)))
 }
 
+/// The gates of the sealed streams ([`offworld_runtime::seal`]), with
+/// the site's keys: what moves the robot must be sealed by the controller,
+/// what steers navigation by the tracker agent.
+#[derive(Default)]
+struct Seals {
+    cmd: Option<Gate>,
+    heartbeat: Option<Gate>,
+    goto: Option<Gate>,
+    pose: Option<Gate>,
+    tracking: Option<Gate>,
+}
+
+impl Seals {
+    fn load(config: &AgentConfig) -> Result<Self, AgentError> {
+        let load = |path: &Option<std::path::PathBuf>| {
+            path.as_deref()
+                .map(SealKey::load)
+                .transpose()
+                .map_err(|e| AgentError::Config(e.to_string()))
+        };
+        let command = load(&config.command_key)?;
+        let tracker = load(&config.tracker_key)?;
+        if command.is_none() {
+            tracing::warn!("commands are not checked for the site's seal (no command key): the router's access control is their only guard");
+        }
+        let gate = |key: &Option<SealKey>, what| key.clone().map(|k| Gate::new(k, what));
+        Ok(Self {
+            cmd: gate(&command, "motion command"),
+            heartbeat: gate(&command, "controller heartbeat"),
+            goto: gate(&command, "reset drive request"),
+            pose: gate(&tracker, "tracker pose"),
+            tracking: gate(&tracker, "tracking status"),
+        })
+    }
+}
+
+/// Whether `gate` (if any) admits `message`.
+fn admitted(gate: &Option<Gate>, message: &impl Sealed) -> bool {
+    gate.as_ref().is_none_or(|g| g.admit(message))
+}
+
 /// Zenoh declarations kept alive with the agent.
 struct Declarations {
     _subscribers: Vec<Subscriber<()>>,
@@ -165,7 +222,15 @@ impl Declarations {
         tx: mpsc::Sender<Event>,
         pose_tx: watch::Sender<Option<(Pose2D, Instant)>>,
         estops: watch::Receiver<EStopState>,
+        seals: Seals,
     ) -> Result<Self, AgentError> {
+        let Seals {
+            cmd: cmd_gate,
+            heartbeat: heartbeat_gate,
+            goto: goto_gate,
+            pose: pose_gate,
+            tracking: tracking_gate,
+        } = seals;
         let enqueue = |tx: &mpsc::Sender<Event>, event: Event| {
             if tx.try_send(event).is_err() {
                 tracing::warn!("robot agent queue full: dropped a message");
@@ -177,6 +242,9 @@ impl Declarations {
             session
                 .declare_subscriber(env.key(Topic::Cmd))
                 .callback(move |s: Sample| {
+                    if !admitted(&cmd_gate, &s) {
+                        return;
+                    }
                     match codec::decode_payload::<MotionCommand>(s.payload()) {
                         Ok(cmd) => enqueue(&t, Event::Command(cmd)),
                         Err(e) => tracing::warn!("rejected a malformed command: {e}"),
@@ -188,7 +256,11 @@ impl Declarations {
         subscribers.push(
             session
                 .declare_subscriber(env.key(Topic::Heartbeat))
-                .callback(move |s: Sample| enqueue(&t, Event::Heartbeat(s.payload().clone())))
+                .callback(move |s: Sample| {
+                    if admitted(&heartbeat_gate, &s) {
+                        enqueue(&t, Event::Heartbeat(s.payload().clone()));
+                    }
+                })
                 .await?,
         );
         for (key, latch) in [
@@ -215,6 +287,9 @@ impl Declarations {
             session
                 .declare_subscriber(env.key(Topic::Tracking))
                 .callback(move |s: Sample| {
+                    if !admitted(&tracking_gate, &s) {
+                        return;
+                    }
                     match codec::decode_payload::<TrackingStatus>(s.payload()) {
                         Ok(status) => enqueue(&t, Event::Tracking(status.tracking)),
                         Err(e) => tracing::warn!("rejected a malformed tracking status: {e}"),
@@ -226,6 +301,9 @@ impl Declarations {
             session
                 .declare_subscriber(env.key(Topic::Pose))
                 .callback(move |s: Sample| {
+                    if !admitted(&pose_gate, &s) {
+                        return;
+                    }
                     match codec::decode_payload::<PoseStamped>(s.payload()) {
                         Ok(p) => {
                             let pose = Pose2D {
@@ -269,6 +347,16 @@ impl Declarations {
         let goto = session
             .declare_queryable(env.key(Topic::Goto))
             .callback(move |q: Query| {
+                if !admitted(&goto_gate, &q) {
+                    // Refused openly: the asker learns why it is ignored.
+                    tokio::spawn(async move {
+                        let refused = WireError::unauthorized(
+                            "reset drive refused: not sealed with the site's command key",
+                        );
+                        let _ = wire::reply::<GotoReply>(&q, Err(refused)).await;
+                    });
+                    return;
+                }
                 if let Err(mpsc::error::TrySendError::Full(Event::Goto(q))) =
                     t.try_send(Event::Goto(q))
                 {
@@ -281,7 +369,7 @@ impl Declarations {
             .await?;
         let estop_state = session
             .declare_queryable(env.key(Topic::EStopState))
-            .callback(estop::state_replier(estops))
+            .callback(estop::state_replier(env, estops))
             .await?;
         let token = session
             .liveliness()
@@ -492,6 +580,7 @@ impl<H: RobotHardware> Agent<H> {
             }
             Event::Tracking(tracking) => self.tracking = tracking,
             Event::EStop(latch, stop) => self.estop(latch, stop).await,
+            Event::Recalled(network) => self.recalled(&network).await,
             Event::Command(cmd) => {
                 self.watchdog.sign_of_life(now);
                 self.check_watchdog(now).await;
@@ -528,6 +617,26 @@ impl<H: RobotHardware> Agent<H> {
             state: self.estops.clone(),
         };
         self.outbox.send(Outgoing::Ack(ack));
+    }
+
+    /// Merges what the network remembers (the newer report per latch): a
+    /// latch engaged while this agent was down stops it as a press would.
+    async fn recalled(&mut self, network: &EStopState) {
+        let was_engaged = self.estops.engaged();
+        if !self.estops.merge(network) {
+            return;
+        }
+        tracing::warn!(env = %self.env, now = self.estops.summary(), "e-stop latches learnt late from the network");
+        if self.estops.engaged() && !was_engaged {
+            let reason = self.estops.refusal().unwrap_or_default();
+            self.halt(&reason, OnHalt::Abandon).await;
+        }
+        if let Some(file) = &self.latch {
+            if let Err(e) = file.store(&self.estops) {
+                tracing::error!(path = %file.path().display(), "cannot write the e-stop latch: {e}");
+            }
+        }
+        self.estop_tx.send_replace(self.estops.clone());
     }
 
     /// Why motion is refused right now, if it is.

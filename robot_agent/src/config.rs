@@ -80,6 +80,14 @@ pub struct AgentConfig {
     /// File that remembers an engaged e-stop across agent restarts (see
     /// [`crate::latch`]); `None`: an e-stop lasts as long as the process.
     pub estop_latch: Option<PathBuf>,
+    /// The site's command key file ([`offworld_runtime::seal`]): when set,
+    /// the agent obeys only commands, heartbeats and reset drives sealed
+    /// with it (by the real-site controller); anything else is ignored and
+    /// logged.
+    pub command_key: Option<PathBuf>,
+    /// The site's tracker key file: when set, reset navigation steers only
+    /// on poses and tracking reports sealed with it (by the tracker agent).
+    pub tracker_key: Option<PathBuf>,
     /// Refuse to move until the robot's independent base guard
     /// ([`crate::guard`], the `base_guard` process) declares itself: without
     /// it, a killed or frozen agent leaves a base without its own command
@@ -114,6 +122,8 @@ impl Default for AgentConfig {
             world: "monolith".into(),
             nav: NavConfig::default(),
             estop_latch: None,
+            command_key: None,
+            tracker_key: None,
             require_base_guard: true,
             base_cmd_timeout_ms: 500,
             skip_base_timeout_check: false,

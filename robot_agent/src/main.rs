@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use clap::Parser;
 use offworld_robot_agent::{AgentConfig, Ros2Robot};
+use offworld_runtime::seal::SealArgs;
 use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
@@ -35,6 +36,9 @@ struct Args {
     /// `offworld/robot_agent/<env>.estop`).
     #[arg(long)]
     estop_latch: Option<PathBuf>,
+    /// The site's keys (override the config's `command_key`, `tracker_key`).
+    #[command(flatten)]
+    seals: SealArgs,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -59,6 +63,12 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.estop_latch.is_some() {
         config.estop_latch = args.estop_latch;
+    }
+    if args.seals.command_key.is_some() {
+        config.command_key = args.seals.command_key;
+    }
+    if args.seals.tracker_key.is_some() {
+        config.tracker_key = args.seals.tracker_key;
     }
     if config.estop_latch.is_none() {
         config.estop_latch = default_latch(&args.env);

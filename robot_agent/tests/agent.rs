@@ -21,6 +21,7 @@ use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
     MotionFault, Odometry, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
 };
+use offworld_runtime::seal::{SealKey, Sealer};
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
@@ -234,6 +235,9 @@ struct Rig {
     /// Every e-stop acknowledgement received, in order.
     acks: mpsc::UnboundedReceiver<EStopAck>,
     tasks: Vec<JoinHandle<()>>,
+    /// Seals commands and heartbeats with the agent's command key (the
+    /// real-site controller's part), when it has one.
+    sealer: Option<Arc<Sealer>>,
     _subscribers: [Subscriber<()>; 3],
 }
 
@@ -252,6 +256,10 @@ impl Rig {
     async fn launch(name: &str, config: AgentConfig) -> Rig {
         let (agent_session, ctl) = loopback_pair().await.expect("loopback sessions");
         let env = EnvId::real(name).expect("env id");
+        let sealer = config
+            .command_key
+            .as_deref()
+            .map(|path| Arc::new(Sealer::new(SealKey::load(path).expect("command key"))));
         let robot = RecordingRobot::new();
         let mut tasks = vec![robot.feed_camera()];
         let agent = offworld_robot_agent::spawn(&agent_session, env.clone(), config, robot.clone())
@@ -288,8 +296,12 @@ impl Rig {
             .await
             .expect("controller token");
         let beating = Arc::new(AtomicBool::new(true));
-        let (beat_session, beat_key, flag) =
-            (ctl.clone(), env.key(Topic::Heartbeat), beating.clone());
+        let (beat_session, beat_key, flag, beat_sealer) = (
+            ctl.clone(),
+            env.key(Topic::Heartbeat),
+            beating.clone(),
+            sealer.clone(),
+        );
         tasks.push(tokio::spawn(async move {
             for counter in 0.. {
                 if flag.load(Ordering::SeqCst) {
@@ -297,7 +309,8 @@ impl Rig {
                         stamp: Time::now(),
                         counter,
                     };
-                    let _ = wire::put(&beat_session, &beat_key, &beat).await;
+                    let sealer = beat_sealer.as_deref();
+                    let _ = wire::put_control_sealed(&beat_session, &beat_key, &beat, sealer).await;
                 }
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
@@ -316,6 +329,7 @@ impl Rig {
             faults,
             acks,
             tasks,
+            sealer,
             _subscribers: [obs, fault, ack],
         }
     }
@@ -352,7 +366,8 @@ impl Rig {
             angular_z,
             duration_s,
         };
-        wire::put(&self.ctl, &self.env.key(Topic::Cmd), &cmd)
+        let sealer = self.sealer.as_deref();
+        wire::put_sealed(&self.ctl, &self.env.key(Topic::Cmd), &cmd, sealer)
             .await
             .expect("put cmd");
     }
@@ -1527,4 +1542,113 @@ async fn a_base_without_a_command_timeout_is_never_armed() {
         "only the check's turn ever moved the base: {sent:?}"
     );
     rig.finish().await;
+}
+
+/// A command key file, private to its owner, in a fresh directory.
+fn command_key_file(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "offworld-agent-{name}-{}-{}",
+        std::process::id(),
+        offworld_runtime::client::random_id()
+    ));
+    std::fs::create_dir_all(&dir).expect("key dir");
+    let path = dir.join("command.seal");
+    SealKey::generate().save(&path).expect("command key");
+    path
+}
+
+/// Issue 22: with the site's command key, the agent obeys only what the
+/// controller sealed with it. An unsealed command, one sealed with another
+/// key, the replay of a sealed one and an unsealed reset drive move
+/// nothing (the drive is refused `Unauthorized`); forged heartbeats do not
+/// keep a command going (the watchdog brakes as if they were silent).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_a_command_key_only_what_the_controller_sealed_moves_the_robot() {
+    let key_file = command_key_file("sealed");
+    let config = AgentConfig {
+        command_key: Some(key_file.clone()),
+        watchdog_ms: 500,
+        ..config()
+    };
+    // Its probes are sealed: motion is allowed.
+    let mut rig = Rig::start("sealed", config).await;
+    let sealer = rig.sealer.clone().expect("the rig seals");
+    let key = rig.env.key(Topic::Cmd);
+    let command = |seq| MotionCommand {
+        seq,
+        linear_x: CRUISE,
+        angular_z: 0.0,
+        duration_s: 0.3,
+    };
+    wire::put(&rig.ctl, &key, &command(10))
+        .await
+        .expect("unsealed");
+    let stranger = Sealer::new(SealKey::generate());
+    wire::put_sealed(&rig.ctl, &key, &command(11), Some(&stranger))
+        .await
+        .expect("sealed with another key");
+    let payload = codec::encode(&command(12)).expect("encode");
+    let seal = sealer.seal(&key, &payload, &[]);
+    rig.ctl
+        .put(&key, payload.clone())
+        .attachment(seal.clone())
+        .await
+        .expect("sealed");
+    assert_eq!(rig.answer(12).await.seq, 12);
+    assert!(
+        !rig.seen.contains(&10) && !rig.seen.contains(&11),
+        "a forged command was answered: {:?}",
+        rig.seen
+    );
+    let replayed = Instant::now();
+    rig.ctl
+        .put(&key, payload)
+        .attachment(seal)
+        .await
+        .expect("replay");
+    assert!(
+        rig.try_answer(12, Duration::from_millis(1500))
+            .await
+            .is_none(),
+        "the replay was obeyed"
+    );
+    assert!(!moved(&rig.robot.sent_since(replayed)), "the replay moved");
+    // (The probes before may have left faults of their own.)
+    while let Ok(fault) = rig.faults.try_recv() {
+        assert!(
+            ![10, 11, 12].contains(&fault.seq),
+            "forgeries are ignored, not answered: {fault:?}"
+        );
+    }
+
+    let drive = rig
+        .goto(&goto_request(13, pose(0.1, 0.3, 0.0), 5.0), ANSWER)
+        .await;
+    let e = assert_code(drive, ErrorCode::Unauthorized, "unsealed reset drive");
+    assert!(e.message.contains("not sealed"), "{e}");
+
+    // Forged heartbeats in place of the sealed ones: the watchdog brakes.
+    rig.cmd(14, CRUISE, 0.0, 5.0).await;
+    let cruise = v(CRUISE, 0.0);
+    rig.until_driving_at(cruise).await;
+    rig.beating.store(false, Ordering::SeqCst);
+    let forged_from = Instant::now();
+    let (ctl, beat_key) = (rig.ctl.clone(), rig.env.key(Topic::Heartbeat));
+    rig.tasks.push(tokio::spawn(async move {
+        for counter in 0.. {
+            let beat = Heartbeat {
+                stamp: Time::now(),
+                counter,
+            };
+            let _ = wire::put_control(&ctl, &beat_key, &beat).await;
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }));
+    let cut = rig.fault(14).await.reason;
+    assert!(cut.contains("watchdog"), "{cut}");
+    assert_braked(&rig.robot.sent(), forged_from, cruise, "forged heartbeats");
+    rig.beating.store(true, Ordering::SeqCst);
+    rig.until_motion_allowed().await;
+    rig.finish().await;
+    let _ = std::fs::remove_dir_all(key_file.parent().expect("dir"));
 }

@@ -114,12 +114,28 @@ pub fn decode(payload: &ZBytes) -> EStop {
         .unwrap_or_else(|e| EStop::new(true, format!("malformed e-stop ({e})")))
 }
 
-/// The callback of an `estop_state` queryable answering `state`'s current
-/// value (robot agents, twins and the controller declare one per env).
-pub fn state_replier(state: watch::Receiver<EStopState>) -> impl Fn(Query) + Send + Sync + 'static {
+/// The callback of `env`'s `estop_state` queryable answering `state`'s
+/// current value (robot agents, twins and the controller declare one per
+/// env). The reply carries the env's own key, not the asker's selector: a
+/// starting component asks every env at once and takes the env latch only
+/// from its own env's answers.
+pub fn state_replier(
+    env: &EnvId,
+    state: watch::Receiver<EStopState>,
+) -> impl Fn(Query) + Send + Sync + 'static {
+    let key = env.key(Topic::EStopState);
     move |query: Query| {
         let current = state.borrow().clone();
-        if let Err(e) = crate::wire::reply_now(&query, Ok(&current)) {
+        let sent = codec::encode(&current)
+            .map_err(|e| e.to_string())
+            .and_then(|bytes| {
+                query
+                    .reply(key.as_str(), bytes)
+                    .encoding(zenoh::bytes::Encoding::APPLICATION_CDR)
+                    .wait()
+                    .map_err(|e| e.to_string())
+            });
+        if let Err(e) = sent {
             tracing::warn!("e-stop state reply failed: {e}");
         }
     }
@@ -142,6 +158,44 @@ pub async fn recall(session: &Session, env: &EnvId, timeout: Duration) -> EStopS
         Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
     }
     state
+}
+
+/// When a starting component asks the network again, after its first
+/// [`recall`]: a session that has just connected may not have heard of
+/// every `estop_state` queryable yet (a router still exchanging
+/// declarations), and a latch learnt late must still be learnt.
+pub const RECALL_AGAIN: [Duration; 4] = [
+    Duration::from_millis(300),
+    Duration::from_secs(1),
+    Duration::from_secs(2),
+    Duration::from_secs(4),
+];
+
+/// Asks the network again at each of [`RECALL_AGAIN`] (each ask bounded by
+/// `timeout`) and merges what it remembers into `state` (the newer report
+/// per latch wins, so a change heard live since is never undone). Returns
+/// when done or when every receiver of `state` is gone.
+pub async fn keep_recalling(
+    session: Session,
+    env: EnvId,
+    state: watch::Sender<EStopState>,
+    timeout: Duration,
+) {
+    for delay in RECALL_AGAIN {
+        tokio::time::sleep(delay).await;
+        if state.is_closed() {
+            return;
+        }
+        let network = recall(&session, &env, timeout).await;
+        let mut merged = false;
+        state.send_if_modified(|s| {
+            merged = s.merge(&network);
+            merged
+        });
+        if merged {
+            tracing::warn!(%env, now = state.borrow().summary(), "e-stop latches learnt late from the network");
+        }
+    }
 }
 
 /// [`recall`] for a caller that is not async (a simulation thread's setup).

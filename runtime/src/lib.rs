@@ -25,6 +25,7 @@ pub mod keys;
 pub mod msg;
 pub mod pool;
 pub mod ros2;
+pub mod seal;
 pub mod session;
 pub mod shutdown;
 pub mod wire;

@@ -100,14 +100,19 @@ pub struct RosGraph {
 
 impl RosGraph {
     /// `namespace` like `/rosbot` or empty for the root namespace.
+    /// A bridge prefix is kept normalised (`/site_a` → `site_a`): the
+    /// bridge's `namespace` option is written either way, and a leading
+    /// `/` would not be a Zenoh key expression.
     pub fn new(style: KeyStyle, namespace: &str) -> Result<Self, ContractError> {
         let namespace = normalize_name(namespace, true)?;
-        if let KeyStyle::Bridge {
-            prefix: Some(prefix),
-        } = &style
-        {
-            normalize_name(prefix, false)?;
-        }
+        let style = match style {
+            KeyStyle::Bridge {
+                prefix: Some(prefix),
+            } => KeyStyle::Bridge {
+                prefix: Some(normalize_name(&prefix, false)?),
+            },
+            other => other,
+        };
         Ok(Self { style, namespace })
     }
 
@@ -354,6 +359,17 @@ mod tests {
         assert_eq!(
             prefixed.subscription_key("odom", RosType::Odometry)?,
             "site_a/rosbot/odom"
+        );
+        // The bridge's namespace written as a ROS name (found by fuzzing).
+        let slashed = RosGraph::new(
+            KeyStyle::Bridge {
+                prefix: Some("/site_a".into()),
+            },
+            "",
+        )?;
+        assert_eq!(
+            slashed.subscription_key("/odom", RosType::Odometry)?,
+            "site_a/odom"
         );
         Ok(())
     }

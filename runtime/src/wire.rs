@@ -14,6 +14,7 @@ use zenoh::Wait;
 use crate::codec;
 use crate::error::{DecodeError, EncodeError, WireError};
 use crate::msg::{ClientTag, SeqTag};
+use crate::seal::Sealer;
 
 /// Why a request got no usable answer.
 #[derive(Debug, thiserror::Error)]
@@ -143,6 +144,57 @@ pub fn publish<T: Serialize>(publisher: &Publisher<'_>, msg: &T) -> Result<(), R
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
 
+/// [`publish`], sealed by `sealer` when there is one ([`crate::seal`]).
+pub fn publish_sealed<T: Serialize>(
+    publisher: &Publisher<'_>,
+    msg: &T,
+    sealer: Option<&Sealer>,
+) -> Result<(), RequestError> {
+    let bytes = codec::encode(msg)?;
+    let seal = sealer.map(|s| s.seal(publisher.key_expr().as_str(), &bytes, &[]));
+    publisher
+        .put(bytes)
+        .attachment(seal.map(ZBytes::from))
+        .wait()
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// [`put`], sealed by `sealer` when there is one ([`crate::seal`]).
+pub async fn put_sealed<T: Serialize>(
+    session: &Session,
+    key: &str,
+    msg: &T,
+    sealer: Option<&Sealer>,
+) -> Result<(), RequestError> {
+    let bytes = codec::encode(msg)?;
+    let seal = sealer.map(|s| s.seal(key, &bytes, &[]));
+    session
+        .put(key, bytes)
+        .encoding(Encoding::APPLICATION_CDR)
+        .priority(Priority::Data)
+        .attachment(seal.map(ZBytes::from))
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
+/// [`put_control`], sealed by `sealer` when there is one.
+pub async fn put_control_sealed<T: Serialize>(
+    session: &Session,
+    key: &str,
+    msg: &T,
+    sealer: Option<&Sealer>,
+) -> Result<(), RequestError> {
+    let bytes = codec::encode(msg)?;
+    let seal = sealer.map(|s| s.seal(key, &bytes, &[]));
+    session
+        .put(key, bytes)
+        .encoding(Encoding::APPLICATION_CDR)
+        .priority(CONTROL_PRIORITY)
+        .attachment(seal.map(ZBytes::from))
+        .await
+        .map_err(|e| RequestError::Zenoh(e.to_string()))
+}
+
 /// Publishes one message tagged with the command it answers (a
 /// [`SeqTag`] attachment).
 pub fn publish_tagged<T: Serialize>(
@@ -231,6 +283,19 @@ pub async fn request_tail<Req: Serialize, Rep: DeserializeOwned + codec::ByteTai
         codec::decode_payload_tail,
     )
     .await
+}
+
+/// [`request`], sealed by `sealer` when there is one ([`crate::seal`]).
+pub async fn request_sealed<Req: Serialize, Rep: DeserializeOwned>(
+    session: &Session,
+    key: &str,
+    req: &Req,
+    timeout: Duration,
+    sealer: Option<&Sealer>,
+) -> Result<Rep, RequestError> {
+    let payload = codec::encode(req)?;
+    let seal = sealer.map(|s| s.seal(key, &payload, &[]));
+    request_decoded(session, key, payload, seal, timeout, codec::decode_payload).await
 }
 
 /// Like [`request`] with an already encoded payload (empty for `spec`).
@@ -351,9 +416,9 @@ fn reply_payload(query: &Query, result: Result<ZBytes, WireError>) -> Result<(),
     outcome.map_err(|e| RequestError::Zenoh(e.to_string()))
 }
 
-/// Decodes a sample's CDR attachment, if any.
+/// Decodes a sample's CDR attachment, if any (without its seal, if sealed).
 pub fn decode_attachment<T: DeserializeOwned>(sample: &zenoh::sample::Sample) -> Option<T> {
     sample
         .attachment()
-        .and_then(|a| codec::decode(&a.to_bytes()).ok())
+        .and_then(|a| codec::decode(crate::seal::inner(&a.to_bytes())).ok())
 }

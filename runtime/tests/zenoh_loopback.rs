@@ -340,3 +340,42 @@ async fn a_native_observation_arrives_intact_from_its_fragments() {
     assert_eq!(plain, reply);
     server.await.expect("server task");
 }
+
+/// A starting component recalls its own env's latch from the network, not
+/// another env's, and the site latch from any env's answer: each
+/// `estop_state` queryable answers on its env's key.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn estop_state_is_recalled_per_env_from_the_network() {
+    use offworld_runtime::estop::{self, Latch};
+    let (a, b) = pair().await;
+    let (mine, other) = (
+        EnvId::real("mine").expect("env"),
+        EnvId::sim("other").expect("env"),
+    );
+    let mut kept_mine = EStopState::default();
+    kept_mine.apply(Latch::Env, &EStop::new(true, "person inside"), Time::now());
+    let mut kept_other = EStopState::default();
+    kept_other.apply(Latch::Site, &EStop::new(true, "fire alarm"), Time::now());
+    kept_other.apply(Latch::Env, &EStop::new(true, "not mine"), Time::now());
+    let mut queryables = Vec::new();
+    for (env, state) in [(&mine, kept_mine), (&other, kept_other)] {
+        let (_tx, rx) = tokio::sync::watch::channel(state);
+        queryables.push((
+            _tx,
+            a.declare_queryable(env.key(Topic::EStopState))
+                .callback(estop::state_replier(env, rx))
+                .await
+                .expect("queryable"),
+        ));
+    }
+    for _ in 0..ATTEMPTS {
+        let recalled = estop::recall(&b, &mine, Duration::from_millis(500)).await;
+        if recalled.summary() == "site+env" {
+            assert_eq!(recalled.env.reason, "person inside");
+            assert_eq!(recalled.site.reason, "fire alarm");
+            return;
+        }
+        tokio::time::sleep(RETRY).await;
+    }
+    panic!("the env latch was never recalled from its own env's answer");
+}

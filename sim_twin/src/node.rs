@@ -59,6 +59,9 @@ enum Event {
     Command(Sample),
     Goto(Query),
     EStop(Latch, Sample),
+    /// What the network remembers of the latches, asked again after the
+    /// start ([`estop::RECALL_AGAIN`]).
+    Recalled(EStopState),
     Shutdown,
 }
 
@@ -184,7 +187,7 @@ impl TwinNode {
         let (shared_estops, answered) = tokio::sync::watch::channel(estops.clone());
         let estop_state = session
             .declare_queryable(env.key(Topic::EStopState))
-            .callback(estop::state_replier(answered))
+            .callback(estop::state_replier(&env, answered))
             .wait()
             .map_err(zerr)?;
         let goto_tx = tx.clone();
@@ -208,6 +211,20 @@ impl TwinNode {
             .declare_token(env.alive_key(Component::SimTwin))
             .wait()
             .map_err(zerr)?;
+        // A fresh session may not reach every `estop_state` yet: ask again.
+        let (again_session, again_env, again_tx) = (session.clone(), env.clone(), tx.clone());
+        std::thread::Builder::new()
+            .name(format!("sim_twin/{env}/estop"))
+            .spawn(move || {
+                for delay in estop::RECALL_AGAIN {
+                    std::thread::sleep(delay);
+                    let network = estop::recall_wait(&again_session, &again_env, RECALL);
+                    if again_tx.send(Event::Recalled(network)).is_err() {
+                        return;
+                    }
+                }
+            })
+            .map_err(|e| SimError::Io(e.to_string()))?;
         let stats = Arc::new(StatCounters::default());
         let mut worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
         worker.estops = estops;
@@ -367,6 +384,7 @@ impl Worker {
                 }
                 Event::Goto(query) => self.goto(&query),
                 Event::EStop(latch, sample) => self.estop(latch, &sample),
+                Event::Recalled(network) => self.recalled(&network),
                 Event::Shutdown => return,
             }
         }
@@ -410,6 +428,12 @@ impl Worker {
                 Ok(Event::Goto(query)) => self.goto(&query),
                 Ok(Event::EStop(latch, sample)) => {
                     self.estop(latch, &sample);
+                    if self.estops.engaged() {
+                        self.twin.physics_mut().set_targets(0.0, 0.0);
+                    }
+                }
+                Ok(Event::Recalled(network)) => {
+                    self.recalled(&network);
                     if self.estops.engaged() {
                         self.twin.physics_mut().set_targets(0.0, 0.0);
                     }
@@ -487,6 +511,14 @@ impl Worker {
     fn reject(&mut self, e: &SimError) {
         self.rejected += 1;
         tracing::warn!(env = %self.env, "rejected a command: {e}");
+    }
+
+    /// Merges what the network remembers (the newer report per latch).
+    fn recalled(&mut self, network: &EStopState) {
+        if self.estops.merge(network) {
+            tracing::warn!(env = %self.env, now = self.estops.summary(), "e-stop latches learnt late from the network");
+        }
+        self.shared_estops.send_replace(self.estops.clone());
     }
 
     /// Applies an e-stop to its latch and acknowledges it.

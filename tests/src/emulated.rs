@@ -25,6 +25,7 @@ use std::time::Duration;
 use offworld_runtime::client;
 use offworld_runtime::codec;
 use offworld_runtime::msg::{EnvState, TrackingStatus};
+use offworld_runtime::seal::SealKey;
 use offworld_runtime::session::{loopback_endpoint, Mode};
 use offworld_runtime::{EnvId, SessionConfig, Topic};
 use offworld_sim_twin::enclosure::default_world_from_tracking;
@@ -32,6 +33,12 @@ use offworld_sim_twin::enclosure::default_world_from_tracking;
 use crate::link::ImpairedLink;
 use crate::netns::RobotNamespace;
 use crate::{binary_dir, Process};
+
+/// The site's command key file in [`EmulatedEnclosure::dir`]: the
+/// controller seals with it, the robot agent obeys only what it seals.
+pub const COMMAND_KEY: &str = "command.key";
+/// The site's tracker key file: the tracker agent seals its poses with it.
+pub const TRACKER_KEY: &str = "tracker.key";
 
 /// What to start.
 #[derive(Debug, Clone)]
@@ -60,6 +67,9 @@ pub struct Options {
     /// the controller reaches only through [`EmulatedEnclosure::robot_link`]:
     /// a link a test can cut, delay or make lossy. Needs CAP_NET_ADMIN.
     pub isolated_robot: bool,
+    /// Also run a sim twin process for this env (same task, on the robot's
+    /// router), served by the same controller: [`Part::Twin`].
+    pub twin: Option<EnvId>,
     /// Log filter of the children (default: this process's `RUST_LOG`, else `warn`).
     pub log: String,
 }
@@ -76,6 +86,7 @@ impl Options {
             base_cmd_timeout_ms: None,
             base_guard: true,
             isolated_robot: false,
+            twin: None,
             log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
         })
     }
@@ -108,6 +119,9 @@ pub enum Part {
     BaseGuard,
     /// The tracker agent.
     TrackerAgent,
+    /// A sim twin beside the robot, with [`Options::twin`] (not in
+    /// [`Part::ALL`]: started after the hardware when asked for).
+    Twin,
     /// Not a process: the network link between the site (controller) and
     /// the robot computer, with [`Options::isolated_robot`].
     RobotLink,
@@ -134,6 +148,7 @@ impl Part {
             Part::RobotAgent => "robot_agent",
             Part::BaseGuard => "base_guard",
             Part::TrackerAgent => "tracker_agent",
+            Part::Twin => "sim_twin",
             Part::RobotLink => "robot_link",
         }
     }
@@ -141,7 +156,7 @@ impl Part {
     /// Whether the part runs on the robot computer (in its namespace, with
     /// [`Options::isolated_robot`]).
     pub fn on_robot(self) -> bool {
-        !matches!(self, Part::Controller | Part::RobotLink)
+        !matches!(self, Part::Controller | Part::RobotLink | Part::Twin)
     }
 }
 
@@ -204,6 +219,10 @@ impl EmulatedEnclosure {
             dir.join("tracker_calibration.toml"),
             emulator_calibration_toml(),
         )?;
+        // The site's keys, as `deploy/certs/generate.sh` issues them.
+        for name in [COMMAND_KEY, TRACKER_KEY] {
+            SealKey::generate().save(&dir.join(name))?;
+        }
         // An isolated robot meets the site as a robot on a radio link
         // does: its router connects to the site's router through the link
         // (a proxy on the host's side of the namespace); nothing on the
@@ -243,15 +262,15 @@ impl EmulatedEnclosure {
         };
         for part in Part::ALL {
             deployment.start_part(part)?;
-            match part {
-                Part::Hardware if options.pausable_tracker => {
+            if part == Part::Hardware {
+                if options.pausable_tracker {
                     let addr: SocketAddr = deployment
                         .tracker_listen
                         .parse()
                         .map_err(|e| std::io::Error::other(format!("{e}")))?;
                     deployment.tracker_proxy = Some(LineProxy::start(addr)?);
                 }
-                _ => {}
+                deployment.start_part(Part::Twin)?;
             }
         }
         Ok(deployment)
@@ -302,6 +321,11 @@ impl EmulatedEnclosure {
                 let db = self.dir.join("gym.db");
                 push(&["--db", &db.to_string_lossy(), "serve"]);
                 push(&["--env", &format!("{env}={}", options.task)]);
+                push(&["--command-key", &self.key_path(COMMAND_KEY)]);
+                push(&["--tracker-key", &self.key_path(TRACKER_KEY)]);
+                if let Some(twin) = &options.twin {
+                    push(&["--env", &format!("{twin}={}", options.task)]);
+                }
                 push(&[
                     "--listen",
                     &self.endpoint,
@@ -318,6 +342,7 @@ impl EmulatedEnclosure {
                 let calibration = self.dir.join("tracker_calibration.toml");
                 push(&["run", "--env", &env, "--source", &source]);
                 push(&["--calibration", &calibration.to_string_lossy()]);
+                push(&["--tracker-key", &self.key_path(TRACKER_KEY)]);
                 push(&["--mode", "client", "--connect", robot]);
                 "tracker_agent"
             }
@@ -330,6 +355,19 @@ impl EmulatedEnclosure {
                 "base_guard"
             }
             Part::RobotLink => return Ok(()),
+            Part::Twin => {
+                let Some(twin) = &options.twin else {
+                    return Ok(());
+                };
+                let twin = twin.to_string();
+                push(&["--env", &twin, "--world", options.world()]);
+                push(&["--resolution", "84x84"]);
+                // A peer others reach directly, as the robot's nodes.
+                let site = self.site_endpoint().to_owned();
+                push(&["--mode", "peer", "--connect", &site]);
+                push(&["--listen", "tcp/127.0.0.1:0"]);
+                "sim_twin"
+            }
             Part::RobotAgent => {
                 let config = self.dir.join("robot.toml");
                 std::fs::write(&config, robot_config_toml(options))?;
@@ -338,6 +376,8 @@ impl EmulatedEnclosure {
                 push(&["--watchdog-ms", &options.watchdog_ms.to_string()]);
                 let latch = self.dir.join("robot_agent.estop");
                 push(&["--estop-latch", &latch.to_string_lossy()]);
+                push(&["--command-key", &self.key_path(COMMAND_KEY)]);
+                push(&["--tracker-key", &self.key_path(TRACKER_KEY)]);
                 push(&peer);
                 "robot_agent"
             }
@@ -361,6 +401,12 @@ impl EmulatedEnclosure {
             Part::Controller => wait_until_listening(&self.endpoint, Duration::from_secs(20)),
             _ => Ok(()),
         }
+    }
+
+    /// The path of one of the site's key files ([`COMMAND_KEY`],
+    /// [`TRACKER_KEY`]).
+    pub fn key_path(&self, name: &str) -> String {
+        self.dir.join(name).to_string_lossy().into_owned()
     }
 
     /// Waits (bounded) until the env is online and the tracker agent reports

@@ -85,6 +85,9 @@ fn json_string(s: &str) -> String {
     serde_json::to_string(s).unwrap_or_else(|_| format!("\"{s}\""))
 }
 
+/// zenohd's access-control module: its decisions are logged at trace level.
+pub const ACL_LOG_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+
 /// The router and the files of one deployment (removed on drop).
 pub struct RouterSite {
     /// Certificates, users.txt, databases.
@@ -101,6 +104,8 @@ pub struct RouterSite {
     router: Option<Process>,
     /// Extra `--cfg` of the router (see [`RouterSite::restart_router_with`]).
     router_cfg: Vec<String>,
+    /// Where the router's log goes when audited ([`RouterSite::audit_router`]).
+    router_log: Option<PathBuf>,
     /// Declared last: removed after the router and the processes stopped.
     netns: Option<Namespaces>,
 }
@@ -165,6 +170,7 @@ impl RouterSite {
                     dir,
                     router: None,
                     router_cfg: Vec::new(),
+                    router_log: None,
                     netns,
                 }
             }
@@ -177,6 +183,7 @@ impl RouterSite {
                 dir,
                 router: None,
                 router_cfg: Vec::new(),
+                router_log: None,
                 netns,
             },
         };
@@ -244,14 +251,25 @@ impl RouterSite {
             }
             None => Command::new(zenohd()),
         };
+        let mut log = std::env::var("ZENOHD_LOG").unwrap_or_else(|_| "warn".into());
+        let (stdout, stderr) = match &self.router_log {
+            Some(path) => {
+                // zenohd logs each access-control decision at trace level,
+                // on stdout.
+                log += &format!(",{ACL_LOG_TARGET}=trace");
+                let file = std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(path)?;
+                (Stdio::from(file.try_clone()?), Stdio::from(file))
+            }
+            None => (Stdio::null(), Stdio::inherit()),
+        };
         let child = command
             .args(&args)
-            .env(
-                "RUST_LOG",
-                std::env::var("ZENOHD_LOG").unwrap_or_else(|_| "warn".into()),
-            )
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
+            .env("RUST_LOG", log)
+            .stdout(stdout)
+            .stderr(stderr)
             .spawn()
             .map_err(|e| anyhow::anyhow!("zenohd (installed by .ci/setup): {e}"))?;
         self.router = Some(Process(child));
@@ -261,6 +279,22 @@ impl RouterSite {
             wait_listening(&Self::over_tcp(endpoint), Duration::from_secs(20))?;
         }
         Ok(())
+    }
+
+    /// Restarts the router logging every access-control decision (what a
+    /// site's security engineer audits: `…is unauthorized to Put (ingress)
+    /// on <key>`) into a file, read by [`RouterSite::router_log`].
+    pub fn audit_router(&mut self) -> anyhow::Result<()> {
+        self.router_log = Some(self.dir.join("router.log"));
+        self.start_router()
+    }
+
+    /// The audited router's log so far (empty when not audited).
+    pub fn router_log(&self) -> String {
+        self.router_log
+            .as_ref()
+            .and_then(|path| std::fs::read_to_string(path).ok())
+            .unwrap_or_default()
     }
 
     /// Restarts the router with extra `--cfg KEY:VALUE` settings on top of

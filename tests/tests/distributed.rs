@@ -22,7 +22,7 @@ use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ContractError, ErrorCode};
 use offworld_tests::netns::Namespaces;
-use offworld_tests::site::{Role, RouterSite, SimFarm};
+use offworld_tests::site::{role_file, Role, RouterSite, SimFarm};
 
 /// One site at a time: each runs a router and two component processes.
 static ONE_SITE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
@@ -725,7 +725,9 @@ async fn agents_never_command_even_past_an_open_router() -> anyhow::Result<()> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
     let _one = ONE_SITE.lock().await;
-    let site = RouterSite::start("realms")?;
+    let mut site = RouterSite::start("realms")?;
+    site.audit_router()?;
+    let site = site;
     let open = |role: Role| {
         let config = site.session(role);
         async move {
@@ -785,6 +787,7 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         ),
     ];
     let mut sessions = Vec::new();
+    let mut put_by = Vec::new();
     let mut held = Vec::new();
     for (role, key, _) in &tokens {
         let session = open(*role).await;
@@ -801,6 +804,7 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
             .put(key.as_str(), role.name())
             .await
             .map_err(|e| anyhow::anyhow!("{e}"))?;
+        put_by.push(session.zid().to_string());
         sessions.push(session);
     }
     settle().await;
@@ -842,6 +846,73 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         .collect();
     expected.sort();
     assert_eq!(alive, expected, "exactly the allowed tokens are seen");
+
+    // Logged: the router names each session it refused or let through,
+    // the action and the key (zenohd's access-control decisions, see
+    // `audit_router`). An agent whose role file carries its own ACL may
+    // drop a forbidden put at the source: then the router never sees it.
+    let log = site.router_log();
+    for ((role, key, allowed), zid) in puts.iter().zip(&put_by) {
+        let decided = |verdict: &str| {
+            log.lines().any(|line| {
+                line.contains(zid.as_str())
+                    && line.contains(&format!("{verdict} to Put (ingress) on {key}"))
+            })
+        };
+        let (passed, refused) = (decided("is authorized"), decided("is unauthorized"));
+        let own_acl =
+            std::fs::read_to_string(role_file(*role)).is_ok_and(|f| f.contains("access_control"));
+        let name = role.name();
+        if *allowed {
+            assert!(
+                passed && !refused,
+                "{name}'s put on {key}: logged as let through"
+            );
+        } else if own_acl {
+            assert!(!passed, "{name}'s put on {key}: the router let it through");
+        } else {
+            assert!(
+                refused && !passed,
+                "{name}'s put on {key}: logged as refused"
+            );
+        }
+    }
     drop(held);
+    Ok(())
+}
+
+/// Issue 22: the robot agent joins the site's router over mutual TLS with
+/// nothing but its role file and password (`-c deploy/roles/robot_agent.json5`,
+/// as every binary takes its Zenoh configuration): an operator sees it
+/// alive through the router, and it obeys and acknowledges an e-stop.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_robot_agent_joins_the_mtls_router_with_its_role_file() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = RouterSite::start("agent-mtls")?;
+    let env = EnvId::real("mtls-0")?;
+    let latch = site.dir.join("robot_agent.estop");
+    let _agent = site.spawn(
+        "robot_agent",
+        Role::RobotAgent,
+        &[],
+        &[
+            "--env",
+            &env.to_string(),
+            "--estop-latch",
+            &latch.to_string_lossy(),
+        ],
+    )?;
+    let operator = site.session(Role::Operator).open().await?;
+    let wait = Duration::from_secs(20);
+    for (engaged, summary) in [(true, "env"), (false, "none")] {
+        let scope = EStopScope::Env(env.clone());
+        let report = press_estop(&operator, &scope, engaged, "mTLS check", wait, wait).await?;
+        let acks: Vec<_> = report
+            .acknowledged
+            .iter()
+            .map(|a| (a.env.as_str(), a.component.as_str(), a.state.summary()))
+            .collect();
+        assert_eq!(acks, [("real/mtls-0", "robot_agent", summary)]);
+    }
     Ok(())
 }

@@ -345,3 +345,79 @@ async fn tracker_silence_fails_the_step_with_a_typed_error_and_stops_the_robot()
         .expect("step after recovery");
     assert_eq!(again.info.step, 1);
 }
+
+/// Issue 22, defence in depth beyond the router: a peer on the robot
+/// computer's own network (no ACL in its way) floods motion commands and
+/// tracker poses at the monolith. The base is never told to move (the
+/// robot agent obeys only commands sealed with the site's command key) and
+/// no step scores on the forged poses (the controller believes only poses
+/// sealed with the tracker key); the researcher's steps run as usual.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rogue_peer_on_the_robot_network_can_neither_drive_nor_score() {
+    let _one = ONE_ENCLOSURE.lock().await;
+    let options = Options::new("MonolithDiscrete").expect("options");
+    let deployment = EmulatedEnclosure::start(&options).expect("deployment");
+    deployment
+        .ready(Duration::from_secs(60))
+        .await
+        .expect("deployment ready");
+    let (_session, mut gym) = open(&deployment, "rogue-peer").await;
+    reset(&mut gym, 5).await;
+    let rogue = robot_side(&deployment).await;
+    let (cmd_vel, _cmd_vel_sub) = CmdVelLog::watch(&rogue).await;
+    let flooding = Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let (session, env, flag) = (rogue.clone(), deployment.env.clone(), flooding.clone());
+    let flood = tokio::spawn(async move {
+        let at_the_monolith = PoseStamped {
+            header: Header::new(Time::now(), "world"),
+            pose: Pose {
+                position: Point {
+                    x: MONOLITH.0,
+                    y: MONOLITH.1,
+                    z: 0.0,
+                },
+                orientation: Quaternion::from_yaw(0.0),
+            },
+        };
+        // Bounded: 60 s at most, whatever the test does.
+        for seq in 0..3_000u64 {
+            if !flag.load(std::sync::atomic::Ordering::SeqCst) {
+                break;
+            }
+            let forward = MotionCommand {
+                seq: 9_000_000 + seq,
+                linear_x: 0.2,
+                angular_z: 0.0,
+                duration_s: 1.0,
+            };
+            let _ = offworld_runtime::wire::put(&session, &env.key(Topic::Cmd), &forward).await;
+            let _ = offworld_runtime::wire::put(&session, &env.key(Topic::Pose), &at_the_monolith)
+                .await;
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+    let started = Instant::now();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let told: Vec<_> = cmd_vel
+        .snapshot()
+        .into_iter()
+        .filter(|(at, v, w)| *at >= started && (*v != 0.0 || *w != 0.0))
+        .collect();
+    assert!(
+        told.is_empty(),
+        "the base was told to move by forged commands: {told:?}"
+    );
+    // Steps while the forged poses keep coming: none scores on them.
+    for _ in 0..3 {
+        let step = gym.step(Action::Discrete(0)).await.expect("step");
+        assert!(
+            !step.terminated && step.reward == 0.0,
+            "a step scored on forged poses: reward {}, terminated {}",
+            step.reward,
+            step.terminated
+        );
+    }
+    flooding.store(false, std::sync::atomic::Ordering::SeqCst);
+    flood.await.expect("flood");
+    gym.close().await.expect("close");
+}

@@ -15,11 +15,13 @@
 //! source ends or the agent stops.
 
 use std::future::Future;
+use std::sync::Arc;
 use std::time::Duration;
 
 use nalgebra::Isometry3;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{Header, Point, Pose, PoseStamped, Quaternion, Time, TrackingStatus};
+use offworld_runtime::seal::{SealKey, Sealer};
 use offworld_runtime::wire;
 use offworld_runtime::zenoh::{Session, Wait};
 use tokio::sync::{mpsc, oneshot, watch};
@@ -46,6 +48,10 @@ pub struct AgentConfig {
     /// Only use poses of this device id. Without it the agent locks onto
     /// the first device it sees and ignores the others (with a warning).
     pub device: Option<String>,
+    /// The site's tracker key ([`offworld_runtime::seal`]): poses and
+    /// tracking reports are sealed with it, so that the controller and the
+    /// robot agent, given the same key, believe no other pose.
+    pub seal_key: Option<SealKey>,
 }
 
 impl Default for AgentConfig {
@@ -55,6 +61,7 @@ impl Default for AgentConfig {
             lost_after: Duration::from_millis(300),
             status_period: Duration::from_secs(1),
             device: None,
+            seal_key: None,
         }
     }
 }
@@ -184,6 +191,7 @@ pub struct TrackerNode {
     config: AgentConfig,
     pose_key: String,
     tracking_key: String,
+    sealer: Option<Arc<Sealer>>,
     samples: mpsc::Receiver<SourceItem>,
     source_name: String,
     stats: AgentStats,
@@ -232,6 +240,7 @@ impl TrackerNode {
             session: session.clone(),
             pose_key: env.key(Topic::Pose),
             tracking_key: env.key(Topic::Tracking),
+            sealer: config.seal_key.clone().map(|k| Arc::new(Sealer::new(k))),
             env,
             calibration,
             filter: OutlierFilter::new(config.filter),
@@ -351,7 +360,7 @@ impl TrackerNode {
             header: Header::new(Time::now(), WORLD_FRAME),
             pose: to_pose_msg(&pose),
         };
-        wire::put(&self.session, &self.pose_key, &msg)
+        wire::put_sealed(&self.session, &self.pose_key, &msg, self.sealer.as_deref())
             .await
             .map_err(|e| AgentError::Zenoh(e.to_string()))?;
         self.stats.published += 1;
@@ -421,9 +430,14 @@ impl TrackerNode {
             last_pose_age_s: now.duration_since(since).as_secs_f64(),
             reason: self.reason.clone(),
         };
-        wire::put(&self.session, &self.tracking_key, &status)
-            .await
-            .map_err(|e| AgentError::Zenoh(e.to_string()))?;
+        wire::put_sealed(
+            &self.session,
+            &self.tracking_key,
+            &status,
+            self.sealer.as_deref(),
+        )
+        .await
+        .map_err(|e| AgentError::Zenoh(e.to_string()))?;
         self.status_tx.send_replace(status);
         self.next_status = now + self.config.status_period;
         Ok(())
@@ -454,6 +468,7 @@ pub struct TrackerAgent {
     status: watch::Receiver<TrackingStatus>,
     stop: Option<oneshot::Sender<()>>,
     task: Option<JoinHandle<Result<AgentStats, AgentError>>>,
+    sealer: Option<Arc<Sealer>>,
 }
 
 impl TrackerAgent {
@@ -469,6 +484,7 @@ impl TrackerAgent {
         let node = TrackerNode::init(session, env.clone(), calibration, source, config).await?;
         let stats = node.stats();
         let status = node.status();
+        let sealer = node.sealer.clone();
         let (stop, stopped) = oneshot::channel::<()>();
         let task = tokio::spawn(node.run(async move {
             // Dropping the sender also stops the node.
@@ -481,6 +497,7 @@ impl TrackerAgent {
             status,
             stop: Some(stop),
             task: Some(task),
+            sealer,
         })
     }
 
@@ -546,10 +563,13 @@ impl Drop for TrackerAgent {
                 reason: "tracker agent stopped".to_owned(),
             };
             if let Ok(bytes) = offworld_runtime::codec::encode(&status) {
+                let key = self.env.key(Topic::Tracking);
+                let seal = self.sealer.as_ref().map(|s| s.seal(&key, &bytes, &[]));
                 let _ = self
                     .session
-                    .put(self.env.key(Topic::Tracking), bytes)
+                    .put(key, bytes)
                     .encoding(offworld_runtime::zenoh::bytes::Encoding::APPLICATION_CDR)
+                    .attachment(seal.map(offworld_runtime::zenoh::bytes::ZBytes::from))
                     .wait();
             }
         }

@@ -16,6 +16,7 @@ use std::time::Duration;
 use anyhow::{bail, ensure, Context};
 use clap::{Args, Parser, Subcommand};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use offworld_runtime::seal::SealKey;
 use offworld_runtime::{CommonArgs, EnvId};
 use offworld_tracker_agent::calibration::{
     self, average_poses, position_spread, rosbot_mount, unit_quaternion, vector, ReferenceFile,
@@ -72,6 +73,11 @@ struct RunArgs {
     /// Accept the newest pose after rejecting poses for this long, ms.
     #[arg(long, default_value_t = 500)]
     relock_after_ms: u64,
+    /// The site's tracker key file (64 hex digits, mode 600): poses and
+    /// tracking reports are sealed with it; the controller and robot agent
+    /// given the same key believe no other pose.
+    #[arg(long, value_name = "FILE", env = "OFFWORLD_TRACKER_KEY")]
+    tracker_key: Option<PathBuf>,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -177,6 +183,7 @@ async fn run(args: RunArgs) -> anyhow::Result<()> {
         },
         lost_after: Duration::from_millis(args.lost_after_ms),
         device: args.device,
+        seal_key: args.tracker_key.as_deref().map(SealKey::load).transpose()?,
         ..AgentConfig::default()
     };
     let source = args

@@ -1,0 +1,28 @@
+//! Replays the fuzz corpus of the observation assembly from received camera
+//! frames (`fuzz/corpus/observation/`, see `fuzz/README.md`) through the
+//! fuzz target's own check (`fuzz/src/checks/observation.rs`).
+
+#[path = "../../fuzz/src/checks/observation.rs"]
+mod checks;
+#[path = "../../fuzz/src/checks/corpus.rs"]
+mod corpus;
+
+const HERE: &str = env!("CARGO_MANIFEST_DIR");
+
+#[test]
+fn observation_corpus() {
+    corpus::replay(
+        HERE,
+        "observation",
+        &checks::observation_seeds(),
+        checks::observation,
+    );
+}
+
+/// Writes the seeds into the corpus directory (to start afresh:
+/// `cargo test --release -p offworld-env-controller --test fuzz_corpus -- --ignored`).
+#[test]
+#[ignore]
+fn write_seed_corpus() {
+    corpus::write_seeds(HERE, "observation", &checks::observation_seeds());
+}

@@ -1,0 +1,43 @@
+//! Replays the fuzz corpora of the tracker agent's parsers
+//! (`fuzz/corpus/<target>/`, see `fuzz/README.md`) through the fuzz
+//! targets' own checks (`fuzz/src/checks/tracker.rs`).
+
+#[path = "../../fuzz/src/checks/tracker.rs"]
+mod checks;
+#[path = "../../fuzz/src/checks/corpus.rs"]
+mod corpus;
+
+const HERE: &str = env!("CARGO_MANIFEST_DIR");
+
+#[test]
+fn tracker_line_corpus() {
+    corpus::replay(
+        HERE,
+        "tracker_line",
+        &checks::tracker_line_seeds(),
+        checks::tracker_line,
+    );
+}
+
+#[test]
+fn tracker_calibration_corpus() {
+    corpus::replay(
+        HERE,
+        "tracker_calibration",
+        &checks::tracker_calibration_seeds(),
+        checks::tracker_calibration,
+    );
+}
+
+/// Writes the seeds into the corpus directories (to start afresh:
+/// `cargo test --release -p offworld-tracker-agent --test fuzz_corpus -- --ignored`).
+#[test]
+#[ignore]
+fn write_seed_corpus() {
+    corpus::write_seeds(HERE, "tracker_line", &checks::tracker_line_seeds());
+    corpus::write_seeds(
+        HERE,
+        "tracker_calibration",
+        &checks::tracker_calibration_seeds(),
+    );
+}
