@@ -60,7 +60,7 @@ impl RequestError {
 
 /// Puts one message on `key` (labelled as CDR) with [`Delivery::Latest`].
 pub async fn put<T: Serialize>(session: &Session, key: &str, msg: &T) -> Result<(), RequestError> {
-    put_at(session, key, msg, Priority::Data).await
+    put_at(session, key, msg, Priority::Data, None).await
 }
 
 /// The Zenoh priority of what keeps a robot safe and moving: commands,
@@ -77,7 +77,7 @@ pub async fn put_control<T: Serialize>(
     key: &str,
     msg: &T,
 ) -> Result<(), RequestError> {
-    put_at(session, key, msg, CONTROL_PRIORITY).await
+    put_at(session, key, msg, CONTROL_PRIORITY, None).await
 }
 
 async fn put_at<T: Serialize>(
@@ -85,12 +85,15 @@ async fn put_at<T: Serialize>(
     key: &str,
     msg: &T,
     priority: Priority,
+    sealer: Option<&Sealer>,
 ) -> Result<(), RequestError> {
     let bytes = codec::encode(msg)?;
+    let seal = sealer.map(|s| s.seal(key, &bytes, &[]));
     session
         .put(key, bytes)
         .encoding(Encoding::APPLICATION_CDR)
         .priority(priority)
+        .attachment(seal.map(ZBytes::from))
         .await
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
@@ -137,11 +140,7 @@ pub fn publisher(
 /// whether awaited or not (an [`Delivery::Every`] put holds the caller while
 /// it waits for room), so this one is plainly blocking.
 pub fn publish<T: Serialize>(publisher: &Publisher<'_>, msg: &T) -> Result<(), RequestError> {
-    let bytes = codec::encode(msg)?;
-    publisher
-        .put(bytes)
-        .wait()
-        .map_err(|e| RequestError::Zenoh(e.to_string()))
+    publish_sealed(publisher, msg, None)
 }
 
 /// [`publish`], sealed by `sealer` when there is one ([`crate::seal`]).
@@ -166,15 +165,7 @@ pub async fn put_sealed<T: Serialize>(
     msg: &T,
     sealer: Option<&Sealer>,
 ) -> Result<(), RequestError> {
-    let bytes = codec::encode(msg)?;
-    let seal = sealer.map(|s| s.seal(key, &bytes, &[]));
-    session
-        .put(key, bytes)
-        .encoding(Encoding::APPLICATION_CDR)
-        .priority(Priority::Data)
-        .attachment(seal.map(ZBytes::from))
-        .await
-        .map_err(|e| RequestError::Zenoh(e.to_string()))
+    put_at(session, key, msg, Priority::Data, sealer).await
 }
 
 /// [`put_control`], sealed by `sealer` when there is one.
@@ -184,15 +175,7 @@ pub async fn put_control_sealed<T: Serialize>(
     msg: &T,
     sealer: Option<&Sealer>,
 ) -> Result<(), RequestError> {
-    let bytes = codec::encode(msg)?;
-    let seal = sealer.map(|s| s.seal(key, &bytes, &[]));
-    session
-        .put(key, bytes)
-        .encoding(Encoding::APPLICATION_CDR)
-        .priority(CONTROL_PRIORITY)
-        .attachment(seal.map(ZBytes::from))
-        .await
-        .map_err(|e| RequestError::Zenoh(e.to_string()))
+    put_at(session, key, msg, CONTROL_PRIORITY, sealer).await
 }
 
 /// Publishes one message tagged with the command it answers (a
