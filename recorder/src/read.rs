@@ -1,0 +1,182 @@
+//! Reading episode files back: what a file holds, and a crashed episode's
+//! `.partial` made into a complete file.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use enumset::enum_set;
+use mcap::read::{LinearReader, MessageStream, Options};
+use mcap::records::{Metadata, Record};
+use mcap::{Compression, WriteOptions};
+use offworld_runtime::codec;
+
+use crate::episode_file::{Channel, METADATA_NAME};
+use crate::msg::{EpisodeEnd, Step};
+use crate::RecordError;
+
+/// What an episode file holds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeSummary {
+    /// The file.
+    pub path: PathBuf,
+    /// Finished with its summary and footer (false: a `.partial` read up to
+    /// its last complete chunk).
+    pub complete: bool,
+    /// The `offworld.episode` metadata record.
+    pub metadata: BTreeMap<String, String>,
+    /// Messages per topic.
+    pub messages: BTreeMap<String, u64>,
+    /// The last step recorded.
+    pub last_step: Option<Step>,
+    /// The episode's end record (absent after a crash).
+    pub end: Option<EpisodeEnd>,
+}
+
+fn read_file(path: &Path) -> Result<Vec<u8>, RecordError> {
+    std::fs::read(path).map_err(|e| RecordError::io(path, e))
+}
+
+fn invalid(path: &Path, reason: impl Into<String>) -> RecordError {
+    RecordError::Invalid {
+        path: path.to_owned(),
+        reason: reason.into(),
+    }
+}
+
+/// Reads `path` (a complete file, or a `.partial` up to its last complete
+/// chunk).
+pub fn summarize(path: &Path) -> Result<EpisodeSummary, RecordError> {
+    let buf = read_file(path)?;
+    let complete = MessageStream::new(&buf).is_ok_and(|mut s| s.all(|m| m.is_ok()));
+    let mut summary = EpisodeSummary {
+        path: path.to_owned(),
+        complete,
+        metadata: metadata(path, &buf)?,
+        messages: BTreeMap::new(),
+        last_step: None,
+        end: None,
+    };
+    let stream = MessageStream::new_with_options(&buf, enum_set!(Options::IgnoreEndMagic))
+        .map_err(|e| RecordError::mcap(path, e))?;
+    for message in stream {
+        // A .partial ends in a cut chunk: what came before it is the episode.
+        let Ok(message) = message else { break };
+        *summary
+            .messages
+            .entry(message.channel.topic.clone())
+            .or_default() += 1;
+        let topic = message.channel.topic.as_str();
+        if topic == Channel::Step.topic() {
+            summary.last_step = Some(
+                codec::decode(&message.data)
+                    .map_err(|e| invalid(path, format!("a bad Step message: {e}")))?,
+            );
+        } else if topic == Channel::EpisodeEnd.topic() {
+            summary.end = Some(
+                codec::decode(&message.data)
+                    .map_err(|e| invalid(path, format!("a bad EpisodeEnd message: {e}")))?,
+            );
+        }
+    }
+    Ok(summary)
+}
+
+/// The file's `offworld.episode` metadata record.
+fn metadata(path: &Path, buf: &[u8]) -> Result<BTreeMap<String, String>, RecordError> {
+    Ok(metadata_records(path, buf)?
+        .into_iter()
+        .find(|m| m.name == METADATA_NAME)
+        .map(|m| m.metadata)
+        .unwrap_or_default())
+}
+
+/// Every metadata record before the file's end or cut.
+fn metadata_records(path: &Path, buf: &[u8]) -> Result<Vec<Metadata>, RecordError> {
+    let reader = LinearReader::new_with_options(buf, enum_set!(Options::IgnoreEndMagic))
+        .map_err(|e| RecordError::mcap(path, e))?;
+    Ok(reader
+        .map_while(Result::ok)
+        .filter_map(|record| match record {
+            Record::Metadata(m) => Some(m),
+            _ => None,
+        })
+        .collect())
+}
+
+/// Writes the complete steps of a crashed episode's `partial` file as a
+/// complete file (its name without `.partial`, or `out`); returns that path
+/// and the number of messages kept. The file has no `EpisodeEnd`: the
+/// episode's end was never recorded.
+pub fn recover(partial: &Path, out: Option<&Path>) -> Result<(PathBuf, u64), RecordError> {
+    let target = match out {
+        Some(out) => out.to_owned(),
+        None => {
+            let name = partial.to_string_lossy();
+            let Some(stem) = name.strip_suffix(".partial") else {
+                return Err(invalid(
+                    partial,
+                    "not a .partial file (give --out to recover it anyway)",
+                ));
+            };
+            PathBuf::from(stem)
+        }
+    };
+    let buf = read_file(partial)?;
+    let file = std::fs::File::create_new(&target).map_err(|e| RecordError::io(&target, e))?;
+    let mut writer = WriteOptions::new()
+        .profile("ros2")
+        .library(concat!("offworld-recorder/", env!("CARGO_PKG_VERSION")))
+        .compression(Some(Compression::Zstd))
+        .compression_level(1)
+        .compression_threads(0)
+        .create(std::io::BufWriter::new(file))
+        .map_err(|e| RecordError::mcap(&target, e))?;
+    for record in metadata_records(partial, &buf)? {
+        writer
+            .write_metadata(&record)
+            .map_err(|e| RecordError::mcap(&target, e))?;
+    }
+    let stream = MessageStream::new_with_options(&buf, enum_set!(Options::IgnoreEndMagic))
+        .map_err(|e| RecordError::mcap(partial, e))?;
+    let mut kept = 0;
+    for message in stream {
+        let Ok(message) = message else { break };
+        writer
+            .write(&message)
+            .map_err(|e| RecordError::mcap(&target, e))?;
+        kept += 1;
+    }
+    writer.finish().map_err(|e| RecordError::mcap(&target, e))?;
+    let file = writer
+        .into_inner()
+        .into_inner()
+        .map_err(|e| RecordError::io(&target, e.into_error()))?;
+    file.sync_all().map_err(|e| RecordError::io(&target, e))?;
+    Ok((target, kept))
+}
+
+/// Every episode file under `path` (itself if a file), complete ones and
+/// `.partial`s, sorted.
+pub fn episode_files(path: &Path) -> Result<Vec<PathBuf>, RecordError> {
+    let mut found = Vec::new();
+    let mut pending = vec![path.to_owned()];
+    while let Some(next) = pending.pop() {
+        let meta = std::fs::metadata(&next).map_err(|e| RecordError::io(&next, e))?;
+        if meta.is_file() {
+            found.push(next);
+            continue;
+        }
+        for entry in std::fs::read_dir(&next).map_err(|e| RecordError::io(&next, e))? {
+            let entry = entry.map_err(|e| RecordError::io(&next, e))?;
+            let p = entry.path();
+            let name = p.to_string_lossy();
+            if p.is_dir() {
+                pending.push(p);
+            } else if name.ends_with(".mcap") || name.ends_with(".mcap.partial") {
+                found.push(p);
+            }
+        }
+    }
+    found.sort();
+    Ok(found)
+}

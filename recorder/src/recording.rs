@@ -1,0 +1,381 @@
+//! An env's recorder: the controller hands it each episode's start, steps
+//! and end; a thread of its own writes the files, so a step never waits
+//! for the disk on a real env.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+use offworld_runtime::codec;
+use offworld_runtime::keys::{EnvId, Topic};
+use offworld_runtime::msg::{CameraFrameView, Header, Odometry, PoseStamped, Time, Twist};
+use offworld_runtime::zenoh::bytes::ZBytes;
+use offworld_runtime::zenoh::pubsub::Subscriber;
+use offworld_runtime::zenoh::sample::Sample;
+use offworld_runtime::zenoh::Session;
+use tokio::sync::mpsc;
+
+use crate::episode_file::{now_ns, stamp_ns, Channel, EpisodeFile};
+use crate::msg::{EpisodeEnd, EpisodeInfo, Step};
+use crate::RecordError;
+
+/// Events waiting for the writer, at most; a real env's recording of an
+/// episode stops when they are exceeded (its steps never wait).
+const QUEUE: usize = 256;
+
+/// Where and how an env records.
+#[derive(Debug, Clone)]
+pub struct RecordTo {
+    /// The root of the recordings.
+    pub dir: PathBuf,
+    /// Steps wait for the writer instead of dropping a recording that
+    /// falls behind: for sim envs, where nothing moves while they wait.
+    pub lossless: bool,
+}
+
+impl RecordTo {
+    /// Checks that `dir` can hold recordings: creates it, writes, syncs and
+    /// removes a probe file. A clear error before anything is served.
+    pub fn check(dir: &Path) -> Result<(), RecordError> {
+        let unwritable = |e: std::io::Error| RecordError::Unwritable {
+            dir: dir.to_owned(),
+            reason: e.to_string(),
+        };
+        std::fs::create_dir_all(dir).map_err(unwritable)?;
+        let probe = dir.join(format!(".offworld-probe-{}", std::process::id()));
+        let written = std::fs::File::create(&probe).and_then(|mut f| {
+            use std::io::Write;
+            f.write_all(b"offworld recording probe\n")?;
+            f.sync_all()
+        });
+        let removed = std::fs::remove_file(&probe);
+        written.map_err(unwritable)?;
+        removed.map_err(unwritable)
+    }
+
+    /// The file of episode `episode_id` of experiment `experiment_id` on `env`.
+    pub fn episode_path(&self, env: &EnvId, experiment_id: u64, episode_id: u64) -> PathBuf {
+        self.dir
+            .join(env.realm().as_str())
+            .join(env.name())
+            .join(format!("exp-{experiment_id:06}"))
+            .join(format!("ep-{episode_id:06}.mcap"))
+    }
+}
+
+/// One step as the controller answered it.
+pub struct StepRecord {
+    /// The transition.
+    pub step: Step,
+    /// The camera frame payload (`CameraFrame` CDR) the observation was built from.
+    pub frame: ZBytes,
+    /// The pose the step was judged from.
+    pub pose: PoseStamped,
+    /// What was commanded and when (none for the reset).
+    pub command: Option<(Twist, Time)>,
+}
+
+enum Event {
+    Begin {
+        path: PathBuf,
+        info: Box<EpisodeInfo>,
+    },
+    Step(Box<StepRecord>),
+    Odom {
+        odom: Box<Odometry>,
+        received_ns: u64,
+    },
+    End(EpisodeEnd),
+}
+
+/// An event of the episode with this generation.
+struct Queued {
+    generation: u64,
+    event: Event,
+}
+
+/// Records one env's episodes (see `docs/recording.md`). Dropping it ends
+/// the episode in progress as `recorder_stopped` and waits for the writer.
+pub struct EnvRecorder {
+    to: RecordTo,
+    env: EnvId,
+    queue: Option<mpsc::Sender<Queued>>,
+    /// The episode being recorded (0: none yet).
+    generation: Arc<AtomicU64>,
+    /// Whether an episode is open (odometry is recorded only then).
+    open: Arc<AtomicBool>,
+    /// The generation whose recording was given up (queue full).
+    abandoned: Arc<AtomicU64>,
+    writer: Option<JoinHandle<()>>,
+    _odom: Subscriber<()>,
+}
+
+impl EnvRecorder {
+    /// Starts recording `env` (`to.dir` checked already, see
+    /// [`RecordTo::check`]): its writer thread and an odometry subscriber.
+    pub async fn start(session: &Session, env: &EnvId, to: RecordTo) -> Result<Self, RecordError> {
+        let (queue, events) = mpsc::channel(QUEUE);
+        let open = Arc::new(AtomicBool::new(false));
+        let abandoned = Arc::new(AtomicU64::new(0));
+        let generation = Arc::new(AtomicU64::new(0));
+        let odom_queue = queue.clone();
+        let odom_open = open.clone();
+        let odom_generation = generation.clone();
+        let odom = session
+            .declare_subscriber(env.key(Topic::Odom))
+            .callback(move |sample: Sample| {
+                if !odom_open.load(Ordering::Acquire) {
+                    return;
+                }
+                let Ok(odom) = codec::decode_payload::<Odometry>(sample.payload()) else {
+                    return;
+                };
+                // Odometry streams: dropped rather than waited for.
+                let _ = odom_queue.try_send(Queued {
+                    generation: odom_generation.load(Ordering::Acquire),
+                    event: Event::Odom {
+                        odom: Box::new(odom),
+                        received_ns: now_ns(),
+                    },
+                });
+            })
+            .await
+            .map_err(|e| RecordError::Zenoh(e.to_string()))?;
+        let writer_env = env.clone();
+        let writer_abandoned = abandoned.clone();
+        let writer = std::thread::Builder::new()
+            .name(format!("record {}", env.name()))
+            .spawn(move || write_episodes(&writer_env, events, &writer_abandoned))
+            .map_err(|e| RecordError::io(&to.dir, e))?;
+        Ok(Self {
+            to,
+            env: env.clone(),
+            queue: Some(queue),
+            generation,
+            open,
+            abandoned,
+            writer: Some(writer),
+            _odom: odom,
+        })
+    }
+
+    /// The file an episode will be recorded in.
+    pub fn episode_path(&self, info: &EpisodeInfo) -> PathBuf {
+        self.to
+            .episode_path(&self.env, info.experiment_id, info.episode_id)
+    }
+
+    /// Starts recording the episode `info` (ends one left open).
+    pub async fn begin(&self, info: EpisodeInfo) {
+        let generation = self.generation.fetch_add(1, Ordering::AcqRel) + 1;
+        let path = self.episode_path(&info);
+        self.open.store(true, Ordering::Release);
+        self.send(
+            generation,
+            Event::Begin {
+                path,
+                info: Box::new(info),
+            },
+        )
+        .await;
+    }
+
+    /// Records a step of the open episode.
+    pub async fn step(&self, record: StepRecord) {
+        let generation = self.generation.load(Ordering::Acquire);
+        self.send(generation, Event::Step(Box::new(record))).await;
+    }
+
+    /// Ends the open episode's file.
+    pub async fn end(&self, end: EpisodeEnd) {
+        self.open.store(false, Ordering::Release);
+        let generation = self.generation.load(Ordering::Acquire);
+        self.send(generation, Event::End(end)).await;
+    }
+
+    async fn send(&self, generation: u64, event: Event) {
+        let Some(queue) = &self.queue else { return };
+        if self.abandoned.load(Ordering::Acquire) == generation {
+            return;
+        }
+        let queued = Queued { generation, event };
+        if self.to.lossless {
+            // The writer only stops when this recorder is dropped.
+            let _ = queue.send(queued).await;
+            return;
+        }
+        if let Err(mpsc::error::TrySendError::Full(_)) = queue.try_send(queued) {
+            tracing::warn!(
+                env = %self.env,
+                "the recorder fell behind ({QUEUE} events queued): this episode's recording stops; \
+                 the episode goes on"
+            );
+            self.abandoned.store(generation, Ordering::Release);
+        }
+    }
+}
+
+impl Drop for EnvRecorder {
+    fn drop(&mut self) {
+        // Closing the queue ends the writer once it has written what is queued.
+        self.queue = None;
+        if let Some(writer) = self.writer.take() {
+            let _ = writer.join();
+        }
+    }
+}
+
+/// The file being written and what its end record needs.
+struct Open {
+    generation: u64,
+    file: EpisodeFile,
+    last: Option<Step>,
+    episode_id: u64,
+}
+
+impl Open {
+    /// Ends the file with `end_reason` (the episode's own end unknown).
+    fn stop(self, env: &EnvId, end_reason: &str) {
+        let end = match &self.last {
+            Some(step) => EpisodeEnd {
+                header: Header::new(Time::now(), "world"),
+                episode_id: self.episode_id,
+                steps: step.step,
+                episode_return: step.episode_return,
+                success: step.success,
+                terminated: step.terminated,
+                truncated: step.truncated,
+                end_reason: end_reason.to_owned(),
+            },
+            None => EpisodeEnd {
+                header: Header::new(Time::now(), "world"),
+                episode_id: self.episode_id,
+                steps: 0,
+                episode_return: 0.0,
+                success: false,
+                terminated: false,
+                truncated: false,
+                end_reason: end_reason.to_owned(),
+            },
+        };
+        finish(env, self.file, &end);
+    }
+}
+
+fn finish(env: &EnvId, file: EpisodeFile, end: &EpisodeEnd) {
+    let path = file.path().to_owned();
+    match file.finish(end) {
+        Ok(path) => tracing::debug!(%env, path = %path.display(), "episode recorded"),
+        Err(e) => tracing::warn!(
+            %env,
+            "could not finish the recording {}: {e}; the steps written so far stay in its .partial",
+            path.display()
+        ),
+    }
+}
+
+/// The writer thread: writes every queued event until the queue closes.
+fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &AtomicU64) {
+    let mut open: Option<Open> = None;
+    while let Some(Queued { generation, event }) = events.blocking_recv() {
+        if let Some(current) = open.take_if(|o| abandoned.load(Ordering::Acquire) == o.generation) {
+            current.stop(
+                env,
+                "recorder_stopped: the writer fell behind (its queue was full)",
+            );
+        }
+        match event {
+            Event::Begin { path, info } => {
+                if let Some(current) = open.take() {
+                    current.stop(env, "recorder_stopped: a new episode began first");
+                }
+                match EpisodeFile::create(&path, &info) {
+                    Ok(file) => {
+                        open = Some(Open {
+                            generation,
+                            file,
+                            last: None,
+                            episode_id: info.episode_id,
+                        })
+                    }
+                    Err(e) => tracing::warn!(
+                        %env,
+                        episode = info.episode_id,
+                        "cannot record this episode: {e}; it goes on unrecorded"
+                    ),
+                }
+            }
+            Event::Step(record) => {
+                let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
+                    continue;
+                };
+                if let Err(e) = write_step(&mut current.file, &record) {
+                    tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
+                    if let Some(current) = open.take() {
+                        current.stop(env, &format!("recorder_stopped: {e}"));
+                    }
+                    continue;
+                }
+                current.last = Some(record.step);
+            }
+            Event::Odom { odom, received_ns } => {
+                let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
+                    continue;
+                };
+                let at = stamp_ns(&odom.header.stamp);
+                if let Err(e) = current.file.write(Channel::Odom, at, received_ns, &*odom) {
+                    tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
+                    if let Some(current) = open.take() {
+                        current.stop(env, &format!("recorder_stopped: {e}"));
+                    }
+                }
+            }
+            Event::End(end) => {
+                if let Some(current) = open.take_if(|o| o.generation == generation) {
+                    finish(env, current.file, &end);
+                }
+            }
+        }
+    }
+    if let Some(current) = open.take() {
+        current.stop(env, "recorder_stopped: the controller stopped");
+    }
+}
+
+/// Writes a step's messages and flushes them as one chunk.
+fn write_step(file: &mut EpisodeFile, record: &StepRecord) -> Result<(), RecordError> {
+    let received = now_ns();
+    let bytes = record.frame.to_bytes();
+    let frame = codec::decode_borrowed::<CameraFrameView>(&bytes)
+        .map_err(|e| RecordError::Encode(format!("a bad camera frame: {e}")))?;
+    if let Some((twist, sent)) = &record.command {
+        let at = stamp_ns(sent);
+        file.write(Channel::CmdVel, at, at, twist)?;
+    }
+    file.write(
+        Channel::Color,
+        stamp_ns(&frame.color.header.stamp),
+        received,
+        &frame.color,
+    )?;
+    file.write(
+        Channel::Depth,
+        stamp_ns(&frame.depth.header.stamp),
+        received,
+        &frame.depth,
+    )?;
+    file.write(
+        Channel::Pose,
+        stamp_ns(&record.pose.header.stamp),
+        received,
+        &record.pose,
+    )?;
+    file.write(
+        Channel::Step,
+        stamp_ns(&record.step.header.stamp),
+        received,
+        &record.step,
+    )?;
+    file.end_step()
+}
