@@ -147,6 +147,7 @@ async fn main() -> anyhow::Result<()> {
         Store::in_memory()?,
         EnvOptions::default(),
         limits,
+        None,
     )
     .await?;
     let robot = client_of_router(&endpoint).await?;

@@ -25,6 +25,7 @@ async fn main() -> anyhow::Result<()> {
             task: task.into(),
             resolution: (w, h),
             count: 1,
+            record: None,
         },
         task,
     )

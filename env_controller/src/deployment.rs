@@ -6,7 +6,9 @@ use offworld_runtime::keys::EnvId;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{client, SessionConfig};
 
+use crate::admission::RequestLimits;
 use crate::embedded::{Embedded, SimEnv};
+use crate::env::EnvOptions;
 use crate::error::ControllerError;
 use crate::store::Store;
 
@@ -21,6 +23,8 @@ pub enum Target {
         resolution: (u32, u32),
         /// Number of envs.
         count: usize,
+        /// Record every episode under this directory (`docs/recording.md`).
+        record: Option<std::path::PathBuf>,
     },
     /// Use envs served elsewhere.
     Remote {
@@ -61,6 +65,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
             task,
             resolution,
             count,
+            record,
         } => {
             let session = SessionConfig::isolated()
                 .open()
@@ -81,7 +86,15 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                     seed: i as u64,
                 })
                 .collect();
-            let embedded = Embedded::start(&session, &sims, Store::in_memory()?).await?;
+            let embedded = Embedded::start_with(
+                &session,
+                &sims,
+                Store::in_memory()?,
+                EnvOptions::default(),
+                RequestLimits::default(),
+                record.as_deref(),
+            )
+            .await?;
             Ok(Connection {
                 session,
                 envs,

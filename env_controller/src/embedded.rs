@@ -52,21 +52,26 @@ impl Embedded {
             store,
             EnvOptions::default(),
             RequestLimits::default(),
+            None,
         )
         .await
     }
 
     /// [`Embedded::start`] with a site's policy (`options`; anonymous
     /// access is always allowed and the seed is each `SimEnv`'s) and
-    /// request limits.
+    /// request limits, recording every episode under `record` if given.
     pub async fn start_with(
         session: &Session,
         envs: &[SimEnv],
         store: Store,
         options: EnvOptions,
         limits: RequestLimits,
+        record: Option<&std::path::Path>,
     ) -> Result<Self, ControllerError> {
         let mut controller = Controller::with_limits(session.clone(), store, limits)?;
+        if let Some(dir) = record {
+            controller.record_into(dir)?;
+        }
         let mut twins = Vec::new();
         for sim in envs {
             if sim.env.realm() != offworld_runtime::Realm::Sim {

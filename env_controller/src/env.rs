@@ -5,12 +5,15 @@
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
+use offworld_recorder::msg::{EpisodeEnd as RecordedEnd, EpisodeInfo as RecordedEpisode, Step};
+use offworld_recorder::{EnvRecorder, RecordTo, StepRecord};
 use offworld_runtime::codec::{self, Encoded};
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState,
-    EnvStatus, EpisodeEvent, ExperimentInfo, Leaderboard, MotionCommand, ObsOptions, OpenReply,
-    OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo, StepReply, StepRequest,
+    Action, AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec,
+    EnvState, EnvStatus, EpisodeEvent, ExperimentInfo, Header, Leaderboard, MotionCommand,
+    ObsOptions, OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo,
+    StepReply, StepRequest, Time, Twist,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
@@ -191,6 +194,8 @@ pub struct EnvServer {
     /// The last booking answer, valid until its `until_ms`: a step never
     /// queries the database. Cleared when this env's bookings change.
     slots: Mutex<Option<SlotAt>>,
+    /// Records every episode as an MCAP file, when asked to.
+    recorder: Option<EnvRecorder>,
 }
 
 fn unix_ms_in(d: Duration) -> i64 {
@@ -218,6 +223,7 @@ impl EnvServer {
         options: EnvOptions,
         seals: &LinkSeals,
         store: Arc<Mutex<Store>>,
+        record: Option<&std::path::Path>,
     ) -> Result<Self, crate::ControllerError> {
         options.check()?;
         let abandoned = lock_store(&store).abandon_in_progress(
@@ -233,7 +239,19 @@ impl EnvServer {
         let events = wire::publisher(session, env.key(Topic::Reward), Delivery::Latest)
             .await
             .map_err(|e| crate::ControllerError::Zenoh(e.to_string()))?;
+        let recorder = match record {
+            Some(dir) => {
+                let to = RecordTo {
+                    dir: dir.to_owned(),
+                    // Nothing moves while a sim step waits for the disk.
+                    lossless: env.realm() == offworld_runtime::Realm::Sim,
+                };
+                Some(EnvRecorder::start(session, &env, to).await?)
+            }
+            None => None,
+        };
         Ok(Self {
+            recorder,
             env,
             task: Arc::new(task),
             options,
@@ -545,15 +563,36 @@ impl EnvServer {
             duration_s: 0.0,
         };
         let obs = self.holder(&mut state, &req.session_id)?.obs;
-        let answered = self
+        let answer = self
             .link
             .execute(&observe, self.observation_request(obs), None)
-            .await?
-            .complete()
             .await?;
+        let frame = answer.frame();
+        let answered = answer.complete().await?;
         let lease = self.holder(&mut state, &req.session_id)?;
         let index = lease.experiment.episodes;
         let experiment = lease.experiment.name.clone();
+        let recorded = self.recorder.is_some().then(|| RecordedEpisode {
+            header: Header::new(Time::now(), "world"),
+            env_id: self.env.to_string(),
+            task: self.task.name.clone(),
+            world: self.task.world.name.clone(),
+            experiment_id: u64::try_from(lease.experiment.id).unwrap_or_default(),
+            experiment: lease.experiment.name.clone(),
+            learning_type: lease.experiment.learning_type.clone(),
+            algorithm_mode: lease.experiment.algorithm_mode.clone(),
+            episode_id: index,
+            seeded: seed.is_some(),
+            seed: seed.unwrap_or_default(),
+            embodiment: match self.env.realm() {
+                offworld_runtime::Realm::Sim => "twin",
+                offworld_runtime::Realm::Real => "robot",
+            }
+            .to_owned(),
+            software_version: env!("CARGO_PKG_VERSION").to_owned(),
+            max_episode_steps: self.task.episode.max_steps,
+            requested_start: [target.x, target.y, target.yaw],
+        });
         let achieved = answered.pose().planar();
         tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, "reset");
         let episode = Episode {
@@ -575,6 +614,11 @@ impl EnvServer {
             .map_err(WireError::from)?;
         lease.experiment.episodes += 1;
         state.episode = Some(episode);
+        if let (Some(recorder), Some(info)) = (&self.recorder, recorded) {
+            recorder.begin(info).await;
+            let step = recorded_step(index, 0, None, observe.seq, None, None, 0.0);
+            self.record_step(frame, &answered, step, None).await;
+        }
         let reply = ResetReply {
             info: StepInfo {
                 episode_id: index,
@@ -639,8 +683,13 @@ impl EnvServer {
             obs,
         };
         let reply_here = query.map(|query| judged.clone().reply_where_received(query));
+        let commanded_at = Time::now();
+        let mut frame = None;
         let answered = match self.link.execute(&motion, request, reply_here).await {
-            Ok(answer) => answer.complete().await,
+            Ok(answer) => {
+                frame = answer.frame();
+                answer.complete().await
+            }
             Err(e) => Err(e),
         };
         let answered = match answered {
@@ -662,6 +711,20 @@ impl EnvServer {
         episode.steps = step;
         episode.episode_return += outcome.reward;
         let (steps, ret) = (episode.steps, episode.episode_return);
+        if self.recorder.is_some() {
+            let recorded = recorded_step(
+                index,
+                step,
+                Some(&req.action),
+                motion.seq,
+                Some(&motion),
+                Some(&outcome),
+                ret,
+            );
+            let command = Twist::planar(motion.linear_x, motion.angular_z);
+            self.record_step(frame, &answered, recorded, Some((command, commanded_at)))
+                .await;
+        }
         let reply = with_observation(&reply, answered)?;
         self.publish_event(
             &experiment,
@@ -675,7 +738,7 @@ impl EnvServer {
         )
         .await;
         match &outcome.end {
-            Some(end) => self.finish_episode(&mut state, end)?,
+            Some(end) => self.finish_episode(&mut state, end).await?,
             None => self.save_progress(&mut state),
         }
         Ok(reply)
@@ -860,7 +923,8 @@ impl EnvServer {
     async fn abort_episode(&self, state: &mut State, reason: &str) {
         let running = state.episode.as_ref().is_some_and(|e| !e.over);
         if running {
-            if let Err(e) = self.finish_episode(state, &EndReason::Aborted(reason.to_owned())) {
+            let end = EndReason::Aborted(reason.to_owned());
+            if let Err(e) = self.finish_episode(state, &end).await {
                 tracing::error!(env = %self.env, "could not record the aborted episode: {}", e.message);
             }
         }
@@ -882,17 +946,61 @@ impl EnvServer {
         }
     }
 
-    fn finish_episode(&self, state: &mut State, end: &EndReason) -> Result<(), WireError> {
+    async fn finish_episode(&self, state: &mut State, end: &EndReason) -> Result<(), WireError> {
         let (Some(episode), Some(lease)) = (state.episode.as_mut(), state.lease.as_mut()) else {
             return Ok(());
         };
         episode.over = true;
         let record = episode.record(lease.experiment.id, Some(end), now_ms());
+        // The recording ends whether or not the database takes the record.
+        if let Some(recorder) = &self.recorder {
+            recorder
+                .end(RecordedEnd {
+                    header: Header::new(Time::now(), "world"),
+                    episode_id: episode.index,
+                    steps: episode.steps,
+                    episode_return: episode.episode_return,
+                    success: record.success,
+                    terminated: matches!(end, EndReason::Success | EndReason::OutOfBounds),
+                    truncated: *end == EndReason::StepLimit,
+                    end_reason: end.as_str().to_owned(),
+                })
+                .await;
+        }
         lock_store(&self.store)
             .record_episode(&record)
             .map_err(WireError::from)?;
         lease.experiment.steps += u64::from(episode.steps);
         Ok(())
+    }
+
+    /// Hands a step to the recorder (stamped with its frame's capture
+    /// time), when recording and its frame is at hand.
+    async fn record_step(
+        &self,
+        frame: Option<Arc<crate::link::Frame>>,
+        answered: &Answered,
+        mut step: Step,
+        command: Option<(Twist, Time)>,
+    ) {
+        let (Some(recorder), Some(frame)) = (&self.recorder, frame) else {
+            return;
+        };
+        match frame.with_view(|view| Ok(view.color.header.stamp)) {
+            Ok(stamp) => step.header = Header::new(stamp, "world"),
+            Err(e) => {
+                tracing::warn!(env = %self.env, "step not recorded: {}", e.message);
+                return;
+            }
+        }
+        recorder
+            .step(StepRecord {
+                step,
+                frame: frame.payload().clone(),
+                pose: answered.pose().pose.clone(),
+                command,
+            })
+            .await;
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -921,6 +1029,42 @@ impl EnvServer {
         if let Err(e) = wire::publish(&self.events, &event) {
             tracing::warn!("reward publish failed: {e}");
         }
+    }
+}
+
+/// A step as recorded (its stamp set from its frame by `record_step`):
+/// the reset when `action` and `outcome` are `None`.
+fn recorded_step(
+    episode_id: u64,
+    step: u32,
+    action: Option<&Action>,
+    command_seq: u64,
+    motion: Option<&MotionCommand>,
+    outcome: Option<&Outcome>,
+    episode_return: f64,
+) -> Step {
+    let (action_discrete, action_continuous) = match action {
+        Some(Action::Discrete(i)) => (*i, Vec::new()),
+        Some(Action::Continuous(values)) => (-1, values.clone()),
+        None => (-1, Vec::new()),
+    };
+    let end = outcome.and_then(|o| o.end.as_ref());
+    Step {
+        header: Header::default(),
+        episode_id,
+        step,
+        command_seq,
+        action_discrete,
+        action_continuous,
+        linear_x: motion.map_or(0.0, |m| m.linear_x),
+        angular_z: motion.map_or(0.0, |m| m.angular_z),
+        duration_s: motion.map_or(0.0, |m| m.duration_s),
+        reward: outcome.map_or(0.0, |o| o.reward),
+        episode_return,
+        terminated: outcome.is_some_and(|o| o.terminated),
+        truncated: outcome.is_some_and(|o| o.truncated),
+        success: end == Some(&EndReason::Success),
+        end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
     }
 }
 

@@ -30,6 +30,9 @@ pub enum ControllerError {
     /// Not allowed for this user.
     #[error("{0}")]
     Unauthorized(String),
+    /// Episodes cannot be recorded where asked (checked at start).
+    #[error("{0}")]
+    Record(#[from] offworld_recorder::RecordError),
     /// An e-stop some present robot or twin did not acknowledge in time.
     #[error("{message}")]
     Unacknowledged {
@@ -56,6 +59,7 @@ impl From<ControllerError> for WireError {
                 WireError::internal("the experiment store failed; the episode was not recorded")
             }
             ControllerError::Zenoh(m) => WireError::internal(format!("zenoh: {m}")),
+            ControllerError::Record(e) => WireError::internal(e.to_string()),
         }
     }
 }

@@ -68,6 +68,11 @@ impl Frame {
         self.seq
     }
 
+    /// The frame's payload (`CameraFrame` CDR), as received.
+    pub fn payload(&self) -> &ZBytes {
+        &self.payload
+    }
+
     /// Reads the frame in place.
     pub fn with_view<R>(
         &self,
@@ -169,6 +174,9 @@ pub struct Answer {
     /// To build the observation here if the frame's thread did not; `None`
     /// once that thread has taken the request.
     fallback: Option<(Arc<Frame>, ObservationRequest, BufferPool)>,
+    /// The frame that answered (for the recorder); `None` when the step
+    /// was replied to as it gave up.
+    frame: Option<Arc<Frame>>,
 }
 
 /// A command's answer, complete.
@@ -198,6 +206,11 @@ impl Answered {
 }
 
 impl Answer {
+    /// The camera frame that answered the command, if it is at hand.
+    pub fn frame(&self) -> Option<Arc<Frame>> {
+        self.frame.clone()
+    }
+
     /// Waits for the observation (see [`RobotLink::execute`]).
     pub async fn complete(self) -> Result<Answered, WireError> {
         match self.built.await {
@@ -515,6 +528,7 @@ impl RobotLink {
             Ok((frame, pose)) => Ok(Answer {
                 pose,
                 built,
+                frame: Some(frame.clone()),
                 fallback: Some((frame, request, self.observations.clone())),
             }),
             Err(e) => {
@@ -532,6 +546,7 @@ impl RobotLink {
                             pose,
                             built,
                             fallback: None,
+                            frame: None,
                         })
                     }
                     _ => Err(e),

@@ -49,6 +49,10 @@ enum Command {
         /// Also run an in-process sim twin for every `sim/` env.
         #[arg(long)]
         embedded_twins: bool,
+        /// Record every episode of every env served as an MCAP file under
+        /// this directory (see docs/recording.md).
+        #[arg(long, value_name = "DIR", env = "OFFWORLD_RECORD")]
+        record: Option<PathBuf>,
         /// Lease idle timeout, s.
         #[arg(long, default_value_t = 300)]
         lease_idle_s: u64,
@@ -161,6 +165,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Serve {
             envs,
             embedded_twins,
+            record,
             lease_idle_s,
             max_slot_minutes,
             booking_horizon_days,
@@ -224,10 +229,17 @@ async fn main() -> anyhow::Result<()> {
                         seed: 0,
                     })
                     .collect();
-                Running::Embedded(Embedded::start_with(&session, &sims, store, site, limits).await?)
+                Running::Embedded(
+                    Embedded::start_with(&session, &sims, store, site, limits, record.as_deref())
+                        .await?,
+                )
             } else {
                 let mut controller = Controller::with_limits(session.clone(), store, limits)?;
                 controller.seal_with(seals);
+                if let Some(dir) = &record {
+                    controller.record_into(dir)?;
+                    tracing::info!(dir = %dir.display(), "recording every episode");
+                }
                 for (env, task) in envs {
                     let opts = options(&env);
                     controller.serve(env, task, opts).await?;

@@ -50,6 +50,8 @@ pub struct Controller {
     limits: RequestLimits,
     rates: Arc<ClientRates>,
     seals: LinkSeals,
+    /// Where episodes are recorded (`docs/recording.md`), if anywhere.
+    record: Option<std::path::PathBuf>,
 }
 
 struct ServedEnv {
@@ -187,6 +189,7 @@ impl Controller {
             rates: Arc::new(ClientRates::new(&limits)),
             limits,
             seals: LinkSeals::default(),
+            record: None,
         }
     }
 
@@ -194,6 +197,15 @@ impl Controller {
     /// reports, for the envs served from now on ([`LinkSeals`]).
     pub fn seal_with(&mut self, seals: LinkSeals) {
         self.seals = seals;
+    }
+
+    /// Records every episode of the envs served from now on under `dir`
+    /// (checked now: an unwritable directory is an error before anything
+    /// is served).
+    pub fn record_into(&mut self, dir: &std::path::Path) -> Result<(), ControllerError> {
+        offworld_recorder::RecordTo::check(dir)?;
+        self.record = Some(dir.to_owned());
+        Ok(())
     }
 
     /// [`Controller::new`] with a site's request limits (checked).
@@ -240,6 +252,7 @@ impl Controller {
                 options,
                 &self.seals,
                 self.store.clone(),
+                self.record.as_deref(),
             )
             .await?,
         );

@@ -78,6 +78,7 @@ async fn site(tag: &str, limits: RequestLimits) -> Site {
         Store::in_memory().expect("store"),
         EnvOptions::default(),
         limits,
+        None,
     )
     .await
     .expect("embedded B");
@@ -473,6 +474,7 @@ async fn clients_on_the_controllers_own_session_are_answered() {
             task: "MonolithDiscrete".into(),
             resolution: (32, 32),
             count: 1,
+            record: None,
         },
         "MonolithDiscrete",
     )

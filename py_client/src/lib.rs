@@ -60,7 +60,7 @@ impl NativeEnvs {
     #[new]
     #[pyo3(signature = (task, realm, num_envs, connect, env_ids, token, experiment_name, resume_experiment,
                         learning_type, algorithm_mode, channels, height, width, depth_format,
-                        rerun=None))]
+                        rerun=None, record=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -79,6 +79,7 @@ impl NativeEnvs {
         width: u32,
         depth_format: &str,
         rerun: Option<String>,
+        record: Option<String>,
     ) -> PyResult<Self> {
         if num_envs == 0 {
             return Err(PyValueError::new_err("num_envs must be at least 1"));
@@ -102,6 +103,7 @@ impl NativeEnvs {
                 task: task.clone(),
                 resolution: (width, height),
                 count: num_envs,
+                record: record.map(std::path::PathBuf::from),
             },
             (connect, None) => Target::Discover {
                 session: remote_session(connect)?,

@@ -80,13 +80,20 @@ enum Event {
     Begin {
         path: PathBuf,
         info: Box<EpisodeInfo>,
+        /// The odometry last received before the episode began.
+        odom: Option<Received>,
     },
     Step(Box<StepRecord>),
-    Odom {
-        odom: Box<Odometry>,
-        received_ns: u64,
-    },
-    End(EpisodeEnd),
+    Odom(Received),
+    /// With whom to tell once the file is finished.
+    End(EpisodeEnd, Option<tokio::sync::oneshot::Sender<()>>),
+}
+
+/// An odometry message and when it was received.
+#[derive(Clone)]
+struct Received {
+    odom: Box<Odometry>,
+    received_ns: u64,
 }
 
 /// An event of the episode with this generation.
@@ -107,6 +114,8 @@ pub struct EnvRecorder {
     open: Arc<AtomicBool>,
     /// The generation whose recording was given up (queue full).
     abandoned: Arc<AtomicU64>,
+    /// The odometry last received (an episode's file starts with it).
+    last_odom: Arc<std::sync::Mutex<Option<Received>>>,
     writer: Option<JoinHandle<()>>,
     _odom: Subscriber<()>,
 }
@@ -122,22 +131,28 @@ impl EnvRecorder {
         let odom_queue = queue.clone();
         let odom_open = open.clone();
         let odom_generation = generation.clone();
+        let last_odom = Arc::new(std::sync::Mutex::new(None));
+        let odom_last = last_odom.clone();
         let odom = session
             .declare_subscriber(env.key(Topic::Odom))
             .callback(move |sample: Sample| {
-                if !odom_open.load(Ordering::Acquire) {
-                    return;
-                }
                 let Ok(odom) = codec::decode_payload::<Odometry>(sample.payload()) else {
                     return;
                 };
+                let received = Received {
+                    odom: Box::new(odom),
+                    received_ns: now_ns(),
+                };
+                if let Ok(mut last) = odom_last.lock() {
+                    *last = Some(received.clone());
+                }
+                if !odom_open.load(Ordering::Acquire) {
+                    return;
+                }
                 // Odometry streams: dropped rather than waited for.
                 let _ = odom_queue.try_send(Queued {
                     generation: odom_generation.load(Ordering::Acquire),
-                    event: Event::Odom {
-                        odom: Box::new(odom),
-                        received_ns: now_ns(),
-                    },
+                    event: Event::Odom(received),
                 });
             })
             .await
@@ -155,6 +170,7 @@ impl EnvRecorder {
             generation,
             open,
             abandoned,
+            last_odom,
             writer: Some(writer),
             _odom: odom,
         })
@@ -170,12 +186,14 @@ impl EnvRecorder {
     pub async fn begin(&self, info: EpisodeInfo) {
         let generation = self.generation.fetch_add(1, Ordering::AcqRel) + 1;
         let path = self.episode_path(&info);
+        let odom = self.last_odom.lock().ok().and_then(|last| last.clone());
         self.open.store(true, Ordering::Release);
         self.send(
             generation,
             Event::Begin {
                 path,
                 info: Box::new(info),
+                odom,
             },
         )
         .await;
@@ -187,11 +205,19 @@ impl EnvRecorder {
         self.send(generation, Event::Step(Box::new(record))).await;
     }
 
-    /// Ends the open episode's file.
+    /// Ends the open episode's file. Lossless (sim), returns once the file
+    /// is finished and renamed: a client that closed its env finds its
+    /// episodes complete.
     pub async fn end(&self, end: EpisodeEnd) {
         self.open.store(false, Ordering::Release);
         let generation = self.generation.load(Ordering::Acquire);
-        self.send(generation, Event::End(end)).await;
+        if self.to.lossless {
+            let (done, finished) = tokio::sync::oneshot::channel();
+            self.send(generation, Event::End(end, Some(done))).await;
+            let _ = finished.await;
+        } else {
+            self.send(generation, Event::End(end, None)).await;
+        }
     }
 
     async fn send(&self, generation: u64, event: Event) {
@@ -286,11 +312,17 @@ fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &A
             );
         }
         match event {
-            Event::Begin { path, info } => {
+            Event::Begin { path, info, odom } => {
                 if let Some(current) = open.take() {
                     current.stop(env, "recorder_stopped: a new episode began first");
                 }
-                match EpisodeFile::create(&path, &info) {
+                let created = EpisodeFile::create(&path, &info).and_then(|mut file| {
+                    if let Some(odom) = odom {
+                        write_odom(&mut file, &odom)?;
+                    }
+                    Ok(file)
+                });
+                match created {
                     Ok(file) => {
                         open = Some(Open {
                             generation,
@@ -319,21 +351,23 @@ fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &A
                 }
                 current.last = Some(record.step);
             }
-            Event::Odom { odom, received_ns } => {
+            Event::Odom(odom) => {
                 let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
                     continue;
                 };
-                let at = stamp_ns(&odom.header.stamp);
-                if let Err(e) = current.file.write(Channel::Odom, at, received_ns, &*odom) {
+                if let Err(e) = write_odom(&mut current.file, &odom) {
                     tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
                     if let Some(current) = open.take() {
                         current.stop(env, &format!("recorder_stopped: {e}"));
                     }
                 }
             }
-            Event::End(end) => {
+            Event::End(end, done) => {
                 if let Some(current) = open.take_if(|o| o.generation == generation) {
                     finish(env, current.file, &end);
+                }
+                if let Some(done) = done {
+                    let _ = done.send(());
                 }
             }
         }
@@ -341,6 +375,11 @@ fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &A
     if let Some(current) = open.take() {
         current.stop(env, "recorder_stopped: the controller stopped");
     }
+}
+
+fn write_odom(file: &mut EpisodeFile, odom: &Received) -> Result<(), RecordError> {
+    let at = stamp_ns(&odom.odom.header.stamp);
+    file.write(Channel::Odom, at, odom.received_ns, &*odom.odom)
 }
 
 /// Writes a step's messages and flushes them as one chunk.

@@ -22,6 +22,8 @@ ENV_ID_ENV = "OFFWORLD_GYM_ENV"
 DISCOVER = "discover"
 #: Turns the rerun monitor on without touching code (same values as ``rerun=``).
 RERUN_ENV = "OFFWORLD_GYM_RERUN"
+#: Records embedded envs' episodes without touching code (same as ``record=``).
+RECORD_ENV = "OFFWORLD_GYM_RECORD"
 
 
 @dataclass
@@ -53,6 +55,7 @@ def resolve(
     token: str | None = None,
     render_mode: str | None = None,
     rerun: str | os.PathLike[str] | None = None,
+    record: str | os.PathLike[str] | None = None,
 ) -> Resolved:
     """Checks and resolves keyword arguments (environment variables fill gaps).
 
@@ -60,6 +63,10 @@ def resolve(
     ``.rrd`` path (complete after ``close()``), a viewer URL such as
     ``rerun+http://127.0.0.1:9876/proxy``, or ``serve``/``serve:<ip>:<port>``
     to host a server viewers connect to.
+
+    ``record``: a directory where every episode of the embedded envs is
+    recorded as an MCAP file (``docs/recording.md``); a deployment's
+    controller records its envs itself (``env_controller serve --record``).
     """
     channels = Channels(channel_type)
     if len(resolution) != 2:
@@ -70,6 +77,7 @@ def resolve(
     if render_mode not in (None, "rgb_array"):
         raise ConfigurationError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
     rerun = os.fspath(rerun) if rerun is not None else os.environ.get(RERUN_ENV) or None
+    record = os.fspath(record) if record is not None else os.environ.get(RECORD_ENV) or None
     connect = connect or os.environ.get(CONNECT_ENV)
     token = token if token is not None else os.environ.get(TOKEN_ENV, "")
     remote = connect is not None or "OFFWORLD_ZENOH_CONFIG" in os.environ or "OFFWORLD_ZENOH_CONNECT" in os.environ
@@ -80,6 +88,11 @@ def resolve(
             )
         if not token:
             raise ConfigurationError(f"real envs need an access token: pass token=… or set {TOKEN_ENV}")
+    if record is not None and (remote or realm != "sim"):
+        raise ConfigurationError(
+            "record= records embedded sim envs; a deployment records on its controller "
+            "(env_controller serve --record DIR)"
+        )
     env_ids = None
     if remote:
         world = "monolith_obstacle" if task.startswith("MonolithObstacle") else "monolith"
@@ -113,6 +126,7 @@ def resolve(
             width=width,
             depth_format=depth_format,
             rerun=rerun,
+            record=record,
         ),
         channels=channels,
         render_extra_rgb=render_extra_rgb,

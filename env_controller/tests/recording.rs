@@ -1,0 +1,212 @@
+//! Episodes recorded by the controller (issue 23): an embedded sim env
+//! with `record`, stepped by a real client; every file read back and
+//! compared with what the client was answered.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use offworld_env_controller::deployment::{connect, Target};
+use offworld_recorder::msg::{EpisodeEnd, Step};
+use offworld_recorder::read;
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::codec;
+use offworld_runtime::msg::{
+    Action, AlgorithmMode, Channels, DepthFormat, Image, LearningType, ObsOptions, OpenRequest,
+    Seed,
+};
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "offworld-recording-{name}-{}",
+        offworld_runtime::client::random_id()
+    ));
+    std::fs::create_dir_all(&dir).expect("scratch dir");
+    dir
+}
+
+/// Messages of `topic` in a complete file, decoded, in file order.
+fn messages<T: serde::de::DeserializeOwned>(path: &std::path::Path, topic: &str) -> Vec<T> {
+    let buf = std::fs::read(path).expect("read");
+    mcap::MessageStream::new(&buf)
+        .expect("a complete MCAP file")
+        .map(|m| m.expect("message"))
+        .filter(|m| m.channel.topic == topic)
+        .map(|m| codec::decode(&m.data).expect("decode"))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_step_the_client_was_answered_is_in_the_episode_file() {
+    let dir = scratch("embedded");
+    let connection = connect(
+        Target::Embedded {
+            task: "MonolithDiscrete".into(),
+            resolution: (16, 12),
+            count: 1,
+            record: Some(dir.clone()),
+        },
+        "MonolithDiscrete",
+    )
+    .await
+    .expect("embedded with recording");
+    let env = connection.envs[0].clone();
+    let request = OpenRequest {
+        token: String::new(),
+        client_id: String::new(),
+        experiment_name: "recorded".into(),
+        resume_experiment: false,
+        learning_type: LearningType::HumanDemos,
+        algorithm_mode: AlgorithmMode::Train,
+        obs: ObsOptions {
+            channels: Channels::RgbOnly,
+            height: 12,
+            width: 16,
+            depth_format: DepthFormat::Uint8,
+        },
+    };
+    let mut client = EnvClient::open(
+        &connection.session,
+        &env,
+        request,
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("open");
+    let experiment_id = client.opened().experiment.id;
+    // Episode 0: a reset and 5 steps, then another reset (which ends it).
+    let reset = client.reset(Seed::Fixed(7)).await.expect("reset");
+    let mut observations = vec![reset.observation.data.clone()];
+    let mut replies = Vec::new();
+    for i in 0..5 {
+        let reply = client.step(Action::Discrete(i % 3)).await.expect("step");
+        observations.push(reply.observation.data.clone());
+        replies.push(reply);
+        if replies.last().is_some_and(|r| r.terminated || r.truncated) {
+            break;
+        }
+    }
+    // Episode 1: a reset and 2 steps, then close.
+    client.reset(Seed::Continue).await.expect("second reset");
+    for _ in 0..2 {
+        client.step(Action::Discrete(0)).await.expect("step");
+    }
+    client.close().await.expect("close");
+    // The deployment stops: every file is finished.
+    drop(connection);
+
+    let files = read::episode_files(&dir).expect("files");
+    let expected_dir = dir
+        .join("sim")
+        .join(env.name())
+        .join(format!("exp-{experiment_id:06}"));
+    assert_eq!(
+        files,
+        [
+            expected_dir.join("ep-000000.mcap"),
+            expected_dir.join("ep-000001.mcap")
+        ],
+        "one complete file per episode, no .partial left"
+    );
+
+    let first = &files[0];
+    let summary = read::summarize(first).expect("summary");
+    assert!(summary.complete);
+    assert_eq!(summary.metadata["env_id"], env.to_string());
+    assert_eq!(summary.metadata["task"], "MonolithDiscrete");
+    assert_eq!(summary.metadata["learning_type"], "humandemos");
+    assert_eq!(summary.metadata["seed"], "7");
+    assert_eq!(summary.metadata["seeded"], "true");
+    assert_eq!(summary.metadata["embodiment"], "twin");
+    let steps: Vec<Step> = messages(first, "/offworld/step");
+    assert_eq!(steps.len(), replies.len() + 1, "the reset and every step");
+    assert_eq!(steps[0].step, 0);
+    assert_eq!(steps[0].action_discrete, -1);
+    let mut episode_return = 0.0;
+    for (i, (step, reply)) in steps[1..].iter().zip(&replies).enumerate() {
+        episode_return += reply.reward;
+        assert_eq!(step.step, reply.info.step);
+        assert_eq!(step.episode_id, reply.info.episode_id);
+        assert_eq!(step.action_discrete, (i % 3) as i64);
+        assert_eq!(step.reward, reply.reward);
+        assert_eq!(step.terminated, reply.terminated);
+        assert_eq!(step.truncated, reply.truncated);
+        assert_eq!(step.episode_return, episode_return);
+        assert!(step.duration_s > 0.0, "the commanded motion: {step:?}");
+    }
+    // The RGB observation at the render size is the camera frame itself.
+    let colors: Vec<Image> = messages(first, "/camera/color/image_raw");
+    assert_eq!(colors.len(), steps.len());
+    for (color, obs) in colors.iter().zip(&observations) {
+        assert_eq!((color.width, color.height), (16, 12));
+        assert_eq!(color.encoding, "rgb8");
+        assert_eq!(&color.data, obs, "recorded colour == the observation");
+    }
+    let depths: Vec<Image> = messages(first, "/camera/depth/image_raw");
+    assert_eq!(depths.len(), steps.len());
+    // Stamps: a step is stamped with its frame's capture time.
+    for (step, color) in steps.iter().zip(&colors) {
+        assert_eq!(step.header.stamp, color.header.stamp);
+    }
+    assert_eq!(
+        messages::<offworld_runtime::msg::Twist>(first, "/cmd_vel").len(),
+        replies.len()
+    );
+    assert_eq!(
+        messages::<offworld_runtime::msg::PoseStamped>(first, "/tracker/pose").len(),
+        steps.len()
+    );
+    // The twin publishes odometry with every answer.
+    assert!(
+        messages::<offworld_runtime::msg::Odometry>(first, "/odom").len() >= replies.len(),
+        "odometry recorded"
+    );
+    let ends: Vec<EpisodeEnd> = messages(first, "/offworld/episode_end");
+    assert_eq!(ends.len(), 1);
+    let end = &ends[0];
+    assert_eq!(end.steps as usize, replies.len());
+    assert_eq!(end.episode_return, episode_return);
+    let last = replies.last().expect("a step");
+    if last.terminated || last.truncated {
+        assert_ne!(end.end_reason, "");
+    } else {
+        assert_eq!(end.end_reason, "reset before the episode ended");
+    }
+
+    let second = read::summarize(&files[1]).expect("second");
+    assert_eq!(second.messages["/offworld/step"], 3);
+    assert_eq!(
+        second.end.as_ref().map(|e| e.end_reason.as_str()),
+        Some("closed")
+    );
+    assert_eq!(second.metadata["seeded"], "false");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_unwritable_record_directory_is_refused_before_serving() {
+    let dir = scratch("unwritable");
+    let file = dir.join("not-a-dir");
+    std::fs::write(&file, b"x").expect("file");
+    let err = connect(
+        Target::Embedded {
+            task: "MonolithDiscrete".into(),
+            resolution: (16, 12),
+            count: 1,
+            record: Some(file.join("runs")),
+        },
+        "MonolithDiscrete",
+    )
+    .await
+    .err()
+    .expect("refused");
+    let message = err.to_string();
+    assert!(
+        message.starts_with(&format!(
+            "cannot record into {}",
+            file.join("runs").display()
+        )),
+        "{message}"
+    );
+    tokio::time::sleep(Duration::from_millis(10)).await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
