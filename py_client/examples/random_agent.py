@@ -3,6 +3,7 @@ any deployment named by OFFWORLD_GYM_CONNECT / OFFWORLD_GYM_ACCESS_TOKEN.
 
     python py_client/examples/random_agent.py --episodes 3
     python py_client/examples/random_agent.py --env OffWorldMonolithDiscreteReal-v0 --max-steps 20
+    python py_client/examples/random_agent.py --episodes 10 --record runs/   # MCAP per episode
 """
 
 from __future__ import annotations
@@ -22,10 +23,19 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-steps", type=int, default=0, help="stop after this many steps in all (0 = no limit)")
+    parser.add_argument(
+        "--record", metavar="DIR", help="record every episode as an MCAP file under DIR (embedded sim envs)"
+    )
+    parser.add_argument(
+        "--resolution", type=int, nargs=2, default=(240, 320), metavar=("H", "W"), help="observation size"
+    )
     args = parser.parse_args()
 
     started = time.perf_counter()
-    env = gymnasium.make(args.env, channel_type=Channels.DEPTH_ONLY)
+    options = {"record": args.record} if args.record else {}
+    # Recordings keep colour and depth whatever the agent sees.
+    channels = Channels.RGBD if args.record else Channels.DEPTH_ONLY
+    env = gymnasium.make(args.env, channel_type=channels, resolution=tuple(args.resolution), **options)
     obs, info = env.reset(seed=args.seed)
     print(f"{args.env}: first observation {obs.shape} {obs.dtype} after {1000 * (time.perf_counter() - started):.0f} ms")
     env.action_space.seed(args.seed)
@@ -43,7 +53,8 @@ def main() -> None:
             break
         outcome = "reached the monolith" if terminated and reward > 0 else ("left the arena" if terminated else "time limit")
         print(f"episode {episode}: return {episode_return:.0f} in {info['step']} steps ({outcome})")
-        obs, info = env.reset()
+        if episode + 1 < args.episodes:
+            obs, info = env.reset()
     elapsed = time.perf_counter() - loop_start
     print(f"{steps} steps in {elapsed:.2f} s ({steps / elapsed:.0f} steps/s)")
     env.close()

@@ -117,7 +117,8 @@ pub struct EnvRecorder {
     /// The odometry last received (an episode's file starts with it).
     last_odom: Arc<std::sync::Mutex<Option<Received>>>,
     writer: Option<JoinHandle<()>>,
-    _odom: Subscriber<()>,
+    /// Holds a sender of the queue: undeclared before the writer is awaited.
+    odom: Option<Subscriber<()>>,
 }
 
 impl EnvRecorder {
@@ -172,7 +173,7 @@ impl EnvRecorder {
             abandoned,
             last_odom,
             writer: Some(writer),
-            _odom: odom,
+            odom: Some(odom),
         })
     }
 
@@ -242,12 +243,26 @@ impl EnvRecorder {
     }
 }
 
+/// How long a dropped recorder waits for its writer to finish the files.
+const WRITER_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
+
 impl Drop for EnvRecorder {
     fn drop(&mut self) {
-        // Closing the queue ends the writer once it has written what is queued.
+        // Closing the queue (its last sender is in the odometry callback)
+        // ends the writer once it has written what is queued.
         self.queue = None;
-        if let Some(writer) = self.writer.take() {
+        drop(self.odom.take());
+        let Some(writer) = self.writer.take() else {
+            return;
+        };
+        let deadline = std::time::Instant::now() + WRITER_GRACE;
+        while !writer.is_finished() && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        if writer.is_finished() {
             let _ = writer.join();
+        } else {
+            tracing::warn!(env = %self.env, "the recorder's writer did not finish in time; the episode in progress may stay a .partial");
         }
     }
 }
