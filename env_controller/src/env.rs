@@ -241,10 +241,12 @@ impl EnvServer {
             .map_err(|e| crate::ControllerError::Zenoh(e.to_string()))?;
         let recorder = match record {
             Some(dir) => {
+                let sim = env.realm() == offworld_runtime::Realm::Sim;
                 let to = RecordTo {
                     dir: dir.to_owned(),
                     // Nothing moves while a sim step waits for the disk.
-                    lossless: env.realm() == offworld_runtime::Realm::Sim,
+                    lossless: sim,
+                    durable: !sim,
                 };
                 Some(EnvRecorder::start(session, &env, to).await?)
             }

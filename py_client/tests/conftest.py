@@ -27,12 +27,11 @@ def _binary(name: str) -> Path:
     return path
 
 
-@pytest.fixture()
-def deployment(tmp_path: Path):
-    """Yields (endpoint, env_id) of a sim deployment in another process."""
+def start_controller(tmp_path: Path, env_id: str, *extra: str) -> tuple[subprocess.Popen, str]:
+    """Starts `env_controller serve` with embedded twins for `env_id` on a free
+    loopback port; returns the process and its endpoint once it listens."""
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    env_id = "sim/contended-0"
     proc = subprocess.Popen(
         [
             str(_binary("env_controller")),
@@ -44,6 +43,7 @@ def deployment(tmp_path: Path):
             "--embedded-twins",
             "--listen",
             endpoint,
+            *extra,
         ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -55,16 +55,26 @@ def deployment(tmp_path: Path):
             raise RuntimeError(f"env_controller exited: {proc.stderr.read().decode() if proc.stderr else ''}")
         with socket.socket() as s:
             if s.connect_ex(("127.0.0.1", port)) == 0:
-                break
+                return proc, endpoint
         time.sleep(0.1)
-    else:
+    proc.kill()
+    raise RuntimeError("env_controller did not start listening")
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
         proc.kill()
-        raise RuntimeError("env_controller did not start listening")
+
+
+@pytest.fixture()
+def deployment(tmp_path: Path):
+    """Yields (endpoint, env_id) of a sim deployment in another process."""
+    env_id = "sim/contended-0"
+    proc, endpoint = start_controller(tmp_path, env_id)
     try:
         yield endpoint, env_id
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop(proc)

@@ -7,13 +7,18 @@ rewards and images are compared with what the env returned."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
+from conftest import _binary, start_controller, stop
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Message
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader
@@ -158,11 +163,87 @@ def test_record_is_refused_for_remote_envs():
         gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect="tcp/127.0.0.1:1", record="runs")
 
 
+def _decode_all(path: Path) -> dict[str, int]:
+    """Messages per topic, every one decoded by both readers."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        mcap_count = sum(1 for _ in reader.iter_decoded_messages())
+    counts: dict[str, int] = {}
+    with AnyReader([path]) as bag:
+        for conn, _, raw in bag.messages():
+            bag.deserialize(raw, conn.msgtype)
+            counts[conn.topic] = counts.get(conn.topic, 0) + 1
+    assert sum(counts.values()) == mcap_count
+    return counts
+
+
+def test_kill_9_leaves_every_completed_episode_readable_and_the_cut_one_recoverable(tmp_path: Path):
+    env_id = "sim/recorded-0"
+    runs = tmp_path / "runs"
+    proc, endpoint = start_controller(tmp_path, env_id, "--record", str(runs))
+    try:
+        env = gymnasium.make(
+            "OffWorldMonolithDiscreteSim-v0", connect=endpoint, env_id=env_id, resolution=(24, 32)
+        )
+        steps_taken = []
+        for episode in range(3):
+            env.reset(seed=episode)
+            steps = 0
+            for action in (0, 1, 2):
+                _, _, terminated, truncated, _ = env.step(action)
+                steps += 1
+                if terminated or truncated:
+                    break
+            steps_taken.append(steps)
+        # Episode 2 is running: the controller dies without a word.
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        stop(proc)
+    files = sorted(runs.rglob("ep-*"))
+    assert [f.name for f in files] == ["ep-000000.mcap", "ep-000001.mcap", "ep-000002.mcap.partial"]
+    # Complete episodes open in both readers; a reset ended each of them.
+    for path, steps in zip(files[:2], steps_taken):
+        counts = _decode_all(path)
+        assert counts["/offworld/step"] == steps + 1
+        assert counts["/offworld/episode_end"] == 1
+    # The cut one streams up to its last complete chunk, then ends: at the
+    # file's end or at the chunk being written (its length still unset).
+    partial = files[2]
+    channels: dict[int, str] = {}
+    streamed: dict[str, int] = {}
+    with open(partial, "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    topic = channels[record.channel_id]
+                    streamed[topic] = streamed.get(topic, 0) + 1
+                elif isinstance(record, Footer):
+                    pytest.fail("a .partial has no footer")
+        except (EndOfFile, RecordLengthLimitExceeded):
+            pass
+    assert streamed["/offworld/episode"] == 1
+    # …rosbags refuses it as it is, and `recorder recover` makes it whole.
+    with pytest.raises(Exception):
+        with AnyReader([partial]) as bag:
+            list(bag.messages())
+    subprocess.run([str(_binary("recorder")), "recover", str(partial)], check=True, capture_output=True)
+    recovered = partial.with_name("ep-000002.mcap")
+    counts = _decode_all(recovered)
+    assert counts == streamed, "recover keeps exactly what the partial file held"
+    # Sim files are flushed per ~1 MiB chunk (320×240 frames: every other
+    # step or so) and the writer may lag the kill: some steps, maybe none.
+    assert counts.get("/offworld/step", 0) <= steps_taken[2] + 1
+    assert "/offworld/episode_end" not in counts, "the episode's end was never recorded"
+    assert counts["/offworld/episode"] == 1
+
+
 def test_recorder_info_lists_the_episodes(tmp_path: Path):
     _record(tmp_path, "OffWorldMonolithDiscreteSim-v0", episodes=2, steps=3)
-    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
     out = subprocess.run(
-        [str(target / "release" / "recorder"), "info", str(tmp_path)],
+        [str(_binary("recorder")), "info", str(tmp_path)],
         check=True,
         capture_output=True,
         text=True,

@@ -7,7 +7,8 @@ use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
 use mcap::records::{MessageHeader, Metadata};
-use mcap::{Compression, WriteOptions, Writer};
+pub use mcap::Compression;
+use mcap::{WriteOptions, Writer};
 use offworld_runtime::codec;
 use serde::Serialize;
 
@@ -104,8 +105,13 @@ pub struct EpisodeFile {
 
 impl EpisodeFile {
     /// Creates `path` (as its `.partial`; parent directories too) for the
-    /// episode `info` and writes the episode's first message.
-    pub fn create(path: &Path, info: &EpisodeInfo) -> Result<Self, RecordError> {
+    /// episode `info`, its chunks compressed with `compression`, and writes
+    /// the episode's first message.
+    pub fn create(
+        path: &Path,
+        info: &EpisodeInfo,
+        compression: Option<Compression>,
+    ) -> Result<Self, RecordError> {
         let io = |e: std::io::Error| RecordError::io(path, e);
         if let Some(parent) = path.parent() {
             std::fs::create_dir_all(parent).map_err(io)?;
@@ -115,7 +121,7 @@ impl EpisodeFile {
         let mut writer = WriteOptions::new()
             .profile("ros2")
             .library(concat!("offworld-recorder/", env!("CARGO_PKG_VERSION")))
-            .compression(Some(Compression::Zstd))
+            .compression(compression)
             .compression_level(1)
             // One chunk per step: no zstd worker threads per chunk.
             .compression_threads(0)
@@ -202,9 +208,11 @@ impl EpisodeFile {
             .map_err(|e| RecordError::mcap(&self.path, e))
     }
 
-    /// Writes `end`, finishes the file (summary and footer), syncs it and
-    /// gives it its final name; returns that name.
-    pub fn finish(mut self, end: &EpisodeEnd) -> Result<PathBuf, RecordError> {
+    /// Writes `end`, finishes the file (summary and footer), syncs it if
+    /// `sync` (so a power cut cannot lose it once renamed) and gives it its
+    /// final name; returns that name. Without `sync` the rename is still
+    /// atomic for readers and survives the process being killed.
+    pub fn finish(mut self, end: &EpisodeEnd, sync: bool) -> Result<PathBuf, RecordError> {
         let at = stamp_ns(&end.header.stamp);
         self.write(Channel::EpisodeEnd, at, now_ns(), end)?;
         self.writer
@@ -221,10 +229,12 @@ impl EpisodeFile {
             .into_inner()
             .into_inner()
             .map_err(|e| io(e.into_error()))?;
-        file.sync_all().map_err(io)?;
+        if sync {
+            file.sync_all().map_err(io)?;
+        }
         std::fs::rename(&partial, &path).map_err(io)?;
         // The rename itself survives a power cut only once the directory is synced.
-        if let Some(parent) = path.parent() {
+        if let (true, Some(parent)) = (sync, path.parent()) {
             File::open(parent).and_then(|d| d.sync_all()).map_err(io)?;
         }
         Ok(path)

@@ -16,7 +16,7 @@ use offworld_runtime::zenoh::sample::Sample;
 use offworld_runtime::zenoh::Session;
 use tokio::sync::mpsc;
 
-use crate::episode_file::{now_ns, stamp_ns, Channel, EpisodeFile};
+use crate::episode_file::{now_ns, stamp_ns, Channel, Compression, EpisodeFile};
 use crate::msg::{EpisodeEnd, EpisodeInfo, Step};
 use crate::RecordError;
 
@@ -32,6 +32,13 @@ pub struct RecordTo {
     /// Steps wait for the writer instead of dropping a recording that
     /// falls behind: for sim envs, where nothing moves while they wait.
     pub lossless: bool,
+    /// Each step flushed as its own chunk, so a crash loses none of the
+    /// steps already answered, and each finished file synced to disk (with
+    /// its directory) before its rename, so a power cut loses none either:
+    /// for real robots, whose steps are scarce. Else chunks of about 1 MiB
+    /// (a crashed sim loses at most that much of the episode in progress)
+    /// and no syncs: a sim step pays far less for its recording.
+    pub durable: bool,
 }
 
 impl RecordTo {
@@ -160,9 +167,10 @@ impl EnvRecorder {
             .map_err(|e| RecordError::Zenoh(e.to_string()))?;
         let writer_env = env.clone();
         let writer_abandoned = abandoned.clone();
+        let durable = to.durable;
         let writer = std::thread::Builder::new()
             .name(format!("record {}", env.name()))
-            .spawn(move || write_episodes(&writer_env, events, &writer_abandoned))
+            .spawn(move || write_episodes(&writer_env, events, &writer_abandoned, durable))
             .map_err(|e| RecordError::io(&to.dir, e))?;
         Ok(Self {
             to,
@@ -277,7 +285,7 @@ struct Open {
 
 impl Open {
     /// Ends the file with `end_reason` (the episode's own end unknown).
-    fn stop(self, env: &EnvId, end_reason: &str) {
+    fn stop(self, env: &EnvId, durable: bool, end_reason: &str) {
         let end = match &self.last {
             Some(step) => EpisodeEnd {
                 header: Header::new(Time::now(), "world"),
@@ -300,13 +308,13 @@ impl Open {
                 end_reason: end_reason.to_owned(),
             },
         };
-        finish(env, self.file, &end);
+        finish(env, self.file, &end, durable);
     }
 }
 
-fn finish(env: &EnvId, file: EpisodeFile, end: &EpisodeEnd) {
+fn finish(env: &EnvId, file: EpisodeFile, end: &EpisodeEnd, durable: bool) {
     let path = file.path().to_owned();
-    match file.finish(end) {
+    match file.finish(end, durable) {
         Ok(path) => tracing::debug!(%env, path = %path.display(), "episode recorded"),
         Err(e) => tracing::warn!(
             %env,
@@ -317,26 +325,37 @@ fn finish(env: &EnvId, file: EpisodeFile, end: &EpisodeEnd) {
 }
 
 /// The writer thread: writes every queued event until the queue closes.
-fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &AtomicU64) {
+fn write_episodes(
+    env: &EnvId,
+    mut events: mpsc::Receiver<Queued>,
+    abandoned: &AtomicU64,
+    durable: bool,
+) {
     let mut open: Option<Open> = None;
     while let Some(Queued { generation, event }) = events.blocking_recv() {
         if let Some(current) = open.take_if(|o| abandoned.load(Ordering::Acquire) == o.generation) {
             current.stop(
                 env,
+                durable,
                 "recorder_stopped: the writer fell behind (its queue was full)",
             );
         }
         match event {
             Event::Begin { path, info, odom } => {
                 if let Some(current) = open.take() {
-                    current.stop(env, "recorder_stopped: a new episode began first");
+                    current.stop(env, durable, "recorder_stopped: a new episode began first");
                 }
-                let created = EpisodeFile::create(&path, &info).and_then(|mut file| {
-                    if let Some(odom) = odom {
-                        write_odom(&mut file, &odom)?;
-                    }
-                    Ok(file)
-                });
+                // Zstd where steps are few and precious; none where a sim
+                // steps thousands of times a second and every cycle counts
+                // (LZ4's frame checksum alone cost more than its compression).
+                let compression = durable.then_some(Compression::Zstd);
+                let created =
+                    EpisodeFile::create(&path, &info, compression).and_then(|mut file| {
+                        if let Some(odom) = odom {
+                            write_odom(&mut file, &odom)?;
+                        }
+                        Ok(file)
+                    });
                 match created {
                     Ok(file) => {
                         open = Some(Open {
@@ -357,10 +376,10 @@ fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &A
                 let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
                     continue;
                 };
-                if let Err(e) = write_step(&mut current.file, &record) {
+                if let Err(e) = write_step(&mut current.file, &record, durable) {
                     tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
                     if let Some(current) = open.take() {
-                        current.stop(env, &format!("recorder_stopped: {e}"));
+                        current.stop(env, durable, &format!("recorder_stopped: {e}"));
                     }
                     continue;
                 }
@@ -373,13 +392,13 @@ fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &A
                 if let Err(e) = write_odom(&mut current.file, &odom) {
                     tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
                     if let Some(current) = open.take() {
-                        current.stop(env, &format!("recorder_stopped: {e}"));
+                        current.stop(env, durable, &format!("recorder_stopped: {e}"));
                     }
                 }
             }
             Event::End(end, done) => {
                 if let Some(current) = open.take_if(|o| o.generation == generation) {
-                    finish(env, current.file, &end);
+                    finish(env, current.file, &end, durable);
                 }
                 if let Some(done) = done {
                     let _ = done.send(());
@@ -388,7 +407,7 @@ fn write_episodes(env: &EnvId, mut events: mpsc::Receiver<Queued>, abandoned: &A
         }
     }
     if let Some(current) = open.take() {
-        current.stop(env, "recorder_stopped: the controller stopped");
+        current.stop(env, durable, "recorder_stopped: the controller stopped");
     }
 }
 
@@ -397,8 +416,8 @@ fn write_odom(file: &mut EpisodeFile, odom: &Received) -> Result<(), RecordError
     file.write(Channel::Odom, at, odom.received_ns, &*odom.odom)
 }
 
-/// Writes a step's messages and flushes them as one chunk.
-fn write_step(file: &mut EpisodeFile, record: &StepRecord) -> Result<(), RecordError> {
+/// Writes a step's messages (and flushes them as one chunk if asked).
+fn write_step(file: &mut EpisodeFile, record: &StepRecord, flush: bool) -> Result<(), RecordError> {
     let received = now_ns();
     let bytes = record.frame.to_bytes();
     let frame = codec::decode_borrowed::<CameraFrameView>(&bytes)
@@ -431,5 +450,8 @@ fn write_step(file: &mut EpisodeFile, record: &StepRecord) -> Result<(), RecordE
         received,
         &record.step,
     )?;
-    file.end_step()
+    if flush {
+        file.end_step()?;
+    }
+    Ok(())
 }

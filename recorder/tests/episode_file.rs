@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use offworld_recorder::episode_file::{partial_path, stamp_ns, Channel, EpisodeFile};
+use offworld_recorder::episode_file::{partial_path, stamp_ns, Channel, Compression, EpisodeFile};
 use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo, Step};
 use offworld_recorder::read;
 use offworld_runtime::codec;
@@ -138,11 +138,11 @@ fn counts(summary: &read::EpisodeSummary) -> Vec<(String, u64)> {
 fn a_finished_episode_is_a_complete_file_with_every_message() {
     let dir = tempdir("finished");
     let path = dir.join("sim/monolith-0/exp-000003/ep-000007.mcap");
-    let mut file = EpisodeFile::create(&path, &info(7)).expect("create");
+    let mut file = EpisodeFile::create(&path, &info(7), Some(Compression::Zstd)).expect("create");
     assert!(partial_path(&path).exists(), "written as .partial first");
     assert!(!path.exists());
     write_steps(&mut file, 3);
-    let written = file.finish(&end()).expect("finish");
+    let written = file.finish(&end(), true).expect("finish");
     assert_eq!(written, path);
     assert!(path.exists() && !partial_path(&path).exists());
 
@@ -184,7 +184,7 @@ fn a_finished_episode_is_a_complete_file_with_every_message() {
 fn a_crash_keeps_every_flushed_step_and_recover_makes_a_complete_file() {
     let dir = tempdir("crash");
     let path = dir.join("ep-000007.mcap");
-    let mut file = EpisodeFile::create(&path, &info(7)).expect("create");
+    let mut file = EpisodeFile::create(&path, &info(7), Some(Compression::Zstd)).expect("create");
     write_steps(&mut file, 2);
     // kill -9 now: what is on disk is the .partial as it stands.
     let crashed = dir.join("crashed.mcap.partial");
@@ -224,9 +224,9 @@ fn a_crash_keeps_every_flushed_step_and_recover_makes_a_complete_file() {
 fn an_episode_file_is_never_overwritten() {
     let dir = tempdir("twice");
     let path = dir.join("ep-000001.mcap");
-    let _first = EpisodeFile::create(&path, &info(1)).expect("create");
+    let _first = EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)).expect("create");
     assert!(matches!(
-        EpisodeFile::create(&path, &info(1)),
+        EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)),
         Err(offworld_recorder::RecordError::Io { .. })
     ));
 }

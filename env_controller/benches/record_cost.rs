@@ -1,0 +1,208 @@
+//! What recording episodes costs (issue 23):
+//!
+//! 1. the embedded step rate at 84×84 depth without and with `record`
+//!    (rounds interleaved, so slow spells of a shared machine hit both);
+//! 2. the writer's time per real-robot step: a 320×240 RGBD frame the twin
+//!    rendered, its pose and step record, written and flushed as a chunk
+//!    (on the real path this runs on the recorder's thread; the step itself
+//!    only queues the frame).
+//!
+//! Run: `cargo bench -p offworld-env-controller --bench record_cost`
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use offworld_env_controller::deployment::{connect, Target};
+use offworld_recorder::episode_file::{Channel, Compression, EpisodeFile};
+use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo};
+use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_runtime::msg::*;
+
+const ROUNDS: usize = 5;
+const STEPS: usize = 400;
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "offworld-record-bench-{name}-{}",
+        offworld_runtime::client::random_id()
+    ));
+    std::fs::create_dir_all(&dir).expect("scratch");
+    dir
+}
+
+/// Steps/s of `STEPS` random-ish steps on a fresh embedded env.
+async fn steps_per_s(
+    (w, h): (u32, u32),
+    channels: Channels,
+    record: Option<&Path>,
+) -> anyhow::Result<f64> {
+    let connection = connect(
+        Target::Embedded {
+            task: "MonolithDiscrete".into(),
+            resolution: (w, h),
+            count: 1,
+            record: record.map(Path::to_owned),
+        },
+        "MonolithDiscrete",
+    )
+    .await?;
+    let request = OpenRequest {
+        token: String::new(),
+        client_id: String::new(),
+        experiment_name: String::new(),
+        resume_experiment: false,
+        learning_type: LearningType::EndToEnd,
+        algorithm_mode: AlgorithmMode::Train,
+        obs: ObsOptions {
+            channels,
+            height: h,
+            width: w,
+            depth_format: DepthFormat::Uint8,
+        },
+    };
+    let mut client = EnvClient::open(
+        &connection.session,
+        &connection.envs[0],
+        request,
+        ClientTimeouts::default(),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}"))?;
+    client
+        .reset(Seed::Fixed(1))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let start = Instant::now();
+    for i in 0..STEPS {
+        let reply = client
+            .step(Action::Discrete((i % 3) as i64))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        if reply.terminated || reply.truncated {
+            client
+                .reset(Seed::Continue)
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
+    }
+    let rate = STEPS as f64 / start.elapsed().as_secs_f64();
+    client.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(rate)
+}
+
+/// The writer's time per step for real frames: `frames` (colour, depth,
+/// pose, step payloads as recorded) written again into a new file.
+fn writer_ms_per_step(frames: &[[Vec<u8>; 4]], dir: &Path) -> anyhow::Result<Vec<f64>> {
+    let info = EpisodeInfo {
+        header: Header::default(),
+        env_id: "real/bench".into(),
+        task: "MonolithDiscrete".into(),
+        world: "monolith".into(),
+        experiment_id: 1,
+        experiment: "bench".into(),
+        learning_type: "end2end".into(),
+        algorithm_mode: "train".into(),
+        episode_id: 0,
+        seeded: false,
+        seed: 0,
+        embodiment: "robot".into(),
+        software_version: String::new(),
+        max_episode_steps: 100,
+        requested_start: [0.0; 3],
+    };
+    let mut file = EpisodeFile::create(&dir.join("bench.mcap"), &info, Some(Compression::Zstd))?;
+    let mut per_step = Vec::new();
+    for (i, [color, depth, pose, step]) in frames.iter().enumerate() {
+        let start = Instant::now();
+        let at = i as u64 * 1_000_000;
+        file.write_cdr(Channel::Color, at, at, color)?;
+        file.write_cdr(Channel::Depth, at, at, depth)?;
+        file.write_cdr(Channel::Pose, at, at, pose)?;
+        file.write_cdr(Channel::Step, at, at, step)?;
+        file.end_step()?;
+        per_step.push(start.elapsed().as_secs_f64() * 1e3);
+    }
+    file.finish(
+        &EpisodeEnd {
+            header: Header::default(),
+            episode_id: 0,
+            steps: frames.len() as u32,
+            episode_return: 0.0,
+            success: false,
+            terminated: false,
+            truncated: true,
+            end_reason: "step_limit".into(),
+        },
+        true,
+    )?;
+    Ok(per_step)
+}
+
+/// Per step of every recorded file under `dir`: colour, depth, pose, step CDR.
+fn recorded_frames(dir: &Path) -> anyhow::Result<Vec<[Vec<u8>; 4]>> {
+    let mut frames = Vec::new();
+    for path in offworld_recorder::read::episode_files(dir)? {
+        let buf = std::fs::read(&path)?;
+        let mut current: [Vec<u8>; 4] = Default::default();
+        for message in mcap::MessageStream::new(&buf)? {
+            let message = message?;
+            let slot = match message.channel.topic.as_str() {
+                "/camera/color/image_raw" => 0,
+                "/camera/depth/image_raw" => 1,
+                "/tracker/pose" => 2,
+                "/offworld/step" => 3,
+                _ => continue,
+            };
+            current[slot] = message.data.into_owned();
+            if slot == 3 {
+                frames.push(std::mem::take(&mut current));
+            }
+        }
+    }
+    Ok(frames)
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() -> anyhow::Result<()> {
+    let dir = scratch("rate");
+    println!("embedded step rate, 84×84 depth, {STEPS} steps × {ROUNDS} rounds (interleaved):");
+    let (mut plain, mut recorded) = (Vec::new(), Vec::new());
+    for round in 0..ROUNDS {
+        plain.push(steps_per_s((84, 84), Channels::DepthOnly, None).await?);
+        let into = dir.join(format!("round-{round}"));
+        recorded.push(steps_per_s((84, 84), Channels::DepthOnly, Some(&into)).await?);
+    }
+    let (plain, recorded) = (median(&mut plain), median(&mut recorded));
+    println!("  without recording: {plain:.0} steps/s (median)");
+    println!("  with recording:    {recorded:.0} steps/s (median)");
+    println!(
+        "  cost: {:.1} % of the step rate",
+        100.0 * (1.0 - recorded / plain)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+
+    // Real frames: 320×240 RGBD as the twin renders them.
+    let dir = scratch("frames");
+    steps_per_s((320, 240), Channels::Rgbd, Some(&dir.join("runs"))).await?;
+    let frames = recorded_frames(&dir.join("runs"))?;
+    let bytes: usize = frames.iter().flatten().map(Vec::len).sum();
+    let mut per_step = writer_ms_per_step(&frames, &dir)?;
+    let written = std::fs::metadata(dir.join("bench.mcap"))?.len();
+    per_step.sort_by(f64::total_cmp);
+    let p99 = per_step[(per_step.len() - 1) * 99 / 100];
+    println!(
+        "writer per real step, 320×240 RGBD ({} steps, {:.0} KiB raw per step → {:.0} KiB on disk): median {:.2} ms, p99 {:.2} ms",
+        frames.len(),
+        bytes as f64 / frames.len() as f64 / 1024.0,
+        written as f64 / frames.len() as f64 / 1024.0,
+        median(&mut per_step),
+        p99
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
