@@ -36,6 +36,22 @@ def test_teleop_follows_scripted_keys():
     assert "step 4" in lines[-1]
 
 
+def test_teleop_records_human_demonstrations(tmp_path):
+    from mcap.reader import make_reader
+
+    run("teleop.py", "--record", str(tmp_path), "--experiment", "demos", stdin="wwr\nd\nq\n")
+    files = sorted(tmp_path.rglob("*.mcap"))
+    assert [f.name for f in files] == ["ep-000000.mcap", "ep-000001.mcap"]
+    for f, steps in zip(files, (2, 1)):
+        with open(f, "rb") as fh:
+            reader = make_reader(fh)
+            meta = {m.name: m.metadata for m in reader.iter_metadata()}["offworld.episode"]
+            assert reader.get_summary().statistics.channel_message_counts
+            step_channel = next(c.id for c in reader.get_summary().channels.values() if c.topic == "/offworld/step")
+            assert reader.get_summary().statistics.channel_message_counts[step_channel] == steps + 1
+        assert (meta["learning_type"], meta["experiment"]) == ("humandemos", "demos")
+
+
 def test_learning_curve_png(tmp_path):
     pytest.importorskip("matplotlib")
     png = tmp_path / "curve.png"

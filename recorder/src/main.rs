@@ -95,11 +95,12 @@ fn describe(s: &EpisodeSummary) -> String {
         .map(|(topic, n)| format!("{topic}={n}"))
         .collect();
     format!(
-        "{}: {} experiment {} ({}) episode {}: {steps} steps, return {ret:.3}, {ended}; {}",
+        "{}: {} experiment {} ({}, {}) episode {}: {steps} steps, return {ret:.3}, {ended}; {}",
         s.path.display(),
         get("env_id"),
         get("experiment_id"),
         get("experiment"),
+        get("learning_type"),
         get("episode_id"),
         topics.join(" ")
     )
