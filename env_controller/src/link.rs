@@ -542,11 +542,13 @@ impl RobotLink {
                     Ok(Built::Replied(pose)) => {
                         let (sender, built) = oneshot::channel();
                         let _ = sender.send(Built::Replied(pose.clone()));
+                        // The frame that was replied with, for the recorder.
+                        let frame = self.frames.borrow().clone().filter(|f| f.seq() == cmd.seq);
                         Ok(Answer {
                             pose,
                             built,
                             fallback: None,
-                            frame: None,
+                            frame,
                         })
                     }
                     _ => Err(e),

@@ -86,6 +86,18 @@ const OFFERED_QOS: &str = "- history: 1\n  depth: 10\n  reliability: 1\n  durabi
 /// Name of the metadata record repeating [`EpisodeInfo`].
 pub const METADATA_NAME: &str = "offworld.episode";
 
+/// How every episode file is written: the ROS 2 profile, our library
+/// name, chunks compressed with `compression` (zstd at its fastest level,
+/// without worker threads: a chunk may hold a single step).
+pub(crate) fn write_options(compression: Option<Compression>) -> WriteOptions {
+    WriteOptions::new()
+        .profile("ros2")
+        .library(concat!("offworld-recorder/", env!("CARGO_PKG_VERSION")))
+        .compression(compression)
+        .compression_level(1)
+        .compression_threads(0)
+}
+
 /// The file's name while its episode is being written.
 pub fn partial_path(path: &Path) -> PathBuf {
     let mut name = path.as_os_str().to_owned();
@@ -95,8 +107,12 @@ pub fn partial_path(path: &Path) -> PathBuf {
 
 /// An episode file being written. Dropped without [`EpisodeFile::finish`],
 /// it stays a `.partial` readable up to its last flushed step.
+///
+/// After any write error the mcap writer is dropped and never called
+/// again: the mcap crate can be left in a state where its next call (or
+/// its own drop) panics, and a panic must not end the recorder.
 pub struct EpisodeFile {
-    writer: Writer<BufWriter<File>>,
+    writer: Option<Writer<BufWriter<File>>>,
     path: PathBuf,
     partial: PathBuf,
     channels: [u16; Channel::ALL.len()],
@@ -116,46 +132,38 @@ impl EpisodeFile {
         if let Some(parent) = path.parent() {
             std::fs::create_dir_all(parent).map_err(io)?;
         }
+        // An episode id used before (a site that started over with a new
+        // database) gets a name of its own: a recording is never replaced.
+        let path = &unused_name(path);
         let partial = partial_path(path);
         let file = File::create_new(&partial).map_err(io)?;
-        let mut writer = WriteOptions::new()
-            .profile("ros2")
-            .library(concat!("offworld-recorder/", env!("CARGO_PKG_VERSION")))
-            .compression(compression)
-            .compression_level(1)
-            // One chunk per step: no zstd worker threads per chunk.
-            .compression_threads(0)
+        let writer = write_options(compression)
             .create(BufWriter::new(file))
             .map_err(|e| RecordError::mcap(path, e))?;
-        let mut channels = [0u16; Channel::ALL.len()];
-        for (slot, channel) in channels.iter_mut().zip(Channel::ALL) {
+        let mut file = Self {
+            writer: Some(writer),
+            path: path.to_owned(),
+            partial,
+            channels: [0u16; Channel::ALL.len()],
+            sequence: 0,
+        };
+        for (slot, channel) in Channel::ALL.into_iter().enumerate() {
             let name = channel.type_name();
             let text = schema::full_text(name)
                 .ok_or_else(|| RecordError::Schema(format!("no message definition for {name}")))?;
-            let schema = writer
-                .add_schema(name, "ros2msg", text.as_bytes())
-                .map_err(|e| RecordError::mcap(path, e))?;
+            let schema = file.with_writer(|w| w.add_schema(name, "ros2msg", text.as_bytes()))?;
             let metadata = BTreeMap::from([
                 ("offered_qos_profiles".to_owned(), OFFERED_QOS.to_owned()),
                 ("topic_type_hash".to_owned(), String::new()),
             ]);
-            *slot = writer
-                .add_channel(schema, channel.topic(), "cdr", &metadata)
-                .map_err(|e| RecordError::mcap(path, e))?;
+            file.channels[slot] =
+                file.with_writer(|w| w.add_channel(schema, channel.topic(), "cdr", &metadata))?;
         }
-        writer
-            .write_metadata(&Metadata {
-                name: METADATA_NAME.to_owned(),
-                metadata: info.metadata(),
-            })
-            .map_err(|e| RecordError::mcap(path, e))?;
-        let mut file = Self {
-            writer,
-            path: path.to_owned(),
-            partial,
-            channels,
-            sequence: 0,
+        let metadata = Metadata {
+            name: METADATA_NAME.to_owned(),
+            metadata: info.metadata(),
         };
+        file.with_writer(|w| w.write_metadata(&metadata))?;
         let started = stamp_ns(&info.header.stamp);
         file.write(Channel::Episode, started, started, info)?;
         file.end_step()?;
@@ -195,17 +203,30 @@ impl EpisodeFile {
             log_time: log_time_ns,
             publish_time: publish_time_ns,
         };
-        self.writer
-            .write_to_known_channel(&header, data)
-            .map_err(|e| RecordError::mcap(&self.path, e))
+        self.with_writer(|w| w.write_to_known_channel(&header, data))
+    }
+
+    /// Calls the mcap writer; on its first error drops it for good.
+    fn with_writer<T>(
+        &mut self,
+        call: impl FnOnce(&mut Writer<BufWriter<File>>) -> mcap::McapResult<T>,
+    ) -> Result<T, RecordError> {
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(RecordError::Invalid {
+                path: self.path.clone(),
+                reason: "an earlier write failed: this file takes no more".into(),
+            });
+        };
+        call(writer).map_err(|e| {
+            drop_quietly(self.writer.take());
+            RecordError::mcap(&self.path, e)
+        })
     }
 
     /// Ends a step: its messages become a complete chunk on disk (a crash
     /// from now on loses nothing of it).
     pub fn end_step(&mut self) -> Result<(), RecordError> {
-        self.writer
-            .flush()
-            .map_err(|e| RecordError::mcap(&self.path, e))
+        self.with_writer(Writer::flush)
     }
 
     /// Writes `end`, finishes the file (summary and footer), syncs it if
@@ -215,15 +236,12 @@ impl EpisodeFile {
     pub fn finish(mut self, end: &EpisodeEnd, sync: bool) -> Result<PathBuf, RecordError> {
         let at = stamp_ns(&end.header.stamp);
         self.write(Channel::EpisodeEnd, at, now_ns(), end)?;
-        self.writer
-            .finish()
-            .map_err(|e| RecordError::mcap(&self.path, e))?;
-        let Self {
-            writer,
-            path,
-            partial,
-            ..
-        } = self;
+        self.with_writer(|w| w.finish().map(drop))?;
+        let (Some(writer), path, partial) =
+            (self.writer.take(), self.path.clone(), self.partial.clone())
+        else {
+            return Err(invalid_state(&self.path));
+        };
         let io = |e: std::io::Error| RecordError::io(&path, e);
         let file = writer
             .into_inner()
@@ -232,13 +250,67 @@ impl EpisodeFile {
         if sync {
             file.sync_all().map_err(io)?;
         }
-        std::fs::rename(&partial, &path).map_err(io)?;
-        // The rename itself survives a power cut only once the directory is synced.
-        if let (true, Some(parent)) = (sync, path.parent()) {
+        // Linked, not renamed: a link never replaces an existing file.
+        let named = match std::fs::hard_link(&partial, &path) {
+            Ok(()) => path.clone(),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                let other = unused_name(&path);
+                std::fs::hard_link(&partial, &other).map_err(io)?;
+                other
+            }
+            Err(e) => return Err(io(e)),
+        };
+        std::fs::remove_file(&partial).map_err(io)?;
+        // The new name survives a power cut only once the directory is synced.
+        if let (true, Some(parent)) = (sync, named.parent()) {
             File::open(parent).and_then(|d| d.sync_all()).map_err(io)?;
         }
-        Ok(path)
+        Ok(named)
     }
+}
+
+impl Drop for EpisodeFile {
+    fn drop(&mut self) {
+        // Unfinished: the mcap writer's own drop completes the .partial
+        // (summary and footer) if it can.
+        drop_quietly(self.writer.take());
+    }
+}
+
+/// Drops an mcap writer, containing a panic of its drop (it finishes the
+/// file, which panics in some states after an I/O error).
+fn drop_quietly(writer: Option<Writer<BufWriter<File>>>) {
+    if let Some(writer) = writer {
+        let dropped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| drop(writer)));
+        if dropped.is_err() {
+            tracing::debug!("the mcap writer panicked while dropped after an I/O error");
+        }
+    }
+}
+
+fn invalid_state(path: &Path) -> RecordError {
+    RecordError::Invalid {
+        path: path.to_owned(),
+        reason: "the file was already finished or failed".into(),
+    }
+}
+
+/// `path`, or if it or its `.partial` exists, the first free
+/// `stem.N.mcap` beside it.
+fn unused_name(path: &Path) -> PathBuf {
+    let taken = |p: &Path| p.exists() || partial_path(p).exists();
+    if !taken(path) {
+        return path.to_owned();
+    }
+    let stem = path
+        .file_stem()
+        .unwrap_or_default()
+        .to_string_lossy()
+        .into_owned();
+    (1u32..)
+        .map(|n| path.with_file_name(format!("{stem}.{n}.mcap")))
+        .find(|p| !taken(p))
+        .unwrap_or_else(|| path.to_owned())
 }
 
 /// A ROS time in nanoseconds since the epoch (negative times clamp to 0).

@@ -7,10 +7,9 @@ use std::path::{Path, PathBuf};
 use enumset::enum_set;
 use mcap::read::{LinearReader, MessageStream, Options};
 use mcap::records::{Metadata, Record};
-use mcap::{Compression, WriteOptions};
 use offworld_runtime::codec;
 
-use crate::episode_file::{Channel, METADATA_NAME};
+use crate::episode_file::{write_options, Channel, Compression, METADATA_NAME};
 use crate::msg::{EpisodeEnd, Step};
 use crate::RecordError;
 
@@ -123,12 +122,7 @@ pub fn recover(partial: &Path, out: Option<&Path>) -> Result<(PathBuf, u64), Rec
     };
     let buf = read_file(partial)?;
     let file = std::fs::File::create_new(&target).map_err(|e| RecordError::io(&target, e))?;
-    let mut writer = WriteOptions::new()
-        .profile("ros2")
-        .library(concat!("offworld-recorder/", env!("CARGO_PKG_VERSION")))
-        .compression(Some(Compression::Zstd))
-        .compression_level(1)
-        .compression_threads(0)
+    let mut writer = write_options(Some(Compression::Zstd))
         .create(std::io::BufWriter::new(file))
         .map_err(|e| RecordError::mcap(&target, e))?;
     for record in metadata_records(partial, &buf)? {
@@ -170,7 +164,9 @@ pub fn episode_files(path: &Path) -> Result<Vec<PathBuf>, RecordError> {
             let entry = entry.map_err(|e| RecordError::io(&next, e))?;
             let p = entry.path();
             let name = p.to_string_lossy();
-            if p.is_dir() {
+            // Not followed: a symlinked directory could loop.
+            let kind = entry.file_type().map_err(|e| RecordError::io(&p, e))?;
+            if kind.is_dir() {
                 pending.push(p);
             } else if name.ends_with(".mcap") || name.ends_with(".mcap.partial") {
                 found.push(p);

@@ -24,6 +24,9 @@ use crate::RecordError;
 /// episode stops when they are exceeded (its steps never wait).
 const QUEUE: usize = 256;
 
+/// The odometry an episode file starts with is at most this old.
+const START_ODOM_MAX_AGE_NS: u64 = 2_000_000_000;
+
 /// Where and how an env records.
 #[derive(Debug, Clone)]
 pub struct RecordTo {
@@ -121,6 +124,8 @@ pub struct EnvRecorder {
     open: Arc<AtomicBool>,
     /// The generation whose recording was given up (queue full).
     abandoned: Arc<AtomicU64>,
+    /// Set once the writer thread is found gone (logged once).
+    writer_gone: AtomicBool,
     /// The odometry last received (an episode's file starts with it).
     last_odom: Arc<std::sync::Mutex<Option<Received>>>,
     writer: Option<JoinHandle<()>>,
@@ -154,10 +159,11 @@ impl EnvRecorder {
                 if let Ok(mut last) = odom_last.lock() {
                     *last = Some(received.clone());
                 }
-                if !odom_open.load(Ordering::Acquire) {
+                // Odometry streams: dropped rather than waited for, and
+                // never allowed more than half the queue (steps come first).
+                if !odom_open.load(Ordering::Acquire) || odom_queue.capacity() < QUEUE / 2 {
                     return;
                 }
-                // Odometry streams: dropped rather than waited for.
                 let _ = odom_queue.try_send(Queued {
                     generation: odom_generation.load(Ordering::Acquire),
                     event: Event::Odom(received),
@@ -180,6 +186,7 @@ impl EnvRecorder {
             open,
             abandoned,
             last_odom,
+            writer_gone: AtomicBool::new(false),
             writer: Some(writer),
             odom: Some(odom),
         })
@@ -195,7 +202,14 @@ impl EnvRecorder {
     pub async fn begin(&self, info: EpisodeInfo) {
         let generation = self.generation.fetch_add(1, Ordering::AcqRel) + 1;
         let path = self.episode_path(&info);
-        let odom = self.last_odom.lock().ok().and_then(|last| last.clone());
+        // Only a recent one says where the robot starts from.
+        let fresh_since = now_ns().saturating_sub(START_ODOM_MAX_AGE_NS);
+        let odom = self
+            .last_odom
+            .lock()
+            .ok()
+            .and_then(|last| last.clone())
+            .filter(|o| o.received_ns >= fresh_since);
         self.open.store(true, Ordering::Release);
         self.send(
             generation,
@@ -240,13 +254,21 @@ impl EnvRecorder {
             let _ = queue.send(queued).await;
             return;
         }
-        if let Err(mpsc::error::TrySendError::Full(_)) = queue.try_send(queued) {
-            tracing::warn!(
-                env = %self.env,
-                "the recorder fell behind ({QUEUE} events queued): this episode's recording stops; \
-                 the episode goes on"
-            );
-            self.abandoned.store(generation, Ordering::Release);
+        match queue.try_send(queued) {
+            Ok(()) => {}
+            Err(mpsc::error::TrySendError::Full(_)) => {
+                tracing::warn!(
+                    env = %self.env,
+                    "the recorder fell behind ({QUEUE} events queued): this episode's recording stops; \
+                     the episode goes on"
+                );
+                self.abandoned.store(generation, Ordering::Release);
+            }
+            Err(mpsc::error::TrySendError::Closed(_)) => {
+                if !self.writer_gone.swap(true, Ordering::AcqRel) {
+                    tracing::error!(env = %self.env, "the recorder's writer has stopped (a bug): episodes are no longer recorded");
+                }
+            }
         }
     }
 }
@@ -333,81 +355,98 @@ fn write_episodes(
 ) {
     let mut open: Option<Open> = None;
     while let Some(Queued { generation, event }) = events.blocking_recv() {
-        if let Some(current) = open.take_if(|o| abandoned.load(Ordering::Acquire) == o.generation) {
-            current.stop(
-                env,
-                durable,
-                "recorder_stopped: the writer fell behind (its queue was full)",
-            );
-        }
-        match event {
-            Event::Begin { path, info, odom } => {
-                if let Some(current) = open.take() {
-                    current.stop(env, durable, "recorder_stopped: a new episode began first");
-                }
-                // Zstd where steps are few and precious; none where a sim
-                // steps thousands of times a second and every cycle counts
-                // (LZ4's frame checksum alone cost more than its compression).
-                let compression = durable.then_some(Compression::Zstd);
-                let created =
-                    EpisodeFile::create(&path, &info, compression).and_then(|mut file| {
-                        if let Some(odom) = odom {
-                            write_odom(&mut file, &odom)?;
-                        }
-                        Ok(file)
-                    });
-                match created {
-                    Ok(file) => {
-                        open = Some(Open {
-                            generation,
-                            file,
-                            last: None,
-                            episode_id: info.episode_id,
-                        })
-                    }
-                    Err(e) => tracing::warn!(
-                        %env,
-                        episode = info.episode_id,
-                        "cannot record this episode: {e}; it goes on unrecorded"
-                    ),
-                }
-            }
-            Event::Step(record) => {
-                let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
-                    continue;
-                };
-                if let Err(e) = write_step(&mut current.file, &record, durable) {
-                    tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
-                    if let Some(current) = open.take() {
-                        current.stop(env, durable, &format!("recorder_stopped: {e}"));
-                    }
-                    continue;
-                }
-                current.last = Some(record.step);
-            }
-            Event::Odom(odom) => {
-                let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
-                    continue;
-                };
-                if let Err(e) = write_odom(&mut current.file, &odom) {
-                    tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
-                    if let Some(current) = open.take() {
-                        current.stop(env, durable, &format!("recorder_stopped: {e}"));
-                    }
-                }
-            }
-            Event::End(end, done) => {
-                if let Some(current) = open.take_if(|o| o.generation == generation) {
-                    finish(env, current.file, &end, durable);
-                }
-                if let Some(done) = done {
-                    let _ = done.send(());
-                }
-            }
+        let handled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            handle(env, &mut open, generation, event, abandoned, durable)
+        }));
+        if handled.is_err() {
+            tracing::error!(%env, "the recorder failed on an event (a bug): this episode's recording stops");
+            open = None;
         }
     }
     if let Some(current) = open.take() {
         current.stop(env, durable, "recorder_stopped: the controller stopped");
+    }
+}
+
+/// Writes one queued event of episode `generation` into `open`.
+fn handle(
+    env: &EnvId,
+    open: &mut Option<Open>,
+    generation: u64,
+    event: Event,
+    abandoned: &AtomicU64,
+    durable: bool,
+) {
+    if let Some(current) = open.take_if(|o| abandoned.load(Ordering::Acquire) == o.generation) {
+        current.stop(
+            env,
+            durable,
+            "recorder_stopped: the writer fell behind (its queue was full)",
+        );
+    }
+    match event {
+        Event::Begin { path, info, odom } => {
+            if let Some(current) = open.take() {
+                current.stop(env, durable, "recorder_stopped: a new episode began first");
+            }
+            // Zstd where steps are few and precious; none where a sim
+            // steps thousands of times a second and every cycle counts
+            // (LZ4's frame checksum alone cost more than its compression).
+            let compression = durable.then_some(Compression::Zstd);
+            let created = EpisodeFile::create(&path, &info, compression).and_then(|mut file| {
+                if let Some(odom) = odom {
+                    write_odom(&mut file, &odom)?;
+                }
+                Ok(file)
+            });
+            match created {
+                Ok(file) => {
+                    *open = Some(Open {
+                        generation,
+                        file,
+                        last: None,
+                        episode_id: info.episode_id,
+                    })
+                }
+                Err(e) => tracing::warn!(
+                    %env,
+                    episode = info.episode_id,
+                    "cannot record this episode: {e}; it goes on unrecorded"
+                ),
+            }
+        }
+        Event::Step(record) => {
+            let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
+                return;
+            };
+            if let Err(e) = write_step(&mut current.file, &record, durable) {
+                tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
+                if let Some(current) = open.take() {
+                    current.stop(env, durable, &format!("recorder_stopped: {e}"));
+                }
+                return;
+            }
+            current.last = Some(record.step);
+        }
+        Event::Odom(odom) => {
+            let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
+                return;
+            };
+            if let Err(e) = write_odom(&mut current.file, &odom) {
+                tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
+                if let Some(current) = open.take() {
+                    current.stop(env, durable, &format!("recorder_stopped: {e}"));
+                }
+            }
+        }
+        Event::End(end, done) => {
+            if let Some(current) = open.take_if(|o| o.generation == generation) {
+                finish(env, current.file, &end, durable);
+            }
+            if let Some(done) = done {
+                let _ = done.send(());
+            }
+        }
     }
 }
 

@@ -222,13 +222,27 @@ fn a_crash_keeps_every_flushed_step_and_recover_makes_a_complete_file() {
 
 #[test]
 fn an_episode_file_is_never_overwritten() {
+    // A site that started over with a new database reuses episode ids.
     let dir = tempdir("twice");
     let path = dir.join("ep-000001.mcap");
-    let _first = EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)).expect("create");
-    assert!(matches!(
-        EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)),
-        Err(offworld_recorder::RecordError::Io { .. })
-    ));
+    let first = EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)).expect("create");
+    let second = EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)).expect("create");
+    assert_eq!(second.path(), dir.join("ep-000001.1.mcap"));
+    assert_eq!(first.finish(&end(), false).expect("finish"), path);
+    assert_eq!(
+        second.finish(&end(), false).expect("finish"),
+        dir.join("ep-000001.1.mcap")
+    );
+    let third = EpisodeFile::create(&path, &info(1), Some(Compression::Zstd)).expect("create");
+    assert_eq!(third.path(), dir.join("ep-000001.2.mcap"));
+    // Finished under a name another file took meanwhile: linked beside it.
+    std::fs::write(dir.join("ep-000001.2.mcap"), b"someone else's").expect("write");
+    let kept = third.finish(&end(), false).expect("finish");
+    assert_eq!(kept, dir.join("ep-000001.2.1.mcap"));
+    assert_eq!(
+        std::fs::read(dir.join("ep-000001.2.mcap")).expect("read"),
+        b"someone else's"
+    );
 }
 
 #[test]

@@ -72,6 +72,9 @@ pub struct Options {
     pub twin: Option<EnvId>,
     /// Log filter of the children (default: this process's `RUST_LOG`, else `warn`).
     pub log: String,
+    /// The controller records every episode under this directory
+    /// (`serve --record`).
+    pub record: Option<std::path::PathBuf>,
 }
 
 impl Options {
@@ -88,6 +91,7 @@ impl Options {
             isolated_robot: false,
             twin: None,
             log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+            record: None,
         })
     }
 
@@ -325,6 +329,9 @@ impl EmulatedEnclosure {
                 push(&["--tracker-key", &self.key_path(TRACKER_KEY)]);
                 if let Some(twin) = &options.twin {
                     push(&["--env", &format!("{twin}={}", options.task)]);
+                }
+                if let Some(dir) = &options.record {
+                    push(&["--record", &dir.to_string_lossy()]);
                 }
                 push(&[
                     "--listen",
