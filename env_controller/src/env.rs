@@ -12,8 +12,8 @@ use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
     Action, AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec,
     EnvState, EnvStatus, EpisodeEvent, ExperimentInfo, Header, Leaderboard, MotionCommand,
-    ObsOptions, OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepInfo,
-    StepReply, StepRequest, Time, Twist,
+    ObsOptions, OpenReply, OpenRequest, Pose2D, ResetReply, ResetRequest, Seed, StepReply,
+    StepRequest, Time, Twist,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
@@ -23,7 +23,7 @@ use offworld_runtime::WireError;
 use rand::Rng;
 use tokio::sync::{watch, Mutex as AsyncMutex};
 
-use crate::episode::{judge, EndReason, Outcome, SpawnSampler};
+use crate::episode::{judge, step_info, EndReason, Outcome, SpawnSampler};
 use crate::estops::EnvEStops;
 use crate::link::{
     Answered, LinkSeals, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink,
@@ -50,6 +50,10 @@ pub struct EnvOptions {
     pub seed: u64,
     /// Limits on bookings.
     pub booking_rules: BookingRules,
+    /// Real envs also put the robot's ground truth (pose, distance to the
+    /// monolith) in each step's `info`, as sim envs always do. Off by
+    /// default: it is privileged information, the operator's choice.
+    pub share_real_pose: bool,
 }
 
 /// Longest lease idle timeout and reconnect grace a site may configure.
@@ -90,6 +94,7 @@ impl Default for EnvOptions {
             timeouts: LinkTimeouts::default(),
             seed: 0,
             booking_rules: BookingRules::default(),
+            share_real_pose: false,
         }
     }
 }
@@ -622,10 +627,7 @@ impl EnvServer {
             self.record_step(frame, &answered, step, None).await;
         }
         let reply = ResetReply {
-            info: StepInfo {
-                episode_id: index,
-                step: 0,
-            },
+            info: step_info(&self.task, index, 0, &achieved, None, self.shares_pose()),
             observation: shape(&obs),
         };
         let reply = with_observation(&reply, answered)?
@@ -633,6 +635,12 @@ impl EnvServer {
         self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
             .await;
         Ok(reply)
+    }
+
+    /// Whether `info` carries the robot's ground truth (see
+    /// [`EnvOptions::share_real_pose`]).
+    fn shares_pose(&self) -> bool {
+        self.env.realm() == offworld_runtime::Realm::Sim || self.options.share_real_pose
     }
 
     /// What to build from the frames answering the lease holder's commands.
@@ -679,6 +687,7 @@ impl EnvServer {
         let request = self.observation_request(obs);
         let judged = JudgedStep {
             task: self.task.clone(),
+            share_pose: self.shares_pose(),
             seq: req.seq,
             episode_id: index,
             step,
@@ -1096,20 +1105,27 @@ struct JudgedStep {
     /// This step's number in the episode (1-based).
     step: u32,
     obs: ObsOptions,
+    /// Whether `info` carries the robot's ground truth.
+    share_pose: bool,
 }
 
 impl JudgedStep {
     fn judge(&self, pose: &Pose2D) -> (Outcome, StepReply) {
         let outcome = judge(&self.task, pose.x, pose.y, self.step);
+        let info = step_info(
+            &self.task,
+            self.episode_id,
+            self.step,
+            pose,
+            Some(&outcome),
+            self.share_pose,
+        );
         let reply = StepReply {
             seq: self.seq,
             reward: outcome.reward,
             terminated: outcome.terminated,
             truncated: outcome.truncated,
-            info: StepInfo {
-                episode_id: self.episode_id,
-                step: self.step,
-            },
+            info,
             observation: shape(&self.obs),
         };
         (outcome, reply)

@@ -1,7 +1,7 @@
 //! Episode rules: reward and termination from the robot's pose, and the
 //! seeded spawn sampler. Pure functions of data; no I/O.
 
-use offworld_runtime::msg::Pose2D;
+use offworld_runtime::msg::{Pose2D, StepInfo};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -45,12 +45,45 @@ pub struct Outcome {
     pub end: Option<EndReason>,
 }
 
+/// Planar distance from (`x`, `y`) to the monolith's centre, m.
+pub fn distance_to_goal(task: &Task, x: f64, y: f64) -> f64 {
+    let m = task.world.monolith.center;
+    ((x - f64::from(m[0])).powi(2) + (y - f64::from(m[1])).powi(2)).sqrt()
+}
+
+/// The `info` of step `step` of episode `episode_id`, reached at `pose`
+/// with `outcome` (none for the reset); the ground truth only if
+/// `share_pose`.
+pub fn step_info(
+    task: &Task,
+    episode_id: u64,
+    step: u32,
+    pose: &Pose2D,
+    outcome: Option<&Outcome>,
+    share_pose: bool,
+) -> StepInfo {
+    let end = outcome.and_then(|o| o.end.as_ref());
+    let mut info = StepInfo {
+        episode_id,
+        step,
+        is_success: end == Some(&EndReason::Success),
+        end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
+        ..StepInfo::default()
+    };
+    if share_pose {
+        info.pose_shared = true;
+        info.x = pose.x;
+        info.y = pose.y;
+        info.yaw = pose.yaw;
+        info.distance_to_goal = distance_to_goal(task, pose.x, pose.y);
+    }
+    info
+}
+
 /// Judges the pose reached after step number `step` (1-based).
 pub fn judge(task: &Task, x: f64, y: f64, step: u32) -> Outcome {
     let t = &task.world.task;
-    let m = task.world.monolith.center;
-    let distance = ((x - f64::from(m[0])).powi(2) + (y - f64::from(m[1])).powi(2)).sqrt();
-    if distance <= f64::from(t.success_radius) {
+    if distance_to_goal(task, x, y) <= f64::from(t.success_radius) {
         return Outcome {
             reward: 1.0,
             terminated: true,

@@ -49,6 +49,10 @@ enum Command {
         /// Also run an in-process sim twin for every `sim/` env.
         #[arg(long)]
         embedded_twins: bool,
+        /// Real envs also put the robot's pose and distance to the monolith
+        /// in each step's info (sim envs always do): privileged information.
+        #[arg(long)]
+        share_real_pose: bool,
         /// Record every episode of every env served as an MCAP file under
         /// this directory (see docs/recording.md).
         #[arg(long, value_name = "DIR", env = "OFFWORLD_RECORD")]
@@ -165,6 +169,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Serve {
             envs,
             embedded_twins,
+            share_real_pose,
             record,
             lease_idle_s,
             max_slot_minutes,
@@ -197,6 +202,7 @@ async fn main() -> anyhow::Result<()> {
             let session = common.server_config().open().await?;
             let site = EnvOptions {
                 lease_idle: std::time::Duration::from_secs(lease_idle_s),
+                share_real_pose,
                 booking_rules: BookingRules {
                     max_slot_ms: i64::from(max_slot_minutes) * 60_000,
                     horizon_ms: i64::from(booking_horizon_days) * 86_400_000,

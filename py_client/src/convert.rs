@@ -35,6 +35,12 @@ pub fn info<'py>(py: Python<'py>, info: &StepInfo) -> PyResult<Bound<'py, PyDict
     let dict = PyDict::new(py);
     dict.set_item("episode_id", info.episode_id)?;
     dict.set_item("step", info.step)?;
+    dict.set_item("is_success", info.is_success)?;
+    dict.set_item("end_reason", &info.end_reason)?;
+    if info.pose_shared {
+        dict.set_item("pose", (info.x, info.y, info.yaw))?;
+        dict.set_item("distance_to_goal", info.distance_to_goal)?;
+    }
     Ok(dict)
 }
 

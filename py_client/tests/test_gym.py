@@ -3,6 +3,8 @@ separate deployment process where a test needs one."""
 
 from __future__ import annotations
 
+import math
+
 import subprocess
 import sys
 import textwrap
@@ -52,11 +54,16 @@ def test_the_papers_listing_runs_as_written(monkeypatch):
     )
     obs, info = env.reset()
     assert obs.shape == (240, 320, 1) and obs.dtype == np.uint8
-    assert info == {"step": 0} and env.unwrapped.episode_id == 0
+    assert set(info) == {"step", "is_success", "end_reason", "pose", "distance_to_goal"}
+    assert (info["step"], info["is_success"], info["end_reason"]) == (0, False, "")
+    assert env.unwrapped.episode_id == 0
+    # Sim envs share the ground truth: the pose and its distance to the monolith.
+    x, y, yaw = info["pose"]
+    assert info["distance_to_goal"] == pytest.approx(math.hypot(x - 0.0109, y + 0.2034))
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert isinstance(reward, float) and isinstance(terminated, bool) and isinstance(truncated, bool)
     assert info["step"] == 1
-    assert "x" not in info and "pose" not in info, "no localisation leaks to the agent"
+    assert len(info["pose"]) == 3 and info["distance_to_goal"] >= 0
     env.close()
 
 
@@ -80,6 +87,31 @@ def test_stable_baselines3_check_env_when_installed():
         env = gymnasium.make(env_id, resolution=(84, 84))
         sb3.check_env(env.unwrapped)
         env.close()
+
+
+def test_info_says_how_each_episode_ended():
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=(24, 32))
+    env.action_space.seed(5)
+    ends = []
+    try:
+        for episode in range(3):
+            env.reset(seed=episode)
+            while True:
+                _, reward, terminated, truncated, info = env.step(env.action_space.sample())
+                assert env.unwrapped.episode_id == episode
+                if not (terminated or truncated):
+                    assert (info["is_success"], info["end_reason"]) == (False, "")
+                    continue
+                assert info["is_success"] == (reward > 0)
+                expected = "success" if reward > 0 else ("out_of_bounds" if terminated else "step_limit")
+                assert info["end_reason"] == expected
+                if info["is_success"]:
+                    assert info["distance_to_goal"] <= 0.40  # the world's success_radius
+                ends.append(info["end_reason"])
+                break
+    finally:
+        env.close()
+    assert len(ends) == 3
 
 
 def test_seeded_resets_are_deterministic():

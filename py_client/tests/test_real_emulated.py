@@ -46,6 +46,8 @@ AGENT = textwrap.dedent(
             for step in range(1, 4):
                 obs, reward, terminated, truncated, info = env.step(step % 2)  # LEFT / RIGHT turns stay inside
                 assert info["step"] == step, info
+                # Real envs keep the ground truth to themselves by default.
+                assert "pose" not in info and "distance_to_goal" not in info, info
                 assert not truncated
                 total += 1
             break

@@ -47,6 +47,17 @@ impl SimTracker {
         }
     }
 
+    /// Restarts the noise for an episode that starts at `start`: the same
+    /// start (a seeded reset) gives the same readings, as a seeded
+    /// `reset()` promises.
+    pub fn restart_noise(&mut self, start: [f32; 3]) {
+        let mut seed = self.config.seed;
+        for v in start {
+            seed = splitmix64(seed ^ u64::from(v.to_bits()));
+        }
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
     /// The configuration.
     pub fn config(&self) -> &TrackerConfig {
         &self.config
@@ -75,4 +86,12 @@ impl SimTracker {
         ];
         pose
     }
+}
+
+/// SplitMix64's output function: mixes a word into a well-spread seed.
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }

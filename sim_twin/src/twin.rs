@@ -139,6 +139,7 @@ impl SimTwin {
             )));
         }
         self.randomize_episode();
+        self.tracker.restart_noise([pose.x, pose.y, pose.yaw]);
         self.physics.teleport(pose);
         Ok(())
     }

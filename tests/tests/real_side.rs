@@ -151,13 +151,19 @@ fn wrap(a: f64) -> f64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_the_robot() {
     let _one = ONE_ENCLOSURE.lock().await;
-    let options = Options::new("MonolithContinuous").expect("options");
+    let mut options = Options::new("MonolithContinuous").expect("options");
+    let runs = std::env::temp_dir().join(format!(
+        "offworld-real-runs-{}",
+        offworld_runtime::client::random_id()
+    ));
+    options.record = Some(runs.clone());
     let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
     deployment
         .ready(Duration::from_secs(60))
         .await
         .expect("deployment ready");
     let (_session, mut gym) = open(&deployment, "emulated-e2e").await;
+    let experiment_id = gym.opened().experiment.id;
     assert_eq!(gym.spec().task, "MonolithContinuous");
     let robot_side = robot_side(&deployment).await;
     let (pose, _pose_sub) = watch_pose(&robot_side, &deployment.env).await;
@@ -203,12 +209,40 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
             .expect("step");
         steps += 1;
         assert_eq!(reply.info.step, steps);
+        // A real env keeps the ground truth to itself (no --share-real-pose).
+        assert!(
+            !reply.info.pose_shared && reply.info.x == 0.0,
+            "{:?}",
+            reply.info
+        );
         if reply.terminated || reply.truncated {
             break reply;
         }
     };
     assert!(last.terminated, "reached the monolith, not the step limit");
     assert_eq!(last.reward, 1.0);
+    assert!(last.info.is_success);
+    assert_eq!(last.info.end_reason, "success");
+    // The episode is on record: every step flushed, the file finished (the
+    // writer runs beside the steps: a bounded wait for its last lines).
+    let episode_dir = runs
+        .join("real")
+        .join(deployment.env.name())
+        .join(format!("exp-{experiment_id:06}"));
+    let first_file = episode_dir.join("ep-000000.mcap");
+    for _ in 0..100 {
+        if first_file.exists() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let recorded = offworld_recorder::read::summarize(&first_file).expect("the recorded episode");
+    assert!(recorded.complete);
+    assert_eq!(recorded.metadata["embodiment"], "robot");
+    assert_eq!(recorded.messages["/offworld/step"], u64::from(steps) + 1);
+    assert_eq!(recorded.messages["/cmd_vel"], u64::from(steps));
+    let end = recorded.end.expect("the episode's end");
+    assert_eq!((end.steps, end.end_reason.as_str()), (steps, "success"));
     eprintln!("emulated enclosure: reset drive {reset_time:?}, success in {steps} steps");
 
     // Next episode. Freeze the controller mid-motion (SIGSTOP: its session
@@ -249,6 +283,21 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
         matches!(err.code, ErrorCode::Timeout | ErrorCode::Unavailable),
         "{err}"
     );
+    // Killed mid-episode: that episode is a .partial holding its reset
+    // (flushed before the step began), the earlier ones complete.
+    let files = offworld_recorder::read::episode_files(&runs).expect("files");
+    let names: Vec<String> = files
+        .iter()
+        .filter_map(|f| f.file_name().map(|n| n.to_string_lossy().into_owned()))
+        .collect();
+    assert_eq!(
+        names,
+        ["ep-000000.mcap", "ep-000001.mcap", "ep-000002.mcap.partial"]
+    );
+    let cut = offworld_recorder::read::summarize(&files[2]).expect("partial");
+    assert!(!cut.complete);
+    assert_eq!(cut.last_step.map(|s| s.step), Some(0));
+    let _ = std::fs::remove_dir_all(&runs);
 }
 
 /// Waits until the robot is moving, runs `act`, and returns how long until

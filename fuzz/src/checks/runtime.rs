@@ -542,6 +542,13 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
     let info = StepInfo {
         episode_id: 4,
         step: 17,
+        is_success: true,
+        end_reason: "success".into(),
+        pose_shared: true,
+        x: 0.25,
+        y: -0.5,
+        yaw: 1.5,
+        distance_to_goal: 0.125,
     };
     vec![
         seed(
@@ -588,7 +595,7 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
         seed(
             3,
             &ResetReply {
-                info,
+                info: info.clone(),
                 observation: obs_array(),
             },
         ),

@@ -233,13 +233,32 @@ pub struct StepRequest {
     pub action: Action,
 }
 
-/// Episode bookkeeping shared with the agent (never localization).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+/// Episode bookkeeping returned with every reset and step. The robot's
+/// ground truth is in it only where the env's rules share it.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepInfo {
     /// Episode id within the experiment.
     pub episode_id: u64,
     /// Steps taken in this episode.
     pub step: u32,
+    /// This step reached the monolith.
+    pub is_success: bool,
+    /// Why the episode ended with this step (`success`, `out_of_bounds`,
+    /// `step_limit`); empty while it runs.
+    pub end_reason: String,
+    /// Whether `x`, `y`, `yaw` and `distance_to_goal` hold the robot's
+    /// ground truth: always on sim envs; on real envs only where the site's
+    /// operator allows it (privileged information: an agent meant to learn
+    /// from the camera must not lean on it). Zero when not shared.
+    pub pose_shared: bool,
+    /// Robot position in the world frame, m.
+    pub x: f64,
+    /// Robot position in the world frame, m.
+    pub y: f64,
+    /// Robot heading in the world frame, rad.
+    pub yaw: f64,
+    /// Distance from the robot to the monolith's centre, m.
+    pub distance_to_goal: f64,
 }
 
 /// The outcome of a step.

@@ -222,6 +222,13 @@ pub fn step_reply() -> StepReply {
         info: StepInfo {
             episode_id: 4,
             step: 17,
+            is_success: true,
+            end_reason: "success".into(),
+            pose_shared: true,
+            x: 0.25,
+            y: -0.5,
+            yaw: 1.5,
+            distance_to_goal: 0.125,
         },
     }
 }
@@ -239,6 +246,7 @@ pub fn reset_reply() -> ResetReply {
         info: StepInfo {
             episode_id: 5,
             step: 0,
+            ..StepInfo::default()
         },
     }
 }

@@ -60,6 +60,7 @@ class OffWorldMonolithEnv(gymnasium.Env):
         observations, infos = self._native.reset([seed])
         obs, self._last_rgb = _config.split(self._resolved, observations[0])
         info = infos[0]
+        # Kept out of info: gymnasium wants the same info for the same seed.
         self.episode_id = info.pop("episode_id")
         return obs, info
 

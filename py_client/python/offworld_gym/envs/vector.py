@@ -41,9 +41,23 @@ class OffWorldMonolithVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, num_envs)
 
     def _infos(self, infos: list[dict[str, Any]]) -> dict[str, Any]:
+        """Per-key arrays with gymnasium's ``_key`` masks (see ``docs/info.md``)."""
         #: Episode index per env (kept out of ``info``, as in the single env).
         self.episode_ids = np.array([i["episode_id"] for i in infos], dtype=np.int64)
-        return {"step": np.array([i["step"] for i in infos], dtype=np.int64), "_step": np.ones(self.num_envs, dtype=bool)}
+        every = np.ones(self.num_envs, dtype=bool)
+        batched: dict[str, Any] = {
+            "step": np.array([i["step"] for i in infos], dtype=np.int64),
+            "is_success": np.array([i["is_success"] for i in infos], dtype=bool),
+            "end_reason": np.array([i["end_reason"] for i in infos], dtype=object),
+        }
+        for key in list(batched):
+            batched[f"_{key}"] = every
+        shared = np.array(["pose" in i for i in infos], dtype=bool)
+        if shared.any():
+            batched["pose"] = np.array([i.get("pose", (0.0, 0.0, 0.0)) for i in infos], dtype=np.float64)
+            batched["distance_to_goal"] = np.array([i.get("distance_to_goal", 0.0) for i in infos], dtype=np.float64)
+            batched["_pose"] = batched["_distance_to_goal"] = shared
+        return batched
 
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
