@@ -51,20 +51,12 @@ async fn steps_per_s(
         "MonolithDiscrete",
     )
     .await?;
-    let request = OpenRequest {
-        token: String::new(),
-        client_id: String::new(),
-        experiment_name: String::new(),
-        resume_experiment: false,
-        learning_type: LearningType::EndToEnd,
-        algorithm_mode: AlgorithmMode::Train,
-        obs: ObsOptions {
-            channels,
-            height: h,
-            width: w,
-            depth_format: DepthFormat::Uint8,
-        },
-    };
+    let request = OpenRequest::anonymous(ObsOptions {
+        channels,
+        height: h,
+        width: w,
+        depth_format: DepthFormat::Uint8,
+    });
     let mut client = EnvClient::open(
         &connection.session,
         &connection.envs[0],

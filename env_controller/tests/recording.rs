@@ -11,8 +11,7 @@ use offworld_recorder::read;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{
-    Action, AlgorithmMode, Channels, DepthFormat, Image, LearningType, ObsOptions, OpenRequest,
-    Seed,
+    Action, Channels, DepthFormat, Image, LearningType, ObsOptions, OpenRequest, Seed,
 };
 
 fn scratch(name: &str) -> PathBuf {
@@ -51,18 +50,14 @@ async fn every_step_the_client_was_answered_is_in_the_episode_file() {
     .expect("embedded with recording");
     let env = connection.envs[0].clone();
     let request = OpenRequest {
-        token: String::new(),
-        client_id: String::new(),
         experiment_name: "recorded".into(),
-        resume_experiment: false,
         learning_type: LearningType::HumanDemos,
-        algorithm_mode: AlgorithmMode::Train,
-        obs: ObsOptions {
+        ..OpenRequest::anonymous(ObsOptions {
             channels: Channels::RgbOnly,
             height: 12,
             width: 16,
             depth_format: DepthFormat::Uint8,
-        },
+        })
     };
     let mut client = EnvClient::open(
         &connection.session,

@@ -246,6 +246,16 @@ pub fn reset_reply() -> ResetReply {
         info: StepInfo {
             episode_id: 5,
             step: 0,
+            // Not empty: the cdr crate also reads an empty string written
+            // with length 0 (not 1 + NUL), which the byte-flip test would
+            // report as a misread; the strings of a wire test are not
+            // semantic.
+            end_reason: "-".into(),
+            pose_shared: true,
+            x: -1.0,
+            y: 0.75,
+            yaw: -3.0,
+            distance_to_goal: 1.5,
             ..StepInfo::default()
         },
     }
