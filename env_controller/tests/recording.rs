@@ -205,3 +205,99 @@ async fn an_unwritable_record_directory_is_refused_before_serving() {
     tokio::time::sleep(Duration::from_millis(10)).await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Unmounts on drop.
+struct Tmpfs(PathBuf);
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_stops_the_recording_and_never_the_episodes() {
+    let dir = scratch("full");
+    // A 256 KiB filesystem: full within the first episode's frames.
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=256k", "tmpfs"])
+        .arg(&dir)
+        .status()
+        .expect("mount runs");
+    assert!(
+        mounted.success(),
+        "mounting a tmpfs needs root (CI runs as root): {mounted}"
+    );
+    let _tmpfs = Tmpfs(dir.clone());
+    let connection = connect(
+        Target::Embedded {
+            task: "MonolithDiscrete".into(),
+            resolution: (64, 48),
+            count: 1,
+            record: Some(dir.clone()),
+        },
+        "MonolithDiscrete",
+    )
+    .await
+    .expect("the directory is writable at the start");
+    let mut client = EnvClient::open(
+        &connection.session,
+        &connection.envs[0],
+        OpenRequest::anonymous(ObsOptions {
+            channels: Channels::Rgbd,
+            height: 48,
+            width: 64,
+            depth_format: DepthFormat::Uint8,
+        }),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("open");
+    let mut steps = 0u64;
+    for episode in 0..3 {
+        client.reset(Seed::Fixed(episode)).await.expect("reset");
+        for i in 0..20 {
+            let reply = client
+                .step(Action::Discrete(i % 2))
+                .await
+                .expect("every step answered, disk full or not");
+            steps += 1;
+            if reply.terminated || reply.truncated {
+                break;
+            }
+        }
+    }
+    let closed = client.close().await.expect("close");
+    // Every episode is on record (the experiment's counters), the disk
+    // filled long before the last one.
+    assert_eq!(closed.experiment.episodes, 3);
+    assert_eq!(closed.experiment.steps, steps);
+    assert!(
+        steps * 64 * 48 * 7 > 256 * 1024,
+        "the frames overflow the disk"
+    );
+    drop(connection);
+    // What was recorded is readable up to the failure: the first episode's
+    // file holds its start and steps; files made once the disk was full are
+    // .partial (possibly empty), never a "complete" file without its end.
+    let files = read::episode_files(&dir).expect("files");
+    let first = read::summarize(&files[0]).expect("the first episode's file");
+    assert_eq!(first.messages.get("/offworld/episode"), Some(&1));
+    assert!(first.messages.get("/offworld/step").is_some_and(|n| *n > 0));
+    for file in &files {
+        let name = file.to_string_lossy();
+        if let Ok(summary) = read::summarize(file) {
+            assert!(
+                !summary.complete || summary.end.is_some() || name.ends_with(".partial"),
+                "{name}: complete but without its end"
+            );
+        }
+    }
+    assert!(
+        files
+            .iter()
+            .any(|f| f.to_string_lossy().ends_with(".partial")),
+        "the disk filled: some episode stayed a .partial: {files:?}"
+    );
+}
