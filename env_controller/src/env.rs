@@ -985,25 +985,18 @@ impl EnvServer {
         Ok(())
     }
 
-    /// Hands a step to the recorder (stamped with its frame's capture
-    /// time), when recording and its frame is at hand.
+    /// Hands a step to the recorder (which stamps it with its frame's
+    /// capture time), when recording and its frame is at hand.
     async fn record_step(
         &self,
         frame: Option<Arc<crate::link::Frame>>,
         answered: &Answered,
-        mut step: Step,
+        step: Step,
         command: Option<(Twist, Time)>,
     ) {
         let (Some(recorder), Some(frame)) = (&self.recorder, frame) else {
             return;
         };
-        match frame.with_view(|view| Ok(view.color.header.stamp)) {
-            Ok(stamp) => step.header = Header::new(stamp, "world"),
-            Err(e) => {
-                tracing::warn!(env = %self.env, "step not recorded: {}", e.message);
-                return;
-            }
-        }
         recorder
             .step(StepRecord {
                 step,
@@ -1043,7 +1036,7 @@ impl EnvServer {
     }
 }
 
-/// A step as recorded (its stamp set from its frame by `record_step`):
+/// A step as recorded (the recorder stamps it from its frame):
 /// the reset when `action` and `outcome` are `None`.
 fn recorded_step(
     episode_id: u64,

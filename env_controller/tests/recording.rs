@@ -23,6 +23,25 @@ fn scratch(name: &str) -> PathBuf {
     dir
 }
 
+/// An embedded MonolithDiscrete env rendering `resolution` (w, h),
+/// recording into `dir`.
+async fn recording_sim(
+    resolution: (u32, u32),
+    dir: &std::path::Path,
+) -> Result<offworld_env_controller::deployment::Connection, offworld_env_controller::ControllerError>
+{
+    connect(
+        Target::Embedded {
+            task: "MonolithDiscrete".into(),
+            resolution,
+            count: 1,
+            record: Some(dir.to_owned()),
+        },
+        "MonolithDiscrete",
+    )
+    .await
+}
+
 /// Messages of `topic` in a complete file, decoded, in file order.
 fn messages<T: serde::de::DeserializeOwned>(path: &std::path::Path, topic: &str) -> Vec<T> {
     let buf = std::fs::read(path).expect("read");
@@ -37,17 +56,9 @@ fn messages<T: serde::de::DeserializeOwned>(path: &std::path::Path, topic: &str)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_step_the_client_was_answered_is_in_the_episode_file() {
     let dir = scratch("embedded");
-    let connection = connect(
-        Target::Embedded {
-            task: "MonolithDiscrete".into(),
-            resolution: (16, 12),
-            count: 1,
-            record: Some(dir.clone()),
-        },
-        "MonolithDiscrete",
-    )
-    .await
-    .expect("embedded with recording");
+    let connection = recording_sim((16, 12), &dir)
+        .await
+        .expect("embedded with recording");
     let env = connection.envs[0].clone();
     let request = OpenRequest {
         experiment_name: "recorded".into(),
@@ -182,18 +193,10 @@ async fn an_unwritable_record_directory_is_refused_before_serving() {
     let dir = scratch("unwritable");
     let file = dir.join("not-a-dir");
     std::fs::write(&file, b"x").expect("file");
-    let err = connect(
-        Target::Embedded {
-            task: "MonolithDiscrete".into(),
-            resolution: (16, 12),
-            count: 1,
-            record: Some(file.join("runs")),
-        },
-        "MonolithDiscrete",
-    )
-    .await
-    .err()
-    .expect("refused");
+    let err = recording_sim((16, 12), &file.join("runs"))
+        .await
+        .err()
+        .expect("refused");
     let message = err.to_string();
     assert!(
         message.starts_with(&format!(
@@ -230,17 +233,9 @@ async fn a_full_disk_stops_the_recording_and_never_the_episodes() {
         "mounting a tmpfs needs root (CI runs as root): {mounted}"
     );
     let _tmpfs = Tmpfs(dir.clone());
-    let connection = connect(
-        Target::Embedded {
-            task: "MonolithDiscrete".into(),
-            resolution: (64, 48),
-            count: 1,
-            record: Some(dir.clone()),
-        },
-        "MonolithDiscrete",
-    )
-    .await
-    .expect("the directory is writable at the start");
+    let connection = recording_sim((64, 48), &dir)
+        .await
+        .expect("the directory is writable at the start");
     let mut client = EnvClient::open(
         &connection.session,
         &connection.envs[0],

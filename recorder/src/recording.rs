@@ -76,7 +76,7 @@ impl RecordTo {
 
 /// One step as the controller answered it.
 pub struct StepRecord {
-    /// The transition.
+    /// The transition (its stamp is set from the frame when written).
     pub step: Step,
     /// The camera frame payload (`CameraFrame` CDR) the observation was built from.
     pub frame: ZBytes,
@@ -415,11 +415,11 @@ fn handle(
                 ),
             }
         }
-        Event::Step(record) => {
+        Event::Step(mut record) => {
             let Some(current) = open.as_mut().filter(|o| o.generation == generation) else {
                 return;
             };
-            if let Err(e) = write_step(&mut current.file, &record, durable) {
+            if let Err(e) = write_step(&mut current.file, &mut record, durable) {
                 tracing::warn!(%env, "recording stopped: {e}; the episode goes on");
                 if let Some(current) = open.take() {
                     current.stop(env, durable, &format!("recorder_stopped: {e}"));
@@ -456,11 +456,17 @@ fn write_odom(file: &mut EpisodeFile, odom: &Received) -> Result<(), RecordError
 }
 
 /// Writes a step's messages (and flushes them as one chunk if asked).
-fn write_step(file: &mut EpisodeFile, record: &StepRecord, flush: bool) -> Result<(), RecordError> {
+fn write_step(
+    file: &mut EpisodeFile,
+    record: &mut StepRecord,
+    flush: bool,
+) -> Result<(), RecordError> {
     let received = now_ns();
     let bytes = record.frame.to_bytes();
     let frame = codec::decode_borrowed::<CameraFrameView>(&bytes)
         .map_err(|e| RecordError::Encode(format!("a bad camera frame: {e}")))?;
+    // Stamped here, off the step's path: the frame's capture time.
+    record.step.header = Header::new(frame.color.header.stamp, "world");
     if let Some((twist, sent)) = &record.command {
         let at = stamp_ns(sent);
         file.write(Channel::CmdVel, at, at, twist)?;
