@@ -5,6 +5,7 @@ process or a remote connection."""
 from __future__ import annotations
 
 import os
+import random
 import socket
 import subprocess
 import time
@@ -14,9 +15,18 @@ import pytest
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A free port below Linux's ephemeral range (32768-60999), so no
+    connection's local port can take it before the controller listens."""
+    rng = random.SystemRandom()
+    for _ in range(64):
+        port = rng.randrange(20000, 32000)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free loopback port in 20000-32000")
 
 
 def _binary(name: str) -> Path:

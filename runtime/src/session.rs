@@ -280,19 +280,48 @@ pub fn init_logging() {
         .try_init();
 }
 
+/// Where [`loopback_endpoint`] picks ports: below Linux's ephemeral range
+/// (32768–60999), so that no `bind(0)` or outgoing connection elsewhere in
+/// the process can be handed the port between our check and the listen.
+const TEST_PORTS: std::ops::Range<u16> = 20_000..32_000;
+
+/// A port free on the loopback address `ip` (e.g. `127.0.0.1`), for tests
+/// and benches that start a listener or hand the port to another process.
+pub fn free_loopback_port(ip: &str) -> std::io::Result<u16> {
+    use rand::Rng;
+    let mut rng = rand::rng();
+    let mut attempts = 0;
+    loop {
+        let port = rng.random_range(TEST_PORTS);
+        match std::net::TcpListener::bind((ip, port)) {
+            Ok(_) => return Ok(port),
+            Err(e) if attempts >= 64 => return Err(e),
+            Err(_) => attempts += 1,
+        }
+    }
+}
+
 /// A TCP endpoint on a free loopback port, for tests and benches that need
 /// to listen.
 pub fn loopback_endpoint() -> std::io::Result<String> {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port();
-    Ok(format!("tcp/127.0.0.1:{port}"))
+    Ok(format!(
+        "tcp/127.0.0.1:{}",
+        free_loopback_port("127.0.0.1")?
+    ))
 }
 
 /// Two sessions joined over TCP on loopback: (listener, connector).
 pub async fn loopback_pair() -> Result<(zenoh::Session, zenoh::Session), ContractError> {
-    let endpoint = loopback_endpoint().map_err(|e| ContractError::Config(e.to_string()))?;
-    let listener = SessionConfig::listening(&endpoint).open().await?;
+    // Another test may take the same free port before our listen: retry.
+    let mut attempts = 0;
+    let (listener, endpoint) = loop {
+        let endpoint = loopback_endpoint().map_err(|e| ContractError::Config(e.to_string()))?;
+        match SessionConfig::listening(&endpoint).open().await {
+            Ok(session) => break (session, endpoint),
+            Err(e) if attempts >= 4 => return Err(e),
+            Err(_) => attempts += 1,
+        }
+    };
     let connector = SessionConfig::connecting(&endpoint).open().await?;
     Ok((listener, connector))
 }

@@ -26,7 +26,7 @@ use offworld_runtime::client;
 use offworld_runtime::codec;
 use offworld_runtime::msg::{EnvState, TrackingStatus};
 use offworld_runtime::seal::SealKey;
-use offworld_runtime::session::{loopback_endpoint, Mode};
+use offworld_runtime::session::{free_loopback_port, loopback_endpoint, Mode};
 use offworld_runtime::{EnvId, SessionConfig, Topic};
 use offworld_sim_twin::enclosure::default_world_from_tracking;
 
@@ -260,7 +260,7 @@ impl EmulatedEnclosure {
             robot_link,
             site_router,
             options: options.clone(),
-            tracker_listen: format!("127.0.0.1:{}", free_port()?),
+            tracker_listen: format!("127.0.0.1:{}", free_loopback_port("127.0.0.1")?),
             processes: BTreeMap::new(),
             robot_netns,
         };
@@ -611,10 +611,6 @@ fn wait_until_listening(endpoint: &str, limit: Duration) -> std::io::Result<()> 
         }
         std::thread::sleep(Duration::from_millis(50));
     }
-}
-
-fn free_port() -> std::io::Result<u16> {
-    Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
 /// Forwards a line stream from `upstream` to whoever connects, and can be

@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use offworld_runtime::session::free_loopback_port;
 use offworld_runtime::{EnvId, SessionConfig};
 
 use crate::netns::Namespaces;
@@ -77,10 +78,6 @@ pub fn deploy_dir() -> PathBuf {
 }
 
 /// A free TCP port on `ip`.
-fn free_port(ip: &str) -> std::io::Result<u16> {
-    Ok(std::net::TcpListener::bind((ip, 0))?.local_addr()?.port())
-}
-
 fn json_string(s: &str) -> String {
     serde_json::to_string(s).unwrap_or_else(|_| format!("\"{s}\""))
 }
@@ -160,8 +157,8 @@ impl RouterSite {
         std::fs::write(dir.join("users.txt"), users)?;
         let mut site = match &netns {
             None => {
-                let trainer = format!("quic/127.0.0.2:{}", free_port("127.0.0.2")?);
-                let site = format!("quic/127.0.0.3:{}", free_port("127.0.0.3")?);
+                let trainer = format!("quic/127.0.0.2:{}", free_loopback_port("127.0.0.2")?);
+                let site = format!("quic/127.0.0.3:{}", free_loopback_port("127.0.0.3")?);
                 Self {
                     listen: [trainer.clone(), site.clone()],
                     trainer_endpoint: trainer,

@@ -49,7 +49,7 @@ use offworld_runtime::msg::{
     Action, ActionSpace, BookingRequest, Channels, DepthFormat, EnvSpec, EnvState, ObsOptions,
     OpenRequest, Seed,
 };
-use offworld_runtime::session::loopback_endpoint;
+use offworld_runtime::session::{free_loopback_port, loopback_endpoint};
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig, WireError};
 use offworld_tests::site::{Role, RouterSite};
 use offworld_tests::{binary_dir, Process};
@@ -1035,9 +1035,7 @@ fn start(args: &Args) -> anyhow::Result<Deployment> {
         let mut monitor = vec!["--all".to_owned()];
         match args.monitor_sink.as_str() {
             "serve" => {
-                let port = std::net::TcpListener::bind("127.0.0.1:0")?
-                    .local_addr()?
-                    .port();
+                let port = free_loopback_port("127.0.0.1")?;
                 monitor.extend([
                     "--serve".into(),
                     format!("127.0.0.1:{port}"),
