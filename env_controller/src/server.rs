@@ -21,8 +21,8 @@ use std::time::Duration;
 use offworld_runtime::codec::Encoded;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, BookingRequest, CloseRequest, Heartbeat, OpenRequest, ResetRequest, StepRequest,
-    Time,
+    AdminRequest, BookingRequest, CloseRequest, ExperimentsRequest, Heartbeat, OpenRequest,
+    ResetRequest, StepRequest, Time,
 };
 use offworld_runtime::zenoh::liveliness::LivelinessToken;
 use offworld_runtime::zenoh::query::{Query, Queryable};
@@ -79,14 +79,14 @@ enum Lane {
     Now,
     /// Queued for the env's state (`open`, `reset`, `step`, `close`, `admin`).
     State,
-    /// Queued for the store (`leaderboard`, `book`).
+    /// Queued for the store (`leaderboard`, `book`, `experiments`).
     Store,
 }
 
 fn lane(topic: Topic) -> Lane {
     match topic {
         Topic::Status | Topic::Spec => Lane::Now,
-        Topic::Leaderboard | Topic::Book => Lane::Store,
+        Topic::Leaderboard | Topic::Book | Topic::Experiments => Lane::Store,
         _ => Lane::State,
     }
 }
@@ -279,6 +279,7 @@ impl Controller {
             Topic::Admin,
             Topic::Leaderboard,
             Topic::Book,
+            Topic::Experiments,
         ] {
             let admission = admission.clone();
             queryables.push(
@@ -465,6 +466,12 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
         Topic::Book => {
             respond(query, async {
                 server.book(wire::decode_query::<BookingRequest>(query)?)
+            })
+            .await
+        }
+        Topic::Experiments => {
+            respond(query, async {
+                server.experiments(wire::decode_query::<ExperimentsRequest>(query)?)
             })
             .await
         }

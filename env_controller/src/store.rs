@@ -9,7 +9,9 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::sync::{Mutex, MutexGuard, PoisonError};
 
-use offworld_runtime::msg::{AlgorithmMode, Booking, LeaderboardEntry, LearningType};
+use offworld_runtime::msg::{
+    AlgorithmMode, Booking, EpisodeRecordEntry, ExperimentRecord, LeaderboardEntry, LearningType,
+};
 use rand::Rng;
 use rusqlite::{params, Connection, OptionalExtension};
 use sha2::{Digest, Sha256};
@@ -32,44 +34,6 @@ impl User {
     pub fn is_operator(&self) -> bool {
         self.role == "operator"
     }
-}
-
-/// An experiment row.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Experiment {
-    /// Row id.
-    pub id: i64,
-    /// Owner.
-    pub user: String,
-    /// Env it runs on.
-    pub env_id: String,
-    /// Task name.
-    pub task: String,
-    /// Experiment name.
-    pub name: String,
-    /// `end2end`, `sim2real`, `humandemos`.
-    pub learning_type: String,
-    /// `train` or `test`.
-    pub algorithm_mode: String,
-    /// Finished episodes.
-    pub episodes: u64,
-    /// Steps in finished episodes.
-    pub steps: u64,
-}
-
-/// One recorded episode, as listed.
-#[derive(Debug, Clone, PartialEq)]
-pub struct EpisodeSummary {
-    /// Episode index within the experiment.
-    pub index: u64,
-    /// Steps taken.
-    pub steps: u32,
-    /// Sum of rewards.
-    pub episode_return: f64,
-    /// Reached the monolith.
-    pub success: bool,
-    /// Why it ended.
-    pub end_reason: String,
 }
 
 /// A finished (or aborted) episode.
@@ -324,7 +288,7 @@ impl Store {
         resume: bool,
         learning_type: LearningType,
         mode: AlgorithmMode,
-    ) -> Result<Experiment, ControllerError> {
+    ) -> Result<ExperimentRecord, ControllerError> {
         validate_experiment_name(name)?;
         let existing = self.experiment(user.id, env_id, name)?;
         match (existing, resume) {
@@ -356,17 +320,13 @@ impl Store {
         user_id: i64,
         env_id: &str,
         name: &str,
-    ) -> Result<Option<Experiment>, ControllerError> {
-        self.conn
-            .query_row(
-                "SELECT e.id, u.name, e.env_id, e.task, e.name, e.learning_type, e.algorithm_mode, e.episodes, e.steps
-                 FROM experiments e JOIN users u ON u.id = e.user_id
-                 WHERE e.user_id = ?1 AND e.env_id = ?2 AND e.name = ?3",
+    ) -> Result<Option<ExperimentRecord>, ControllerError> {
+        Ok(self
+            .experiments_where(
+                "e.user_id = ?1 AND e.env_id = ?2 AND e.name = ?3",
                 params![user_id, env_id, name],
-                experiment_row,
-            )
-            .optional()
-            .map_err(db)
+            )?
+            .pop())
     }
 
     /// Records an episode that starts now (end reason [`IN_PROGRESS`]) and
@@ -475,36 +435,84 @@ impl Store {
         Ok(closed)
     }
 
-    /// All experiments, newest first.
-    pub fn experiments(&self) -> Result<Vec<Experiment>, ControllerError> {
+    /// All experiments, most recently used first.
+    pub fn experiments(&self) -> Result<Vec<ExperimentRecord>, ControllerError> {
+        self.experiments_where("1", params![])
+    }
+
+    /// The experiments on `env_id`, most recently used first: `owner`'s
+    /// only, or everyone's with `None`.
+    pub fn experiments_on(
+        &self,
+        env_id: &str,
+        owner: Option<&User>,
+    ) -> Result<Vec<ExperimentRecord>, ControllerError> {
+        match owner {
+            Some(user) => {
+                self.experiments_where("e.env_id = ?1 AND e.user_id = ?2", params![env_id, user.id])
+            }
+            None => self.experiments_where("e.env_id = ?1", params![env_id]),
+        }
+    }
+
+    /// Experiment `id`, if it exists.
+    pub fn experiment_by_id(&self, id: i64) -> Result<Option<ExperimentRecord>, ControllerError> {
+        Ok(self.experiments_where("e.id = ?1", params![id])?.pop())
+    }
+
+    /// `condition` is one of this module's literals, never user text.
+    fn experiments_where(
+        &self,
+        condition: &str,
+        values: &[&dyn rusqlite::ToSql],
+    ) -> Result<Vec<ExperimentRecord>, ControllerError> {
         let mut stmt = self
             .conn
-            .prepare(
-                "SELECT e.id, u.name, e.env_id, e.task, e.name, e.learning_type, e.algorithm_mode, e.episodes, e.steps
-                 FROM experiments e JOIN users u ON u.id = e.user_id ORDER BY e.updated_ms DESC, e.id DESC",
-            )
+            .prepare(&format!(
+                "SELECT {EXPERIMENT_COLUMNS} FROM experiments e JOIN users u ON u.id = e.user_id
+                 WHERE {condition} ORDER BY e.updated_ms DESC, e.id DESC"
+            ))
             .map_err(db)?;
-        let rows = stmt.query_map([], experiment_row).map_err(db)?;
+        let rows = stmt.query_map(values, experiment_row).map_err(db)?;
         rows.collect::<Result<_, _>>().map_err(db)
     }
 
-    /// Episodes of one experiment, in order.
-    pub fn episodes(&self, experiment_id: i64) -> Result<Vec<EpisodeSummary>, ControllerError> {
+    /// Episodes of one experiment, in order (without recordings: the store
+    /// does not know the files).
+    pub fn episodes(&self, experiment_id: i64) -> Result<Vec<EpisodeRecordEntry>, ControllerError> {
+        self.episodes_from(experiment_id, 0, u32::MAX)
+    }
+
+    /// At most `limit` episodes of one experiment from index `from` on, in order.
+    pub fn episodes_from(
+        &self,
+        experiment_id: i64,
+        from: u64,
+        limit: u32,
+    ) -> Result<Vec<EpisodeRecordEntry>, ControllerError> {
+        let from = i64::try_from(from).unwrap_or(i64::MAX);
         let mut stmt = self
             .conn
             .prepare(
-                "SELECT episode_index, steps, episode_return, success, end_reason FROM episodes
-                 WHERE experiment_id = ?1 ORDER BY episode_index",
+                "SELECT episode_index, seed, steps, episode_return, success, end_reason, started_ms, ended_ms
+                 FROM episodes WHERE experiment_id = ?1 AND episode_index >= ?2
+                 ORDER BY episode_index LIMIT ?3",
             )
             .map_err(db)?;
         let rows = stmt
-            .query_map(params![experiment_id], |r| {
-                Ok(EpisodeSummary {
+            .query_map(params![experiment_id, from, limit], |r| {
+                let seed = r.get::<_, Option<i64>>(1)?;
+                Ok(EpisodeRecordEntry {
                     index: r.get::<_, i64>(0)? as u64,
-                    steps: r.get(1)?,
-                    episode_return: r.get(2)?,
-                    success: r.get(3)?,
-                    end_reason: r.get(4)?,
+                    seeded: seed.is_some(),
+                    seed: seed.unwrap_or_default() as u64,
+                    steps: r.get(2)?,
+                    episode_return: r.get(3)?,
+                    success: r.get(4)?,
+                    end_reason: r.get(5)?,
+                    started_unix_ms: r.get(6)?,
+                    ended_unix_ms: r.get(7)?,
+                    recordings: Vec::new(),
                 })
             })
             .map_err(db)?;
@@ -541,8 +549,12 @@ impl Store {
     }
 }
 
-fn experiment_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Experiment> {
-    Ok(Experiment {
+/// The columns [`experiment_row`] reads, in its order.
+const EXPERIMENT_COLUMNS: &str = "e.id, u.name, e.env_id, e.task, e.name, e.learning_type, \
+     e.algorithm_mode, e.episodes, e.steps, e.created_ms, e.updated_ms";
+
+fn experiment_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<ExperimentRecord> {
+    Ok(ExperimentRecord {
         id: r.get(0)?,
         user: r.get(1)?,
         env_id: r.get(2)?,
@@ -552,6 +564,8 @@ fn experiment_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Experiment> {
         algorithm_mode: r.get(6)?,
         episodes: r.get::<_, i64>(7)? as u64,
         steps: r.get::<_, i64>(8)? as u64,
+        created_unix_ms: r.get(9)?,
+        updated_unix_ms: r.get(10)?,
     })
 }
 

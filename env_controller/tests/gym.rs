@@ -884,3 +884,279 @@ async fn invalid_booking_rows_on_disk_are_quarantined_and_open_works() {
         .expect("booked over quarantined rows");
     assert_eq!(made[0].user, "alice");
 }
+
+async fn ask_experiments(
+    session: &Session,
+    env: &EnvId,
+    request: ExperimentsRequest,
+) -> Result<Experiments, WireError> {
+    client::experiments(session, env, &request, Duration::from_secs(5)).await
+}
+
+fn list(token: &str) -> ExperimentsRequest {
+    ExperimentsRequest::List {
+        token: token.into(),
+    }
+}
+
+fn show(token: &str, experiment_id: i64) -> ExperimentsRequest {
+    ExperimentsRequest::Show {
+        token: token.into(),
+        experiment_id,
+        from_episode: 0,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn experiments_are_shown_to_their_owner_and_operators_only() {
+    let dir = ScratchDir::new();
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+
+    // Alice: two seeded episodes of known returns and lengths.
+    let mut env = open(&session, &d.env, ALICE, "alice-ppo")
+        .await
+        .expect("open");
+    let alice_id = env.opened().experiment.id;
+    let mut played = Vec::new();
+    for seed in [11, 12] {
+        env.reset(Seed::Fixed(seed)).await.expect("reset");
+        let (mut steps, mut total, mut ended) = (0u32, 0.0, false);
+        for _ in 0..4 {
+            let s = env.step(Action::Discrete(2)).await.expect("step");
+            steps += 1;
+            total += s.reward;
+            ended = s.terminated || s.truncated;
+            if ended {
+                break;
+            }
+        }
+        played.push((seed, steps, total, ended));
+    }
+    env.close().await.expect("close");
+    // Bob: one experiment of his own.
+    let mut env = open(&session, &d.env, BOB, "bob-dqn").await.expect("open");
+    let bob_id = env.opened().experiment.id;
+    env.close().await.expect("close");
+
+    // Each user lists only their own; the operator lists both.
+    let alice_list = ask_experiments(&session, &d.env, list(ALICE))
+        .await
+        .expect("list");
+    assert_eq!(alice_list.experiments.len(), 1);
+    let listed = &alice_list.experiments[0];
+    assert_eq!(
+        (
+            listed.id,
+            listed.user.as_str(),
+            listed.env_id.as_str(),
+            listed.task.as_str(),
+            listed.name.as_str(),
+            listed.learning_type.as_str(),
+            listed.algorithm_mode.as_str(),
+            listed.episodes,
+            listed.steps,
+        ),
+        (
+            alice_id,
+            "alice",
+            d.env.to_string().as_str(),
+            "MonolithDiscrete",
+            "alice-ppo",
+            "end2end",
+            "train",
+            2,
+            u64::from(played[0].1 + played[1].1),
+        )
+    );
+    assert!(listed.created_unix_ms <= listed.updated_unix_ms);
+    assert!(alice_list.episodes.is_empty() && !alice_list.more);
+    let names = |e: &Experiments| {
+        e.experiments
+            .iter()
+            .map(|x| x.name.clone())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(
+        names(
+            &ask_experiments(&session, &d.env, list(BOB))
+                .await
+                .expect("list")
+        ),
+        ["bob-dqn"]
+    );
+    let mut everyone = names(
+        &ask_experiments(&session, &d.env, list(OPERATOR))
+            .await
+            .expect("list"),
+    );
+    everyone.sort();
+    assert_eq!(everyone, ["alice-ppo", "bob-dqn"]);
+
+    // Alice's experiment in full: every episode as played.
+    let shown = ask_experiments(&session, &d.env, show(ALICE, alice_id))
+        .await
+        .expect("show");
+    assert_eq!(shown.experiments, alice_list.experiments);
+    assert!(!shown.more);
+    let episodes: Vec<_> = shown
+        .episodes
+        .iter()
+        .map(|e| (e.index, e.seeded, e.seed, e.steps, e.episode_return))
+        .collect();
+    assert_eq!(
+        episodes,
+        [
+            (0, true, 11, played[0].1, played[0].2),
+            (1, true, 12, played[1].1, played[1].2)
+        ]
+    );
+    for (episode, cut_by) in shown
+        .episodes
+        .iter()
+        .zip(["reset before the episode ended", "closed"])
+    {
+        let ended_itself = played[episode.index as usize].3;
+        assert_eq!(episode.end_reason == cut_by, !ended_itself, "{episode:?}");
+    }
+    assert!(shown
+        .episodes
+        .iter()
+        .all(|e| e.started_unix_ms <= e.ended_unix_ms && e.recordings.is_empty()));
+    // The operator sees it too; the client's paging gives the same.
+    let by_operator = ask_experiments(&session, &d.env, show(OPERATOR, alice_id))
+        .await
+        .expect("operator show");
+    assert_eq!(by_operator, shown);
+    let (experiment, all) =
+        client::experiment_episodes(&session, &d.env, ALICE, alice_id, Duration::from_secs(5))
+            .await
+            .expect("paged");
+    assert_eq!((vec![experiment], all), (shown.experiments, shown.episodes));
+
+    // Another user's experiment is "not found", like a missing one; a bad
+    // token is refused; the env keeps serving.
+    for (token, id) in [
+        (BOB, alice_id),
+        (ALICE, bob_id),
+        (ALICE, 999_999),
+        (ALICE, -1),
+    ] {
+        let e = ask_experiments(&session, &d.env, show(token, id))
+            .await
+            .expect_err("not theirs");
+        assert_eq!(e.code, ErrorCode::NotFound, "{token} {id}: {e:?}");
+    }
+    for request in [list("not-a-token"), show("not-a-token", alice_id)] {
+        let e = ask_experiments(&session, &d.env, request)
+            .await
+            .expect_err("bad token");
+        assert_eq!(e.code, ErrorCode::Unauthorized);
+    }
+    assert!(client::spec(&session, &d.env, Duration::from_secs(2))
+        .await
+        .is_ok());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_long_experiment_is_answered_a_page_at_a_time() {
+    let dir = ScratchDir::new();
+    let db = dir.path().join("gym.db");
+    let episodes = u64::from(EXPERIMENT_EPISODES_PER_REPLY) * 2 + 37;
+    let experiment_id = {
+        let mut store = Store::open(&db).expect("store");
+        store
+            .add_user_with_token("alice", ALICE, false)
+            .expect("user");
+        let alice = store.authenticate(ALICE).expect("db").expect("alice");
+        let experiment = store
+            .open_experiment(
+                &alice,
+                "sim/gym-test",
+                "MonolithDiscrete",
+                "long",
+                false,
+                LearningType::EndToEnd,
+                AlgorithmMode::Train,
+            )
+            .expect("experiment");
+        for index in 0..episodes {
+            store
+                .record_episode(&offworld_env_controller::store::EpisodeRecord {
+                    experiment_id: experiment.id,
+                    episode_index: index,
+                    seed: index.is_multiple_of(2).then_some(index),
+                    steps: (index % 100) as u32,
+                    episode_return: index as f64 * 0.5,
+                    success: index.is_multiple_of(3),
+                    end_reason: "step_limit".into(),
+                    requested_start: [0.0; 3],
+                    achieved_start: [0.0; 3],
+                    started_ms: 1_000 + index as i64,
+                    ended_ms: 2_000 + index as i64,
+                })
+                .expect("episode");
+        }
+        experiment.id
+    };
+    let d = deploy(&db, "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+
+    let first = ask_experiments(&session, &d.env, show(ALICE, experiment_id))
+        .await
+        .expect("first page");
+    assert_eq!(first.episodes.len(), EXPERIMENT_EPISODES_PER_REPLY as usize);
+    assert!(first.more);
+    let last = ask_experiments(
+        &session,
+        &d.env,
+        ExperimentsRequest::Show {
+            token: ALICE.into(),
+            experiment_id,
+            from_episode: episodes - 5,
+        },
+    )
+    .await
+    .expect("last page");
+    assert_eq!(
+        last.episodes.iter().map(|e| e.index).collect::<Vec<_>>(),
+        (episodes - 5..episodes).collect::<Vec<_>>()
+    );
+    assert!(!last.more);
+
+    let (_, all) = client::experiment_episodes(
+        &session,
+        &d.env,
+        ALICE,
+        experiment_id,
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("every page");
+    assert_eq!(all.len() as u64, episodes);
+    for (i, e) in all.iter().enumerate() {
+        let i = i as u64;
+        assert_eq!(
+            (
+                e.index,
+                e.seeded,
+                e.seed,
+                e.steps,
+                e.episode_return,
+                e.success
+            ),
+            (
+                i,
+                i.is_multiple_of(2),
+                if i.is_multiple_of(2) { i } else { 0 },
+                (i % 100) as u32,
+                i as f64 * 0.5,
+                i.is_multiple_of(3)
+            )
+        );
+        assert_eq!(
+            (e.started_unix_ms, e.ended_unix_ms),
+            (1_000 + i as i64, 2_000 + i as i64)
+        );
+    }
+}

@@ -11,7 +11,8 @@ use offworld_recorder::read;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{
-    Action, Channels, DepthFormat, Image, LearningType, ObsOptions, OpenRequest, Seed,
+    Action, Channels, DepthFormat, Image, LearningType, ObsOptions, OpenRequest, RecordingFile,
+    Seed,
 };
 
 fn scratch(name: &str) -> PathBuf {
@@ -97,6 +98,33 @@ async fn every_step_the_client_was_answered_is_in_the_episode_file() {
         client.step(Action::Discrete(0)).await.expect("step");
     }
     client.close().await.expect("close");
+    // The controller lists each episode's file with the episode's record.
+    let (_, episodes) = offworld_runtime::client::experiment_episodes(
+        &connection.session,
+        &env,
+        "",
+        experiment_id,
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("experiment");
+    let listed: Vec<_> = episodes
+        .iter()
+        .map(|e| (e.index, e.recordings.clone()))
+        .collect();
+    let relative = format!("sim/{}/exp-{experiment_id:06}", env.name());
+    let file_of = |episode: u64| {
+        let path = format!("{relative}/ep-{episode:06}.mcap");
+        let bytes = std::fs::metadata(dir.join(&path))
+            .expect("listed file")
+            .len();
+        vec![RecordingFile {
+            path,
+            bytes,
+            complete: true,
+        }]
+    };
+    assert_eq!(listed, [(0, file_of(0)), (1, file_of(1))]);
     // The deployment stops: every file is finished.
     drop(connection);
 

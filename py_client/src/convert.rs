@@ -8,7 +8,7 @@ use offworld_runtime::msg::{
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
-use pyo3::types::{PyDict, PyList};
+use pyo3::types::{PyDict, PyList, PyTuple};
 
 /// An observation as a numpy array of shape (height, width, channels).
 pub fn observation<'py>(py: Python<'py>, obs: ObsArray) -> PyResult<Bound<'py, PyAny>> {
@@ -186,4 +186,87 @@ pub fn booking<'py>(
     dict.set_item("start_unix_ms", booking.start_unix_ms)?;
     dict.set_item("end_unix_ms", booking.end_unix_ms)?;
     Ok(dict)
+}
+
+/// Experiments as dicts (the fields of `ExperimentRecord`).
+pub fn experiments<'py>(
+    py: Python<'py>,
+    experiments: &[offworld_runtime::msg::ExperimentRecord],
+) -> PyResult<Bound<'py, PyList>> {
+    let out = PyList::empty(py);
+    for e in experiments {
+        out.append(experiment(py, e)?)?;
+    }
+    Ok(out)
+}
+
+fn experiment<'py>(
+    py: Python<'py>,
+    e: &offworld_runtime::msg::ExperimentRecord,
+) -> PyResult<Bound<'py, PyDict>> {
+    let dict = PyDict::new(py);
+    dict.set_item("id", e.id)?;
+    dict.set_item("user", &e.user)?;
+    dict.set_item("env_id", &e.env_id)?;
+    dict.set_item("task", &e.task)?;
+    dict.set_item("name", &e.name)?;
+    dict.set_item("learning_type", &e.learning_type)?;
+    dict.set_item("algorithm_mode", &e.algorithm_mode)?;
+    dict.set_item("episodes", e.episodes)?;
+    dict.set_item("steps", e.steps)?;
+    dict.set_item("created_unix_ms", e.created_unix_ms)?;
+    dict.set_item("updated_unix_ms", e.updated_unix_ms)?;
+    Ok(dict)
+}
+
+/// (experiment dict, [episode dict]); an episode's `seed` is None when its
+/// reset had none, its `recordings` a list of dicts (path, bytes, complete).
+pub fn experiment_with_episodes<'py>(
+    py: Python<'py>,
+    e: &offworld_runtime::msg::ExperimentRecord,
+    episodes: &[offworld_runtime::msg::EpisodeRecordEntry],
+) -> PyResult<Bound<'py, PyTuple>> {
+    let out = PyList::empty(py);
+    for ep in episodes {
+        let dict = PyDict::new(py);
+        dict.set_item("index", ep.index)?;
+        dict.set_item("seed", ep.seeded.then_some(ep.seed))?;
+        dict.set_item("steps", ep.steps)?;
+        dict.set_item("episode_return", ep.episode_return)?;
+        dict.set_item("success", ep.success)?;
+        dict.set_item("end_reason", &ep.end_reason)?;
+        dict.set_item("started_unix_ms", ep.started_unix_ms)?;
+        dict.set_item("ended_unix_ms", ep.ended_unix_ms)?;
+        let recordings = PyList::empty(py);
+        for r in &ep.recordings {
+            let file = PyDict::new(py);
+            file.set_item("path", &r.path)?;
+            file.set_item("bytes", r.bytes)?;
+            file.set_item("complete", r.complete)?;
+            recordings.append(file)?;
+        }
+        dict.set_item("recordings", recordings)?;
+        out.append(dict)?;
+    }
+    PyTuple::new(py, [experiment(py, e)?.into_any(), out.into_any()])
+}
+
+/// Leaderboard entries as dicts, best first, with their `rank` (from 1).
+pub fn leaderboard<'py>(
+    py: Python<'py>,
+    board: &offworld_runtime::msg::Leaderboard,
+) -> PyResult<Bound<'py, PyList>> {
+    let out = PyList::empty(py);
+    for (rank, e) in board.entries.iter().enumerate() {
+        let dict = PyDict::new(py);
+        dict.set_item("rank", rank + 1)?;
+        dict.set_item("experiment", &e.experiment)?;
+        dict.set_item("user", &e.user)?;
+        dict.set_item("learning_type", &e.learning_type)?;
+        dict.set_item("episodes", e.episodes)?;
+        dict.set_item("success_rate", e.success_rate)?;
+        dict.set_item("mean_return", e.mean_return)?;
+        out.append(dict)?;
+    }
+    Ok(out)
 }

@@ -49,10 +49,12 @@ fn controller_error(e: offworld_env_controller::ControllerError) -> PyErr {
 struct NativeEnvs {
     envs: VecEnvClient,
     space: ActionSpace,
+    /// The access token the envs were opened with (for `experiments`).
+    token: String,
     // Closed after the clients so the recording sees the last episode end.
     monitor: Option<MonitorHandle>,
     // Dropped after the clients: keeps an embedded deployment alive.
-    _connection: Connection,
+    connection: Connection,
 }
 
 #[pymethods]
@@ -90,7 +92,7 @@ impl NativeEnvs {
             .transpose()
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let request = OpenRequest {
-            token,
+            token: token.clone(),
             client_id: String::new(),
             experiment_name: experiment_name.clone(),
             resume_experiment,
@@ -160,8 +162,9 @@ impl NativeEnvs {
         Ok(Self {
             envs: VecEnvClient::new(clients),
             space,
+            token,
             monitor,
-            _connection: connection,
+            connection,
         })
     }
 
@@ -190,9 +193,37 @@ impl NativeEnvs {
         }
         dict.set_item("depth_max_m", spec.depth_max_m)?;
         dict.set_item("max_episode_steps", spec.max_episode_steps)?;
-        let experiment = self.envs.get(0).map(|e| e.opened().experiment.name.clone());
-        dict.set_item("experiment", experiment)?;
+        let experiment = self.envs.get(0).map(|e| &e.opened().experiment);
+        dict.set_item("experiment", experiment.map(|e| e.name.clone()))?;
+        dict.set_item("experiment_id", experiment.map(|e| e.id))?;
         Ok(dict)
+    }
+
+    /// Env `index`'s experiment and all its episodes so far:
+    /// (experiment dict, [episode dict]).
+    #[pyo3(signature = (index=0, timeout_s=5.0))]
+    fn experiment_episodes<'py>(
+        &self,
+        py: Python<'py>,
+        index: usize,
+        timeout_s: f64,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let env = self
+            .envs
+            .get(index)
+            .ok_or_else(|| PyValueError::new_err(format!("no env {index}")))?;
+        let timeout = convert::timeout(timeout_s)?;
+        let session = &self.connection.session;
+        let id = env.opened().experiment.id;
+        let asked = offworld_runtime::client::experiment_episodes(
+            session,
+            env.env(),
+            &self.token,
+            id,
+            timeout,
+        );
+        let (experiment, episodes) = block(py, asked)?.map_err(errors::to_py)?;
+        convert::experiment_with_episodes(py, &experiment, &episodes)
     }
 
     /// Number of envs.
@@ -312,6 +343,37 @@ fn remote_session(connect: Option<String>) -> PyResult<SessionConfig> {
     Ok(session)
 }
 
+/// Opens a session on a remote deployment (`connect`, else the
+/// `OFFWORLD_ZENOH_*` environment), runs `work` on it with the GIL released,
+/// and closes it.
+fn on_deployment<T, Fut>(
+    py: Python<'_>,
+    connect: Option<String>,
+    work: impl FnOnce(offworld_runtime::zenoh::Session) -> Fut + Send,
+) -> PyResult<T>
+where
+    T: Send,
+    Fut: std::future::Future<Output = Result<T, WireError>> + Send,
+{
+    let config = remote_session(connect)?;
+    block(py, async move {
+        let session = config
+            .open()
+            .await
+            .map_err(|e| WireError::new(offworld_runtime::ErrorCode::Unavailable, e.to_string()))?;
+        let answer = work(session.clone()).await;
+        let _ = session.close().await;
+        answer
+    })?
+    .map_err(errors::to_py)
+}
+
+fn parse_env(env_id: &str) -> PyResult<EnvId> {
+    env_id
+        .parse()
+        .map_err(|e: offworld_runtime::ContractError| PyValueError::new_err(e.to_string()))
+}
+
 /// Envs reachable through a deployment, as dicts (env_id, task, state,
 /// until_unix_ms, message, components).
 #[pyfunction]
@@ -321,21 +383,10 @@ fn list_envs<'py>(
     connect: Option<String>,
     timeout_s: f64,
 ) -> PyResult<Bound<'py, PyList>> {
-    let config = remote_session(connect)?;
     let timeout = convert::timeout(timeout_s)?;
-    let listings = block(py, async move {
-        let session = config.open().await.map_err(|e| {
-            errors::to_py(WireError::new(
-                offworld_runtime::ErrorCode::Unavailable,
-                e.to_string(),
-            ))
-        })?;
-        let found = offworld_runtime::client::discover(&session, timeout)
-            .await
-            .map_err(errors::to_py);
-        let _ = session.close().await;
-        found
-    })??;
+    let listings = on_deployment(py, connect, |session| async move {
+        offworld_runtime::client::discover(&session, timeout).await
+    })?;
     let out = PyList::empty(py);
     for listing in &listings {
         out.append(convert::listing(py, listing)?)?;
@@ -352,29 +403,78 @@ fn booking_request<'py>(
     request: offworld_runtime::msg::BookingRequest,
     timeout_s: f64,
 ) -> PyResult<Bound<'py, PyList>> {
-    let config = remote_session(connect)?;
-    let env: EnvId = env_id
-        .parse()
-        .map_err(|e: offworld_runtime::ContractError| PyValueError::new_err(e.to_string()))?;
+    let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
-    let bookings = block(py, async move {
-        let session = config.open().await.map_err(|e| {
-            errors::to_py(WireError::new(
-                offworld_runtime::ErrorCode::Unavailable,
-                e.to_string(),
-            ))
-        })?;
-        let answer = offworld_runtime::client::book(&session, &env, &request, timeout)
-            .await
-            .map_err(errors::to_py);
-        let _ = session.close().await;
-        answer
-    })??;
+    let bookings = on_deployment(py, connect, |session| async move {
+        offworld_runtime::client::book(&session, &env, &request, timeout).await
+    })?;
     let out = PyList::empty(py);
     for b in &bookings.bookings {
         out.append(convert::booking(py, b)?)?;
     }
     Ok(out)
+}
+
+/// The caller's experiments on an env (operators: everyone's), as dicts.
+#[pyfunction]
+#[pyo3(signature = (env_id, token, connect=None, timeout_s=5.0))]
+fn experiments<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    token: String,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let env = parse_env(env_id)?;
+    let timeout = convert::timeout(timeout_s)?;
+    let answer = on_deployment(py, connect, |session| async move {
+        let request = offworld_runtime::msg::ExperimentsRequest::List { token };
+        offworld_runtime::client::experiments(&session, &env, &request, timeout).await
+    })?;
+    convert::experiments(py, &answer.experiments)
+}
+
+/// One experiment and all its episodes: (experiment dict, [episode dict]).
+#[pyfunction]
+#[pyo3(signature = (env_id, experiment_id, token, connect=None, timeout_s=5.0))]
+fn experiment_episodes<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    experiment_id: i64,
+    token: String,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let env = parse_env(env_id)?;
+    let timeout = convert::timeout(timeout_s)?;
+    let (experiment, episodes) = on_deployment(py, connect, |session| async move {
+        offworld_runtime::client::experiment_episodes(
+            &session,
+            &env,
+            &token,
+            experiment_id,
+            timeout,
+        )
+        .await
+    })?;
+    convert::experiment_with_episodes(py, &experiment, &episodes)
+}
+
+/// The leaderboard of an env (test-mode experiments, best first), as dicts.
+#[pyfunction]
+#[pyo3(signature = (env_id, connect=None, timeout_s=5.0))]
+fn leaderboard<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let env = parse_env(env_id)?;
+    let timeout = convert::timeout(timeout_s)?;
+    let board = on_deployment(py, connect, |session| async move {
+        offworld_runtime::client::leaderboard(&session, &env, timeout).await
+    })?;
+    convert::leaderboard(py, &board)
 }
 
 /// Reserves `[start_unix_ms, end_unix_ms)` on an env; returns [the booking].
@@ -437,6 +537,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(book, m)?)?;
     m.add_function(wrap_pyfunction!(bookings, m)?)?;
     m.add_function(wrap_pyfunction!(cancel_booking, m)?)?;
+    m.add_function(wrap_pyfunction!(experiments, m)?)?;
+    m.add_function(wrap_pyfunction!(experiment_episodes, m)?)?;
+    m.add_function(wrap_pyfunction!(leaderboard, m)?)?;
     errors::register(m)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -20,7 +20,7 @@ pub mod schema;
 use std::path::{Path, PathBuf};
 
 pub use episode_file::{Channel, EpisodeFile};
-pub use recording::{EnvRecorder, RecordTo, StepRecord};
+pub use recording::{EnvRecorder, RecordTo, RecordedFile, StepRecord};
 
 /// What can go wrong recording or reading an episode file.
 #[derive(Debug, thiserror::Error)]

@@ -67,11 +67,84 @@ impl RecordTo {
     /// The file of episode `episode_id` of experiment `experiment_id` on `env`.
     pub fn episode_path(&self, env: &EnvId, experiment_id: u64, episode_id: u64) -> PathBuf {
         self.dir
-            .join(env.realm().as_str())
-            .join(env.name())
-            .join(format!("exp-{experiment_id:06}"))
+            .join(experiment_dir(env, experiment_id))
             .join(format!("ep-{episode_id:06}.mcap"))
     }
+
+    /// The episode files of experiment `experiment_id` on `env` (finished and
+    /// `.partial`), by episode then name; none if it never recorded here.
+    pub fn experiment_files(
+        &self,
+        env: &EnvId,
+        experiment_id: u64,
+    ) -> Result<Vec<RecordedFile>, RecordError> {
+        let relative_dir = experiment_dir(env, experiment_id);
+        let dir = self.dir.join(&relative_dir);
+        let entries = match std::fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(RecordError::io(&dir, e)),
+        };
+        let mut found = Vec::new();
+        for entry in entries {
+            let entry = entry.map_err(|e| RecordError::io(&dir, e))?;
+            let name = entry.file_name();
+            let Some((episode_id, complete)) = name.to_str().and_then(parse_episode_file_name)
+            else {
+                continue;
+            };
+            // Not followed: only files this recorder wrote count.
+            let meta = std::fs::symlink_metadata(entry.path())
+                .map_err(|e| RecordError::io(&entry.path(), e))?;
+            if meta.is_file() {
+                found.push(RecordedFile {
+                    episode_id,
+                    relative_path: relative_dir.join(&name),
+                    bytes: meta.len(),
+                    complete,
+                });
+            }
+        }
+        found.sort_by(|a, b| {
+            (a.episode_id, &a.relative_path).cmp(&(b.episode_id, &b.relative_path))
+        });
+        Ok(found)
+    }
+}
+
+/// An episode file found by [`RecordTo::experiment_files`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RecordedFile {
+    /// The episode it holds.
+    pub episode_id: u64,
+    /// Relative to [`RecordTo::dir`].
+    pub relative_path: PathBuf,
+    /// Size, bytes.
+    pub bytes: u64,
+    /// False for a `.partial` (its episode was cut short).
+    pub complete: bool,
+}
+
+/// `<realm>/<env name>/exp-NNNNNN`, relative to the recordings root.
+fn experiment_dir(env: &EnvId, experiment_id: u64) -> PathBuf {
+    PathBuf::from(env.realm().as_str())
+        .join(env.name())
+        .join(format!("exp-{experiment_id:06}"))
+}
+
+/// `ep-N.mcap`, `ep-N.K.mcap` (a reused episode id) or either + `.partial`
+/// → (N, finished).
+fn parse_episode_file_name(name: &str) -> Option<(u64, bool)> {
+    let (name, complete) = match name.strip_suffix(".partial") {
+        Some(stem) => (stem, false),
+        None => (name, true),
+    };
+    let stem = name.strip_prefix("ep-")?.strip_suffix(".mcap")?;
+    let episode = stem.split_once('.').map_or(stem, |(n, _)| n);
+    if episode.is_empty() || !episode.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some((episode.parse().ok()?, complete))
 }
 
 /// One step as the controller answered it.
@@ -190,6 +263,11 @@ impl EnvRecorder {
             writer: Some(writer),
             odom: Some(odom),
         })
+    }
+
+    /// Where this recorder writes.
+    pub fn destination(&self) -> &RecordTo {
+        &self.to
     }
 
     /// The file an episode will be recorded in.
@@ -499,4 +577,29 @@ fn write_step(
         file.end_step()?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn episode_file_names_parse_to_their_episode() {
+        assert_eq!(parse_episode_file_name("ep-000003.mcap"), Some((3, true)));
+        assert_eq!(parse_episode_file_name("ep-000003.2.mcap"), Some((3, true)));
+        assert_eq!(
+            parse_episode_file_name("ep-000012.mcap.partial"),
+            Some((12, false))
+        );
+        for other in [
+            "ep-.mcap",
+            "ep-12.txt",
+            "ep-1x.mcap",
+            "ep-+1.mcap",
+            "notes.mcap",
+            "ep-99999999999999999999999.mcap",
+        ] {
+            assert_eq!(parse_episode_file_name(other), None, "{other}");
+        }
+    }
 }

@@ -279,6 +279,54 @@ pub async fn book(
     ask(session, env, Topic::Book, request, timeout).await
 }
 
+/// Lists an env's experiments or shows one with its episodes.
+pub async fn experiments(
+    session: &Session,
+    env: &EnvId,
+    request: &crate::msg::ExperimentsRequest,
+    timeout: Duration,
+) -> Result<crate::msg::Experiments, WireError> {
+    ask(session, env, Topic::Experiments, request, timeout).await
+}
+
+/// Experiment `experiment_id` on `env` with all its episodes (asked for a
+/// page at a time), as its owner `token` (or an operator) sees it.
+pub async fn experiment_episodes(
+    session: &Session,
+    env: &EnvId,
+    token: &str,
+    experiment_id: i64,
+    timeout: Duration,
+) -> Result<
+    (
+        crate::msg::ExperimentRecord,
+        Vec<crate::msg::EpisodeRecordEntry>,
+    ),
+    WireError,
+> {
+    let mut episodes = Vec::new();
+    let mut from_episode = 0;
+    loop {
+        let request = crate::msg::ExperimentsRequest::Show {
+            token: token.to_owned(),
+            experiment_id,
+            from_episode,
+        };
+        let page = experiments(session, env, &request, timeout).await?;
+        let experiment =
+            page.experiments.into_iter().next().ok_or_else(|| {
+                WireError::internal("the controller answered without the experiment")
+            })?;
+        let next = page.episodes.last().and_then(|e| e.index.checked_add(1));
+        episodes.extend(page.episodes);
+        match next {
+            // Each page starts after the last: the loop ends.
+            Some(next) if page.more && next > from_episode => from_episode = next,
+            _ => return Ok((experiment, episodes)),
+        }
+    }
+}
+
 /// One env found by [`discover`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct EnvListing {

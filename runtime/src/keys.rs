@@ -212,11 +212,14 @@ pub enum Topic {
     /// Queryable on the controller: [`crate::msg::BookingRequest`] →
     /// [`crate::msg::Bookings`].
     Book,
+    /// Queryable on the controller: [`crate::msg::ExperimentsRequest`] →
+    /// [`crate::msg::Experiments`].
+    Experiments,
 }
 
 impl Topic {
     /// Every topic, in declaration order.
-    pub const ALL: [Topic; 22] = [
+    pub const ALL: [Topic; 23] = [
         Topic::Cmd,
         Topic::Obs,
         Topic::Odom,
@@ -239,6 +242,7 @@ impl Topic {
         Topic::Admin,
         Topic::Leaderboard,
         Topic::Book,
+        Topic::Experiments,
     ];
 
     /// The key chunk of this topic.
@@ -266,6 +270,7 @@ impl Topic {
             Topic::Admin => "admin",
             Topic::Leaderboard => "leaderboard",
             Topic::Book => "book",
+            Topic::Experiments => "experiments",
         }
     }
 }

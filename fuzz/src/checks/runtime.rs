@@ -200,7 +200,7 @@ fn estop_state(name: &str, state: &EStopState) {
 }
 
 /// Number of message types of [`cdr_gym`].
-pub const GYM_KINDS: u8 = 17;
+pub const GYM_KINDS: u8 = 19;
 
 /// The gym protocol: requests the controller decodes from clients, the
 /// replies and publications clients decode, and the typed error.
@@ -254,6 +254,12 @@ pub fn cdr_gym(data: &[u8]) {
         }
         15 => {
             message::<ClientTag>("ClientTag", &input);
+        }
+        16 => {
+            message::<ExperimentsRequest>("ExperimentsRequest", &input);
+        }
+        17 => {
+            message::<Experiments>("Experiments", &input);
         }
         _ => {
             if let Some(error) = message::<WireError>("WireError", &input) {
@@ -739,7 +745,51 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                 client_id: "3fa9c0d1e2b4a567".into(),
             },
         ),
-        seed(16, &WireError::busy("leased until 12:00 UTC")),
+        seed(16, &ExperimentsRequest::List { token: "t".into() }),
+        seed(
+            16,
+            &ExperimentsRequest::Show {
+                token: "t".into(),
+                experiment_id: 3,
+                from_episode: 1000,
+            },
+        ),
+        seed(
+            17,
+            &Experiments {
+                experiments: vec![ExperimentRecord {
+                    id: 3,
+                    user: "ada".into(),
+                    env_id: "sim/monolith-0".into(),
+                    task: "MonolithDiscrete".into(),
+                    name: "dqn".into(),
+                    learning_type: "end2end".into(),
+                    algorithm_mode: "train".into(),
+                    episodes: 2,
+                    steps: 40,
+                    created_unix_ms: 1_000,
+                    updated_unix_ms: 2_000,
+                }],
+                episodes: vec![EpisodeRecordEntry {
+                    index: 0,
+                    seeded: true,
+                    seed: 7,
+                    steps: 20,
+                    episode_return: 1.0,
+                    success: true,
+                    end_reason: "success".into(),
+                    started_unix_ms: 1_000,
+                    ended_unix_ms: 1_500,
+                    recordings: vec![RecordingFile {
+                        path: "sim/monolith-0/exp-000003/ep-000000.mcap".into(),
+                        bytes: 123_456,
+                        complete: true,
+                    }],
+                }],
+                more: false,
+            },
+        ),
+        seed(18, &WireError::busy("leased until 12:00 UTC")),
     ]
 }
 

@@ -20,6 +20,15 @@ from offworld_gym.bookings import Booking, book, bookings, cancel_booking
 from offworld_gym.discovery import EnvInfo, list_envs
 from offworld_gym.envs.common.channels import Channels
 from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
+from offworld_gym.experiments import (
+    Episode,
+    Experiment,
+    LeaderboardEntry,
+    Recording,
+    experiment,
+    experiments,
+    leaderboard,
+)
 
 register_envs()
 
@@ -30,12 +39,19 @@ __all__ = [
     "Booking",
     "Channels",
     "EnvInfo",
+    "Episode",
+    "Experiment",
+    "LeaderboardEntry",
     "LearningType",
+    "Recording",
     "__version__",
     "book",
     "bookings",
     "cancel_booking",
     "errors",
+    "experiment",
+    "experiments",
+    "leaderboard",
     "list_envs",
     "register_envs",
 ]

@@ -4,6 +4,9 @@
     python -m offworld_gym bookings --env real/enclosure-a
     python -m offworld_gym book --env real/enclosure-a --start 2026-12-01T14:00 --minutes 60
     python -m offworld_gym cancel-booking --env real/enclosure-a --id 3
+    python -m offworld_gym experiments --env real/enclosure-a
+    python -m offworld_gym episodes --env real/enclosure-a --id 12
+    python -m offworld_gym leaderboard --env real/enclosure-a
 
 Credentials: ``OFFWORLD_GYM_ACCESS_TOKEN`` (or ``--token``); TLS and Zenoh
 user/password from the config file in ``OFFWORLD_ZENOH_CONFIG``.
@@ -19,6 +22,7 @@ import sys
 from offworld_gym.bookings import Booking, book, bookings, cancel_booking
 from offworld_gym.discovery import list_envs
 from offworld_gym.errors import OffWorldGymError
+from offworld_gym.experiments import experiment, experiments, leaderboard
 
 
 def _when(unix_ms: int | None) -> str:
@@ -40,18 +44,24 @@ def main(argv: list[str] | None = None) -> int:
     made.add_argument("--minutes", type=float, required=True, help="slot length")
     cancel = sub.add_parser("cancel-booking", help="cancel one of your slots")
     cancel.add_argument("--id", type=int, required=True, help="booking id (see `bookings`)")
-    for p in (listing, made, cancel):
+    mine = sub.add_parser("experiments", help="list your experiments on an env (operators: all)")
+    shown = sub.add_parser("episodes", help="the episodes of one experiment, with their recordings")
+    shown.add_argument("--id", type=int, required=True, help="experiment id (see `experiments`)")
+    board = sub.add_parser("leaderboard", help="an env's test-mode experiments, best first")
+    for p in (listing, made, cancel, mine, shown, board):
         p.add_argument("--env", required=True, help="env id, e.g. real/enclosure-a")
         p.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
         p.add_argument("--json", action="store_true", help="print JSON")
-    for p in (made, cancel):
+    for p in (made, cancel, mine, shown):
         p.add_argument("--token", help="access token (default: OFFWORLD_GYM_ACCESS_TOKEN)")
     args = parser.parse_args(argv)
     try:
+        if args.command in ("experiments", "episodes", "leaderboard"):
+            return _records_command(args)
         if args.command != "envs":
             return _bookings_command(args)
         listed = list_envs(args.connect, args.timeout)
-    except (OffWorldGymError, ValueError) as e:
+    except (OffWorldGymError, ValueError, LookupError, PermissionError, ConnectionError, TimeoutError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     if args.json:
@@ -88,6 +98,43 @@ def _bookings_command(args: argparse.Namespace) -> int:
         return 0
     for b in slots:
         print(f"{b['id']:>5}  {b['env_id']:<24} {_when(b['start_unix_ms'])} .. {_when(b['end_unix_ms'])}  {b['user']}")
+    return 0
+
+
+def _records_command(args: argparse.Namespace) -> int:
+    if args.command == "experiments":
+        found = experiments(args.env, token=args.token, connect=args.connect)
+        if args.json:
+            print(json.dumps(found, indent=1))
+            return 0
+        print(f"{'id':>5}  {'user':<12} {'experiment':<28} {'type':<10} {'mode':<5} {'episodes':>8} {'steps':>8}  last used")
+        for e in found:
+            print(
+                f"{e['id']:>5}  {e['user']:<12} {e['name']:<28} {e['learning_type']:<10} {e['algorithm_mode']:<5} "
+                f"{e['episodes']:>8} {e['steps']:>8}  {_when(e['updated_unix_ms'])}"
+            )
+        return 0
+    if args.command == "episodes":
+        found_experiment, episodes = experiment(args.env, args.id, token=args.token, connect=args.connect)
+        if args.json:
+            print(json.dumps({"experiment": found_experiment, "episodes": episodes}, indent=1))
+            return 0
+        print(f"experiment {found_experiment['id']} {found_experiment['name']!r} of {found_experiment['user']}")
+        print(f"{'episode':>7} {'steps':>5} {'return':>8}  {'end':<32} recording")
+        for ep in episodes:
+            files = ", ".join(r["path"] + ("" if r["complete"] else " (partial)") for r in ep["recordings"])
+            print(f"{ep['index']:>7} {ep['steps']:>5} {ep['episode_return']:>8.3f}  {ep['end_reason']:<32} {files or '-'}")
+        return 0
+    ranked = leaderboard(args.env, connect=args.connect)
+    if args.json:
+        print(json.dumps(ranked, indent=1))
+        return 0
+    print(f"{'rank':>4}  {'experiment':<28} {'user':<12} {'type':<10} {'episodes':>8} {'success':>8} {'return':>8}")
+    for r in ranked:
+        print(
+            f"{r['rank']:>4}  {r['experiment']:<28} {r['user']:<12} {r['learning_type']:<10} {r['episodes']:>8} "
+            f"{r['success_rate'] * 100:>7.1f}% {r['mean_return']:>8.3f}"
+        )
     return 0
 
 

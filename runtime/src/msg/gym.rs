@@ -511,6 +511,112 @@ pub struct Bookings {
     pub bookings: Vec<Booking>,
 }
 
+/// An env's experiments, asked by their owner (operators: anyone's). The
+/// same records `env_controller experiments` prints on the controller host.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ExperimentsRequest {
+    /// The caller's experiments on the env (operators: everyone's), most
+    /// recently used first; no episodes.
+    List {
+        /// The user's access token (empty: anonymous, where allowed).
+        token: String,
+    },
+    /// One experiment with its episodes from index `from_episode` on, at
+    /// most [`EXPERIMENT_EPISODES_PER_REPLY`] of them, and their recordings.
+    Show {
+        /// The user's access token (empty: anonymous, where allowed).
+        token: String,
+        /// [`ExperimentRecord::id`].
+        experiment_id: i64,
+        /// The first episode index wanted (0: from the start).
+        from_episode: u64,
+    },
+}
+
+/// Most episodes in one [`Experiments`] answer; ask again from the next
+/// index for more.
+pub const EXPERIMENT_EPISODES_PER_REPLY: u32 = 1000;
+
+/// Most experiments in one `List` answer (most recently used first).
+pub const EXPERIMENTS_PER_REPLY: u32 = 1000;
+
+/// One experiment as listed.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ExperimentRecord {
+    /// Store id.
+    pub id: i64,
+    /// Owner's user name.
+    pub user: String,
+    /// `sim/monolith-0` etc.
+    pub env_id: String,
+    /// Task name (`MonolithDiscrete`, …).
+    pub task: String,
+    /// Name given by the user.
+    pub name: String,
+    /// Learning type string (`end2end`, `sim2real`, `humandemos`).
+    pub learning_type: String,
+    /// `train` or `test`.
+    pub algorithm_mode: String,
+    /// Episodes finished.
+    pub episodes: u64,
+    /// Steps in finished episodes.
+    pub steps: u64,
+    /// Created, Unix ms.
+    pub created_unix_ms: i64,
+    /// Last used, Unix ms.
+    pub updated_unix_ms: i64,
+}
+
+/// One recorded episode file of an experiment.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RecordingFile {
+    /// Relative to the controller's recording directory (`serve --record`),
+    /// `/`-separated: `sim/monolith-0/exp-000001/ep-000000.mcap`.
+    pub path: String,
+    /// Size, bytes.
+    pub bytes: u64,
+    /// False for a `.partial` file: its episode was cut short by a crash
+    /// (`recorder recover` makes it a finished file).
+    pub complete: bool,
+}
+
+/// One episode of an experiment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRecordEntry {
+    /// Episode index within the experiment.
+    pub index: u64,
+    /// Whether reset was given a seed, and which.
+    pub seeded: bool,
+    /// The seed (0 when not seeded).
+    pub seed: u64,
+    /// Steps taken.
+    pub steps: u32,
+    /// Sum of rewards.
+    pub episode_return: f64,
+    /// Reached the monolith.
+    pub success: bool,
+    /// Why it ended (`success`, `out_of_bounds`, `step_limit`, `aborted: …`,
+    /// `in_progress`).
+    pub end_reason: String,
+    /// Unix ms.
+    pub started_unix_ms: i64,
+    /// Unix ms (the start while in progress).
+    pub ended_unix_ms: i64,
+    /// Its recordings (none when the env does not record).
+    pub recordings: Vec<RecordingFile>,
+}
+
+/// Answer to an [`ExperimentsRequest`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Experiments {
+    /// `List`: the experiments; `Show`: the one asked for.
+    pub experiments: Vec<ExperimentRecord>,
+    /// `Show`: its episodes in order, from the index asked for; `List`: empty.
+    pub episodes: Vec<EpisodeRecordEntry>,
+    /// `Show`: more episodes follow the last one here.
+    pub more: bool,
+}
+
 /// Who asks: attached (as the Zenoh attachment) to every gym request that
 /// [`crate::client`] sends, so the controller can hold each client to its
 /// share (requests queued per env, requests per second). A request without

@@ -9,6 +9,7 @@ import numpy as np
 
 from offworld_gym import _config
 from offworld_gym._native import NativeEnvs
+from offworld_gym.experiments import Episode, Experiment
 
 
 class OffWorldMonolithEnv(gymnasium.Env):
@@ -49,6 +50,24 @@ class OffWorldMonolithEnv(gymnasium.Env):
     def experiment_name(self) -> str:
         """The experiment this env records into."""
         return str(self._native.spec["experiment"])
+
+    @property
+    def experiment_id(self) -> int:
+        """The store id of this env's experiment."""
+        return int(self._native.spec["experiment_id"])
+
+    def experiment(self) -> Experiment:
+        """This env's experiment as the controller records it (counters
+        include the episode in progress)."""
+        found, _ = self._native.experiment_episodes()
+        return found  # type: ignore[no-any-return]
+
+    def episodes(self) -> list[Episode]:
+        """Every episode of this env's experiment so far, in order, with its
+        return, length, end reason and recordings (``record=``: paths are
+        relative to that directory)."""
+        _, episodes = self._native.experiment_episodes()
+        return episodes  # type: ignore[no-any-return]
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
