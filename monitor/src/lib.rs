@@ -10,7 +10,8 @@
 //! depth images, every overhead camera, commanded velocities, rewards,
 //! returns, successes and episode lengths as time series, and episode
 //! boundaries, tracking, status and e-stops as events. The full entity tree
-//! and the timelines are in [`paths`].
+//! and the timelines are in [`paths`]. Recorded episodes (the recorder's
+//! MCAP files) play into the same entities with [`replay`].
 //!
 //! # Never in the way
 //!
@@ -50,6 +51,7 @@ mod columns;
 pub mod layout;
 pub mod paths;
 mod queue;
+pub mod replay;
 mod scene;
 mod worker;
 
@@ -345,7 +347,7 @@ impl Monitor {
                 .name("offworld-monitor".into())
                 .spawn(move || {
                     lower_thread_priority();
-                    let rec = match open_sink(&config) {
+                    let rec = match open_sink(&config.sink, config.recording_name.as_deref()) {
                         Ok(rec) => rec,
                         Err(e) => {
                             let _ = opened_tx.send(Err(e));
@@ -353,7 +355,7 @@ impl Monitor {
                         }
                     };
                     let _ = opened_tx.send(Ok(rec.clone()));
-                    Worker::new(rec, shared, session, worker_config).run();
+                    Worker::new(rec, shared, Some(session), worker_config).run();
                 })
                 .map_err(|e| MonitorError::Worker(e.to_string()))?
         };
@@ -468,13 +470,16 @@ fn lower_thread_priority() {
     }
 }
 
-fn open_sink(config: &MonitorConfig) -> Result<rerun::RecordingStream, MonitorError> {
+fn open_sink(
+    sink: &Sink,
+    recording_name: Option<&str>,
+) -> Result<rerun::RecordingStream, MonitorError> {
     let mut builder = rerun::RecordingStreamBuilder::new(APPLICATION_ID);
-    if let Some(name) = &config.recording_name {
-        builder = builder.recording_name(name.clone());
+    if let Some(name) = recording_name {
+        builder = builder.recording_name(name);
     }
     // `wall_time` (when the sample arrived) replaces rerun's `log_time`.
-    let rec = match &config.sink {
+    let rec = match sink {
         Sink::File(path) => builder.save(path)?,
         Sink::Connect(url) => builder.connect_grpc_opts(url.clone())?,
         Sink::Serve {
@@ -497,6 +502,17 @@ fn open_sink(config: &MonitorConfig) -> Result<rerun::RecordingStream, MonitorEr
     };
     rec.set_log_time_enabled(false);
     Ok(rec)
+}
+
+/// Waits up to `timeout` for the sink to take everything logged, then
+/// closes it: a file sink writes its footer, a server stops.
+fn close_sink(rec: &rerun::RecordingStream, timeout: Duration) -> Result<(), MonitorError> {
+    let flushed = rec
+        .flush_with_timeout(timeout)
+        .map_err(|e| MonitorError::Flush(e.to_string()));
+    // Replacing the sink drops it.
+    rec.disconnect();
+    flushed
 }
 
 struct Inner {
@@ -564,12 +580,9 @@ impl MonitorHandle {
         if inner.thread.join().is_err() {
             first_error.get_or_insert(MonitorError::Worker("the worker panicked".into()));
         }
-        if let Err(e) = inner.rec.flush_with_timeout(inner.flush_timeout) {
-            first_error.get_or_insert(MonitorError::Flush(e.to_string()));
+        if let Err(e) = close_sink(&inner.rec, inner.flush_timeout) {
+            first_error.get_or_insert(e);
         }
-        // Replacing the sink drops it: a file sink writes its footer and
-        // closes, a server stops.
-        inner.rec.disconnect();
         let stats = inner.shared.stats();
         match first_error {
             Some(e) => Err(e),

@@ -32,7 +32,8 @@
 //! Timelines: `step` (sequence: the env's motion-command `seq`; data without
 //! a seq of its own takes the env's latest), `sim_time` (duration: the
 //! message header stamp — seconds since the twin started, or since the epoch
-//! on a real robot), `wall_time` (timestamp: when the monitor received it).
+//! on a real robot), `wall_time` (timestamp: when the monitor received it;
+//! in a replay, when the recorder did).
 
 use offworld_runtime::EnvId;
 

@@ -82,6 +82,8 @@ pub(crate) enum WorldSource {
     Configured,
     /// The controller's `spec` reply.
     Spec,
+    /// The recorded episode's `EpisodeInfo` (a replay).
+    Recording,
     /// Nobody said; the default world (with the reason).
     Fallback(String),
 }
@@ -182,7 +184,9 @@ pub(crate) struct WorkerConfig {
 pub(crate) struct Worker {
     rec: RecordingStream,
     shared: Arc<Shared>,
-    session: Session,
+    /// Where `spec` is asked for an env's world (`None`: a replay, whose
+    /// worlds come from the recording).
+    session: Option<Session>,
     config: WorkerConfig,
     envs: HashMap<EnvId, EnvView>,
     order: Vec<EnvId>,
@@ -193,7 +197,7 @@ pub(crate) struct Worker {
 
 /// Why a message was skipped.
 #[derive(Debug)]
-enum Skip {
+pub(crate) enum Skip {
     Decode(String),
     Log(rerun::RecordingStreamError),
 }
@@ -311,7 +315,7 @@ impl Worker {
     pub fn new(
         rec: RecordingStream,
         shared: Arc<Shared>,
-        session: Session,
+        session: Option<Session>,
         config: WorkerConfig,
     ) -> Self {
         Self {
@@ -330,9 +334,7 @@ impl Worker {
     /// Runs until the queue is closed and drained, then completes the worlds
     /// nobody resolved and logs final health.
     pub fn run(mut self) {
-        if self.config.blueprint {
-            self.send_blueprint();
-        }
+        self.start();
         loop {
             match self
                 .shared
@@ -346,9 +348,7 @@ impl Worker {
                 }
                 Err(()) => break,
             }
-            if self.columns.due() {
-                self.flush_columns();
-            }
+            self.flush_columns_if_due();
             if self
                 .last_health
                 .is_none_or(|t| t.elapsed() >= HEALTH_PERIOD)
@@ -356,6 +356,20 @@ impl Worker {
                 self.log_health();
             }
         }
+        self.finish();
+        self.log_health();
+    }
+
+    /// Sends the layout (if configured): before the first data.
+    pub fn start(&self) {
+        if self.config.blueprint {
+            self.send_blueprint();
+        }
+    }
+
+    /// Draws the default world for the envs nobody resolved and logs every
+    /// pending row.
+    pub fn finish(&mut self) {
         let unresolved: Vec<EnvId> = self
             .order
             .iter()
@@ -368,14 +382,22 @@ impl Worker {
                     &env,
                     world,
                     WorldSource::Fallback("world unresolved at shutdown".into()),
+                    SystemTime::now(),
                 );
             }
         }
         self.flush_columns();
-        self.log_health();
     }
 
-    fn flush_columns(&mut self) {
+    /// Logs the pending rows if they are due (old or big enough).
+    pub fn flush_columns_if_due(&mut self) {
+        if self.columns.due() {
+            self.flush_columns();
+        }
+    }
+
+    /// Logs every pending row now.
+    pub fn flush_columns(&mut self) {
         if let Err((rows, e)) = self.columns.flush(&self.rec) {
             self.shared
                 .counters
@@ -395,12 +417,18 @@ impl Worker {
             Event::Alive { key, online, wall } => self.on_alive(&key, online, wall),
             Event::World { env, world, source } => {
                 match world {
-                    Some(world) => self.apply_world(&env, *world, source),
+                    Some(world) => self.apply_world(&env, *world, source, SystemTime::now()),
                     None => self.view(&env).resolving = false,
                 }
                 Ok(())
             }
         };
+        self.account(result);
+    }
+
+    /// Counts a message that could not be logged (malformed, or refused by
+    /// rerun); the monitor goes on.
+    pub fn account(&self, result: Result<(), Skip>) {
         match result {
             Ok(()) => {}
             Err(Skip::Decode(e)) => {
@@ -485,21 +513,20 @@ impl Worker {
                     None => return,
                 },
             };
-            self.apply_world(env, world, source);
+            self.apply_world(env, world, source, SystemTime::now());
             return;
         }
+        let Some(session) = self.session.clone() else {
+            // A replay: the recording says.
+            return;
+        };
         if let Some(view) = self.envs.get_mut(env) {
             if view.resolving {
                 return;
             }
             view.resolving = true;
         }
-        let (session, shared, env, timeout) = (
-            self.session.clone(),
-            self.shared.clone(),
-            env.clone(),
-            self.config.spec_timeout,
-        );
+        let (shared, env, timeout) = (self.shared.clone(), env.clone(), self.config.spec_timeout);
         let spawned = std::thread::Builder::new()
             .name("monitor-spec".into())
             .spawn(move || {
@@ -533,7 +560,15 @@ impl Worker {
         }
     }
 
-    fn apply_world(&mut self, env: &EnvId, world: WorldSpec, source: WorldSource) {
+    /// Draws `world` for `env` (if it is not drawn already); its event is
+    /// logged at `wall`.
+    pub fn apply_world(
+        &mut self,
+        env: &EnvId,
+        world: WorldSpec,
+        source: WorldSource,
+        wall: SystemTime,
+    ) {
         let view = self.view(env);
         view.resolving = false;
         let previous = view.world.take();
@@ -551,11 +586,12 @@ impl Worker {
                 let text = match &source {
                     WorldSource::Configured => format!("world: {} (configured)", world.name),
                     WorldSource::Spec => format!("world: {} (from the env's spec)", world.name),
+                    WorldSource::Recording => format!("world: {} (recorded)", world.name),
                     WorldSource::Fallback(why) => {
                         format!("world: {} (default; {why})", world.name)
                     }
                 };
-                self.set_times(None, None, SystemTime::now());
+                self.set_times(None, None, wall);
                 self.rec.log(
                     env_path(env, paths::EVENTS),
                     &TextLog::new(text).with_level(rerun::TextLogLevel::DEBUG),
@@ -608,45 +644,76 @@ impl Worker {
 
     fn on_cmd(&mut self, env: &EnvId, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
         let cmd: MotionCommand = codec::decode_payload(sample.payload())?;
-        let view = self.view(env);
         // u64::MAX is the controller's halt: not a step of its own.
-        if cmd.seq != u64::MAX {
-            view.seq = Some(cmd.seq);
+        let seq = (cmd.seq != u64::MAX).then_some(cmd.seq);
+        self.log_command(env, seq, cmd.linear_x, cmd.angular_z, wall);
+        Ok(())
+    }
+
+    /// Makes `seq` the env's current step: data without a seq of its own
+    /// is logged at it.
+    pub fn set_seq(&mut self, env: &EnvId, seq: u64) {
+        self.view(env).seq = Some(seq);
+    }
+
+    /// A motion command (`cmd`, or a recording's `/cmd_vel`); `seq` (the
+    /// command's) becomes the env's current step.
+    pub fn log_command(
+        &mut self,
+        env: &EnvId,
+        seq: Option<u64>,
+        linear_x: f64,
+        angular_z: f64,
+        wall: SystemTime,
+    ) {
+        let view = self.view(env);
+        if seq.is_some() {
+            view.seq = seq;
         }
         let stamp = Self::stamp(view.seq, None, wall);
-        self.columns.push(
-            env_path(env, paths::LINEAR_X),
-            stamp,
-            Row::Scalar(cmd.linear_x),
-        );
+        self.columns
+            .push(env_path(env, paths::LINEAR_X), stamp, Row::Scalar(linear_x));
         self.columns.push(
             env_path(env, paths::ANGULAR_Z),
             stamp,
-            Row::Scalar(cmd.angular_z),
+            Row::Scalar(angular_z),
         );
         self.count(&self.shared.counters.commands);
-        Ok(())
     }
 
     fn on_obs(&mut self, env: &EnvId, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
         let frame: CameraFrame = codec::decode_payload(sample.payload())?;
-        let stamp = if frame.color.width > 0 {
-            frame.color.header.stamp
+        self.log_frame(env, Some(frame.seq), frame.color, frame.depth, wall)
+    }
+
+    /// A camera frame (`obs`, or a recording's colour and depth images): a
+    /// 0×0 image is absent, not both. At `seq`, else the env's current step.
+    pub fn log_frame(
+        &mut self,
+        env: &EnvId,
+        seq: Option<u64>,
+        color: Image,
+        depth: Image,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let stamp = if color.width > 0 {
+            color.header.stamp
         } else {
-            frame.depth.header.stamp
+            depth.header.stamp
         };
-        let size = if frame.color.width > 0 {
-            (frame.color.width, frame.color.height)
+        let size = if color.width > 0 {
+            (color.width, color.height)
         } else {
-            (frame.depth.width, frame.depth.height)
+            (depth.width, depth.height)
         };
-        let color = picture(frame.color)?;
-        let depth = picture(frame.depth)?;
+        let color = picture(color)?;
+        let depth = picture(depth)?;
         if color.is_none() && depth.is_none() {
             return Err(Skip::Decode("camera frame without images".into()));
         }
         self.set_camera_resolution(env, size)?;
-        let stamp = Self::stamp(Some(frame.seq), Some(&stamp), wall);
+        let seq = seq.or(self.view(env).seq);
+        let stamp = Self::stamp(seq, Some(&stamp), wall);
         for row in [color, depth].into_iter().flatten() {
             let path = match row {
                 Row::Depth(..) => paths::DEPTH,
@@ -676,10 +743,22 @@ impl Worker {
 
     fn on_pose(&mut self, env: &EnvId, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
         let pose: PoseStamped = codec::decode_payload(sample.payload())?;
+        let tag = wire::decode_attachment::<SeqTag>(sample).map(|t| t.seq);
+        self.log_pose(env, &pose, tag, wall)
+    }
+
+    /// A tracker pose (`pose`, or a recording's `/tracker/pose`): the robot
+    /// and its trajectory. At `tag`, else the env's current step.
+    pub fn log_pose(
+        &mut self,
+        env: &EnvId,
+        pose: &PoseStamped,
+        tag: Option<u64>,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
         let p = &pose.pose.position;
         let q = &pose.pose.orientation;
         finite(&[p.x, p.y, p.z, q.x, q.y, q.z, q.w])?;
-        let tag = wire::decode_attachment::<SeqTag>(sample).map(|t| t.seq);
         let here = [p.x as f32, p.y as f32, p.z as f32];
         let planar = Planar {
             x: p.x,
@@ -726,10 +805,22 @@ impl Worker {
 
     fn on_odom(&mut self, env: &EnvId, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
         let odom: Odometry = codec::decode_payload(sample.payload())?;
+        let tag = wire::decode_attachment::<SeqTag>(sample).map(|t| t.seq);
+        self.log_odom(env, &odom, tag, wall)
+    }
+
+    /// Odometry (`odom`, or a recording's `/odom`). At `tag`, else the env's
+    /// current step.
+    pub fn log_odom(
+        &mut self,
+        env: &EnvId,
+        odom: &Odometry,
+        tag: Option<u64>,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
         let p = &odom.pose.pose.position;
         let q = &odom.pose.pose.orientation;
         finite(&[p.x, p.y, p.z, q.x, q.y, q.z, q.w])?;
-        let tag = wire::decode_attachment::<SeqTag>(sample).map(|t| t.seq);
         let view = self.view(env);
         let step = tag.or(view.seq);
         let first = view.last_odom.is_none();
@@ -786,6 +877,20 @@ impl Worker {
     fn on_reward(&mut self, env: &EnvId, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
         let event: EpisodeEvent = codec::decode_payload(sample.payload())?;
         self.maybe_retry_world(env);
+        self.log_episode_event(env, &event, None, wall)
+    }
+
+    /// An episode's reset or step (`reward`, or a recording's
+    /// `/offworld/step`): reward and return, episode start and end, the
+    /// trajectory restarted at a reset. At the env's current step; on
+    /// `sim_time` too when `stamp` is given (the step's frame).
+    pub fn log_episode_event(
+        &mut self,
+        env: &EnvId,
+        event: &EpisodeEvent,
+        stamp: Option<&Time>,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
         let view = self.view(env);
         let step = view.seq;
         let new_episode = event.step == 0 || view.episode != Some(event.episode_id);
@@ -803,7 +908,7 @@ impl Worker {
             view.trajectory_logged = Some(wall);
             view.trajectory.clone()
         });
-        self.set_times(step, None, wall);
+        self.set_times(step, stamp, wall);
         if event.step == 0 {
             self.anchor_odom(env)?;
         }
@@ -811,7 +916,7 @@ impl Worker {
             self.rec
                 .log(env_path(env, paths::TRAJECTORY), &trajectory(strip))?;
         }
-        let stamp = Self::stamp(step, None, wall);
+        let stamp = Self::stamp(step, stamp, wall);
         self.columns.push(
             env_path(env, paths::REWARD),
             stamp,
@@ -852,23 +957,47 @@ impl Worker {
             } else {
                 event.end_reason.as_str()
             };
-            self.rec.log(
-                env_path(env, paths::EVENTS),
-                &TextLog::new(format!(
-                    "episode {} ended after {} steps: {how} (return {:.3}{})",
-                    event.episode_id,
-                    event.step,
-                    event.episode_return,
-                    if event.success { ", success" } else { "" }
-                ))
-                .with_level(if event.success {
-                    rerun::TextLogLevel::INFO
-                } else {
-                    rerun::TextLogLevel::WARN
-                }),
-            )?;
+            self.log_end_text(env, event, how)?;
         }
         self.count(&self.shared.counters.rewards);
+        Ok(())
+    }
+
+    /// An episode that ended without a terminal step (a reset or a close
+    /// came first, or its recording stopped), as a recording's
+    /// `/offworld/episode_end` tells: the event log only (success and
+    /// length are for episodes that terminated or were truncated). `last`
+    /// is its last step, `how` why it ended.
+    pub fn log_episode_stopped(
+        &mut self,
+        env: &EnvId,
+        last: &EpisodeEvent,
+        how: &str,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let step = self.view(env).seq;
+        self.set_times(step, None, wall);
+        self.log_end_text(env, last, how)
+    }
+
+    /// "episode … ended after … steps" in the env's event log (at the times
+    /// set).
+    fn log_end_text(&self, env: &EnvId, last: &EpisodeEvent, how: &str) -> Result<(), Skip> {
+        self.rec.log(
+            env_path(env, paths::EVENTS),
+            &TextLog::new(format!(
+                "episode {} ended after {} steps: {how} (return {:.3}{})",
+                last.episode_id,
+                last.step,
+                last.episode_return,
+                if last.success { ", success" } else { "" }
+            ))
+            .with_level(if last.success {
+                rerun::TextLogLevel::INFO
+            } else {
+                rerun::TextLogLevel::WARN
+            }),
+        )?;
         Ok(())
     }
 

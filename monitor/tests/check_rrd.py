@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Verifies an .rrd written by the OffWorld monitor and summarises it as JSON.
 
-Usage: check_rrd.py RECORDING.rrd
+Usage: check_rrd.py RECORDING.rrd [--rows]
 
 Runs `rerun rrd verify` (the CLI shipped with rerun-sdk==0.36.3), then reads
 the recording back with `rerun.experimental.RrdReader` and prints one JSON
@@ -22,6 +22,11 @@ object on stdout:
       }
     }
 
+With `--rows`, each entity also lists its temporal rows' places on the
+timelines, sorted, as `"index": [[step, sim_time_ns, wall_time_ns], ...]`
+(`null` where a row is not on that timeline), and the text of its
+`TextLog` rows as `"texts": [...]` (in row order).
+
 Exit status: 0 when the summary was printed (the caller judges it), 2 when
 rerun-sdk is missing or the file cannot be read at all.
 """
@@ -33,10 +38,11 @@ import sys
 
 
 def main() -> int:
-    if len(sys.argv) != 2:
+    if len(sys.argv) not in (2, 3) or (len(sys.argv) == 3 and sys.argv[2] != "--rows"):
         print(__doc__, file=sys.stderr)
         return 2
     path = sys.argv[1]
+    rows = len(sys.argv) == 3
     try:
         import pyarrow as pa
         import pyarrow.compute as pc
@@ -72,6 +78,9 @@ def main() -> int:
             chunk.entity_path,
             {"rows": 0, "static_rows": 0, "components": {}, "timelines": set(), "step_range": None},
         )
+        if rows:
+            entry.setdefault("index", [])
+            entry.setdefault("texts", [])
         if chunk.is_static:
             entry["static_rows"] += chunk.num_rows
         else:
@@ -84,6 +93,21 @@ def main() -> int:
                 continue
             present = len(column) - column.null_count
             entry["components"][name] = entry["components"].get(name, 0) + present
+        if rows and not chunk.is_static:
+            def timeline(name):
+                if name not in timelines:
+                    return [None] * batch.num_rows
+                column = batch.column(batch.schema.get_field_index(name))
+                return column.cast(pa.int64()).to_pylist()
+
+            entry["index"].extend(
+                [list(r) for r in zip(timeline("step"), timeline("sim_time"), timeline("wall_time"))]
+            )
+        if rows and "TextLog:text" in batch.schema.names:
+            texts = batch.column(batch.schema.get_field_index("TextLog:text")).to_pylist()
+            for cell in texts:
+                # One list of strings per row (null: no text in that row).
+                entry["texts"].extend(cell or [])
         if "step" in timelines and batch.num_rows > 0:
             steps = batch.column(batch.schema.get_field_index("step")).cast(pa.int64())
             lo, hi = pc.min(steps).as_py(), pc.max(steps).as_py()
@@ -93,6 +117,8 @@ def main() -> int:
 
     for entry in entities.values():
         entry["timelines"] = sorted(entry["timelines"])
+        if rows:
+            entry["index"].sort(key=lambda r: [(v is None, v or 0) for v in r])
 
     print(
         json.dumps(

@@ -1,5 +1,5 @@
-//! Reading episode files back: what a file holds, and a crashed episode's
-//! `.partial` made into a complete file.
+//! Reading episode files back: what a file holds, its messages in order,
+//! and a crashed episode's `.partial` made into a complete file.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -8,6 +8,7 @@ use enumset::enum_set;
 use mcap::read::{LinearReader, MessageStream, Options};
 use mcap::records::{Metadata, Record};
 use offworld_runtime::codec;
+use serde::de::DeserializeOwned;
 
 use crate::episode_file::{write_options, Channel, Compression, METADATA_NAME};
 use crate::msg::{EpisodeEnd, Step};
@@ -66,15 +67,9 @@ pub fn summarize(path: &Path) -> Result<EpisodeSummary, RecordError> {
             .or_default() += 1;
         let topic = message.channel.topic.as_str();
         if topic == Channel::Step.topic() {
-            summary.last_step = Some(
-                codec::decode(&message.data)
-                    .map_err(|e| invalid(path, format!("a bad Step message: {e}")))?,
-            );
+            summary.last_step = Some(decode_data(path, topic, &message.data)?);
         } else if topic == Channel::EpisodeEnd.topic() {
-            summary.end = Some(
-                codec::decode(&message.data)
-                    .map_err(|e| invalid(path, format!("a bad EpisodeEnd message: {e}")))?,
-            );
+            summary.end = Some(decode_data(path, topic, &message.data)?);
         }
     }
     Ok(summary)
@@ -175,4 +170,134 @@ pub fn episode_files(path: &Path) -> Result<Vec<PathBuf>, RecordError> {
     }
     found.sort();
     Ok(found)
+}
+
+/// `data` (a message of `topic` in `path`) decoded from CDR.
+fn decode_data<T: DeserializeOwned>(
+    path: &Path,
+    topic: &str,
+    data: &[u8],
+) -> Result<T, RecordError> {
+    codec::decode(data).map_err(|e| invalid(path, format!("a bad {topic} message: {e}")))
+}
+
+/// Whether `path` is a `.partial`: an episode being written, or left so
+/// by a crash (its end may be cut).
+pub fn is_partial(path: &Path) -> bool {
+    path.to_string_lossy().ends_with(".partial")
+}
+
+/// An episode file read into memory, to go through its messages.
+#[derive(Debug, Clone)]
+pub struct EpisodeData {
+    path: PathBuf,
+    buf: Vec<u8>,
+}
+
+/// One message of an episode file, as recorded.
+#[derive(Debug, Clone)]
+pub struct RecordedMessage {
+    /// Its topic, if it is one of ours (other topics are passed on too).
+    pub channel: Option<Channel>,
+    /// Its topic's name.
+    pub topic: String,
+    /// The capture time (see `docs/recording.md`), ns.
+    pub log_time_ns: u64,
+    /// When the recorder received it, ns since the epoch.
+    pub publish_time_ns: u64,
+    /// The CDR message (encapsulation header first).
+    pub data: Vec<u8>,
+}
+
+impl EpisodeData {
+    /// Reads `path` (a complete file or a `.partial`).
+    pub fn read(path: &Path) -> Result<Self, RecordError> {
+        Ok(Self {
+            path: path.to_owned(),
+            buf: read_file(path)?,
+        })
+    }
+
+    /// The file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The file's messages in file order: the order they were recorded
+    /// in. A complete file must be whole: its first fault (a cut, a bad
+    /// CRC, not MCAP at all) is an error naming it. A `.partial` is read
+    /// up to its last complete chunk: the fault that ends it is its cut
+    /// ([`Messages::cut`]), not an error.
+    pub fn messages(&self) -> Result<Messages<'_>, RecordError> {
+        let partial = is_partial(&self.path);
+        let options = if partial {
+            enum_set!(Options::IgnoreEndMagic)
+        } else {
+            enum_set!()
+        };
+        let stream = match MessageStream::new_with_options(&self.buf, options) {
+            Ok(stream) => Some(stream),
+            // Cut before its header was complete: nothing to read.
+            Err(_) if partial => None,
+            Err(e) => return Err(RecordError::mcap(&self.path, e)),
+        };
+        Ok(Messages {
+            path: &self.path,
+            cut: stream.is_none(),
+            stream,
+        })
+    }
+
+    /// `message` (one of this file's) decoded from CDR; an error names the
+    /// file and the topic.
+    pub fn decode<T: DeserializeOwned>(&self, message: &RecordedMessage) -> Result<T, RecordError> {
+        decode_data(&self.path, &message.topic, &message.data)
+    }
+}
+
+/// The messages of an episode file, in file order ([`EpisodeData::messages`]).
+pub struct Messages<'a> {
+    path: &'a Path,
+    stream: Option<MessageStream<'a>>,
+    cut: bool,
+}
+
+impl Messages<'_> {
+    /// Whether the file ended in a cut (a `.partial` read up to its last
+    /// complete chunk) rather than with its end record.
+    pub fn cut(&self) -> bool {
+        self.cut
+    }
+}
+
+impl Iterator for Messages<'_> {
+    type Item = Result<RecordedMessage, RecordError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let next = self.stream.as_mut()?.next();
+        match next {
+            Some(Ok(message)) => Some(Ok(RecordedMessage {
+                channel: Channel::ALL
+                    .into_iter()
+                    .find(|c| c.topic() == message.channel.topic),
+                topic: message.channel.topic.clone(),
+                log_time_ns: message.log_time,
+                publish_time_ns: message.publish_time,
+                data: message.data.into_owned(),
+            })),
+            Some(Err(e)) => {
+                self.stream = None;
+                if is_partial(self.path) {
+                    self.cut = true;
+                    None
+                } else {
+                    Some(Err(RecordError::mcap(self.path, e)))
+                }
+            }
+            None => {
+                self.stream = None;
+                None
+            }
+        }
+    }
 }
