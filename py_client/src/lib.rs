@@ -28,7 +28,7 @@ fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
                 .build()
         })
         .as_ref()
-        .map_err(|e| errors::OffWorldGymError::new_err(format!("cannot start the runtime: {e}")))
+        .map_err(|e| errors::local(format!("cannot start the runtime: {e}")))
 }
 
 /// Runs `work` on the runtime with the GIL released.
@@ -139,7 +139,7 @@ impl NativeEnvs {
                 py.detach(|| Monitor::spawn(&connection.session, config))
             })
             .transpose()
-            .map_err(|e| errors::OffWorldGymError::new_err(format!("monitor: {e}")))?;
+            .map_err(|e| errors::local(format!("monitor: {e}")))?;
         let clients = block(py, async {
             let mut clients = Vec::new();
             for (i, env) in connection.envs.iter().enumerate() {
@@ -326,7 +326,7 @@ impl NativeEnvs {
         let closed = block(py, envs.close())?.map_err(errors::to_py);
         if let Some(monitor) = self.monitor.take() {
             py.detach(|| monitor.shutdown())
-                .map_err(|e| errors::OffWorldGymError::new_err(format!("monitor: {e}")))?;
+                .map_err(|e| errors::local(format!("monitor: {e}")))?;
         }
         closed
     }
@@ -540,7 +540,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(experiments, m)?)?;
     m.add_function(wrap_pyfunction!(experiment_episodes, m)?)?;
     m.add_function(wrap_pyfunction!(leaderboard, m)?)?;
-    errors::register(m)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

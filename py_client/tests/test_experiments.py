@@ -114,8 +114,10 @@ def test_users_see_their_own_experiments_and_everyone_the_leaderboard(tmp_path: 
         assert shown == mine
         assert [(e["index"], e["seed"], e["steps"], e["episode_return"]) for e in episodes] == [(0, 5, steps, total)]
         assert episodes[0]["recordings"] == []  # this controller does not record
-        with pytest.raises(errors.NotFound, match="no experiment"):
+        with pytest.raises(errors.NotFound, match="no experiment") as refused_show:
             offworld_gym.experiment(env_id, experiment_id, token=bob, connect=endpoint)
+        assert refused_show.value.code == 404
+        assert isinstance(refused_show.value, errors.OffWorldGymError)
         with pytest.raises(errors.Unauthorized):
             offworld_gym.experiments(env_id, token="not-a-token", connect=endpoint)
 

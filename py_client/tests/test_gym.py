@@ -157,6 +157,8 @@ def test_bad_actions_raise_typed_errors():
         with pytest.raises(errors.BadRequest) as info:
             env.step(np.array(bad, dtype=np.float32))
         assert info.value.code == 400
+        # One hierarchy: catching the package's base (or the builtin) works.
+        assert isinstance(info.value, errors.OffWorldGymError) and isinstance(info.value, ValueError)
     with pytest.raises(ValueError):
         env.step("left")
     obs, *_ = env.step(np.array([0.5, -0.5], dtype=np.float32))
@@ -169,6 +171,26 @@ def test_bad_actions_raise_typed_errors():
         discrete.step(4)
     discrete.step(np.int64(2))
     discrete.close()
+
+
+def test_every_error_class_is_an_offworld_gym_error_and_its_builtin():
+    expected = {
+        errors.BadRequest: (400, ValueError),
+        errors.Unauthorized: (401, PermissionError),
+        errors.NotFound: (404, LookupError),
+        errors.Busy: (409, None),
+        errors.InvalidState: (412, None),
+        errors.Internal: (500, None),
+        errors.Unavailable: (503, ConnectionError),
+        errors.Timeout: (504, TimeoutError),
+    }
+    for cls, (code, builtin) in expected.items():
+        assert issubclass(cls, errors.OffWorldGymError), cls
+        assert cls.code == code
+        if builtin is not None:
+            assert issubclass(cls, builtin), cls
+    assert issubclass(errors.ConfigurationError, errors.OffWorldGymError)
+    assert issubclass(errors.ConfigurationError, ValueError)
 
 
 def test_render_returns_rgb():

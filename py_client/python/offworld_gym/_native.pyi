@@ -1,0 +1,72 @@
+"""Type stubs of the native half of ``offworld_gym`` (``py_client/src``).
+Users call the typed Python layer; these stubs keep it checkable."""
+
+from typing import Any
+
+import numpy as np
+
+__version__: str
+
+# Errors are raised as the classes of `offworld_gym.errors`.
+
+class NativeEnvs:
+    """N envs of one task, opened on a deployment (embedded or remote)."""
+
+    def __init__(
+        self,
+        task: str,
+        realm: str,
+        num_envs: int,
+        connect: str | None,
+        env_ids: list[str] | None,
+        token: str,
+        experiment_name: str,
+        resume_experiment: bool,
+        learning_type: str,
+        algorithm_mode: str,
+        channels: str,
+        height: int,
+        width: int,
+        depth_format: str,
+        rerun: str | None = None,
+        record: str | None = None,
+    ) -> None: ...
+    @property
+    def spec(self) -> dict[str, Any]: ...
+    def experiment_episodes(
+        self, index: int = 0, timeout_s: float = 5.0
+    ) -> tuple[dict[str, Any], list[dict[str, Any]]]: ...
+    def __len__(self) -> int: ...
+    def reset(self, seeds: list[int | None]) -> tuple[list[np.ndarray], list[dict[str, Any]]]: ...
+    def step_single(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]: ...
+    def step_all(
+        self, actions: list[Any]
+    ) -> list[tuple[np.ndarray, float, bool, bool, dict[str, Any], bool]]: ...
+    def close(self) -> None: ...
+
+def list_envs(connect: str | None = None, timeout_s: float = 2.0) -> list[dict[str, Any]]: ...
+def book(
+    env_id: str,
+    start_unix_ms: int,
+    end_unix_ms: int,
+    token: str,
+    connect: str | None = None,
+    timeout_s: float = 5.0,
+) -> list[dict[str, Any]]: ...
+def bookings(
+    env_id: str, from_unix_ms: int, connect: str | None = None, timeout_s: float = 5.0
+) -> list[dict[str, Any]]: ...
+def cancel_booking(
+    env_id: str, booking_id: int, token: str, connect: str | None = None, timeout_s: float = 5.0
+) -> list[dict[str, Any]]: ...
+def experiments(
+    env_id: str, token: str, connect: str | None = None, timeout_s: float = 5.0
+) -> list[dict[str, Any]]: ...
+def experiment_episodes(
+    env_id: str,
+    experiment_id: int,
+    token: str,
+    connect: str | None = None,
+    timeout_s: float = 5.0,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]: ...
+def leaderboard(env_id: str, connect: str | None = None, timeout_s: float = 5.0) -> list[dict[str, Any]]: ...
