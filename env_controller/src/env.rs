@@ -10,11 +10,11 @@ use offworld_recorder::{EnvRecorder, RecordTo, StepRecord};
 use offworld_runtime::codec::{self, Encoded};
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
-    Action, AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec,
-    EnvState, EnvStatus, EpisodeEvent, EpisodeRecordEntry, ExperimentInfo, ExperimentRecord,
-    Experiments, ExperimentsRequest, Header, Leaderboard, MotionCommand, ObsOptions, OpenReply,
-    OpenRequest, Pose2D, RecordingFile, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
-    Time, Twist, EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
+    AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState,
+    EnvStatus, EpisodeEvent, EpisodeRecordEntry, ExperimentInfo, ExperimentRecord, Experiments,
+    ExperimentsRequest, Header, Leaderboard, MotionCommand, ObsOptions, OpenReply, OpenRequest,
+    Pose2D, RecordingFile, ResetReply, ResetRequest, Seed, StepReply, StepRequest, Time, Twist,
+    EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
@@ -579,7 +579,7 @@ impl EnvServer {
         let answered = answer.complete().await?;
         let lease = self.holder(&mut state, &req.session_id)?;
         let index = lease.experiment.episodes;
-        let experiment = lease.experiment.name.clone();
+        let experiment = (lease.experiment.name.clone(), lease.experiment.id);
         let recorded = self.recorder.is_some().then(|| RecordedEpisode {
             header: Header::new(Time::now(), "world"),
             env_id: self.env.to_string(),
@@ -622,9 +622,10 @@ impl EnvServer {
             .map_err(WireError::from)?;
         lease.experiment.episodes += 1;
         state.episode = Some(episode);
+        let event = episode_event(&experiment, index, 0, observe.seq, None, 0.0);
         if let (Some(recorder), Some(info)) = (&self.recorder, recorded) {
             recorder.begin(info).await;
-            let step = recorded_step(index, 0, None, observe.seq, None, None, 0.0);
+            let step = Step::from_event(&event, None, None);
             self.record_step(frame, &answered, step, None).await;
         }
         let reply = ResetReply {
@@ -633,8 +634,7 @@ impl EnvServer {
         };
         let reply = with_observation(&reply, answered)?
             .ok_or_else(|| WireError::internal("a reset was replied where its frame arrived"))?;
-        self.publish_event(&experiment, index, 0, 0.0, 0.0, false, false, None)
-            .await;
+        self.publish_event(&event).await;
         Ok(reply)
     }
 
@@ -664,7 +664,8 @@ impl EnvServer {
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
         let lease = self.holder(&mut state, &req.session_id)?;
-        let (obs, experiment) = (lease.obs, lease.experiment.name.clone());
+        let obs = lease.obs;
+        let experiment = (lease.experiment.name.clone(), lease.experiment.id);
         if let Some(message) = &state.maintenance {
             return Err(WireError::unavailable(format!("in maintenance: {message}")));
         }
@@ -723,32 +724,15 @@ impl EnvServer {
         episode.steps = step;
         episode.episode_return += outcome.reward;
         let (steps, ret) = (episode.steps, episode.episode_return);
+        let event = episode_event(&experiment, index, steps, motion.seq, Some(&outcome), ret);
         if self.recorder.is_some() {
-            let recorded = recorded_step(
-                index,
-                step,
-                Some(&req.action),
-                motion.seq,
-                Some(&motion),
-                Some(&outcome),
-                ret,
-            );
+            let recorded = Step::from_event(&event, Some(&req.action), Some(&motion));
             let command = Twist::planar(motion.linear_x, motion.angular_z);
             self.record_step(frame, &answered, recorded, Some((command, commanded_at)))
                 .await;
         }
         let reply = with_observation(&reply, answered)?;
-        self.publish_event(
-            &experiment,
-            index,
-            steps,
-            outcome.reward,
-            ret,
-            outcome.terminated,
-            outcome.truncated,
-            outcome.end.as_ref(),
-        )
-        .await;
+        self.publish_event(&event).await;
         match &outcome.end {
             Some(end) => self.finish_episode(&mut state, end).await?,
             None => self.save_progress(&mut state),
@@ -1095,68 +1079,40 @@ impl EnvServer {
             .await;
     }
 
-    #[allow(clippy::too_many_arguments)]
-    async fn publish_event(
-        &self,
-        experiment: &str,
-        episode_id: u64,
-        step: u32,
-        reward: f64,
-        episode_return: f64,
-        terminated: bool,
-        truncated: bool,
-        end: Option<&EndReason>,
-    ) {
-        let event = EpisodeEvent {
-            experiment: experiment.to_owned(),
-            episode_id,
-            step,
-            reward,
-            episode_return,
-            terminated,
-            truncated,
-            success: end == Some(&EndReason::Success),
-            end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
-        };
-        if let Err(e) = wire::publish(&self.events, &event) {
+    /// Publishes a step's (or a reset's) event for spectators, monitors
+    /// and subscriber-side recorders.
+    async fn publish_event(&self, event: &EpisodeEvent) {
+        if let Err(e) = wire::publish(&self.events, event) {
             tracing::warn!("reward publish failed: {e}");
         }
     }
 }
 
-/// A step as recorded (the recorder stamps it from its frame):
-/// the reset when `action` and `outcome` are `None`.
-fn recorded_step(
+/// The event of step `step` of episode `episode_id` in `experiment` (name,
+/// id), answered by the frame of command `command_seq`: the reset when
+/// `outcome` is `None`. The recorded `Step` is built from it
+/// ([`Step::from_event`]), so both say the same.
+fn episode_event(
+    experiment: &(String, i64),
     episode_id: u64,
     step: u32,
-    action: Option<&Action>,
     command_seq: u64,
-    motion: Option<&MotionCommand>,
     outcome: Option<&Outcome>,
     episode_return: f64,
-) -> Step {
-    let (action_discrete, action_continuous) = match action {
-        Some(Action::Discrete(i)) => (*i, Vec::new()),
-        Some(Action::Continuous(values)) => (-1, values.clone()),
-        None => (-1, Vec::new()),
-    };
+) -> EpisodeEvent {
     let end = outcome.and_then(|o| o.end.as_ref());
-    Step {
-        header: Header::default(),
+    EpisodeEvent {
+        experiment: experiment.0.clone(),
         episode_id,
         step,
-        command_seq,
-        action_discrete,
-        action_continuous,
-        linear_x: motion.map_or(0.0, |m| m.linear_x),
-        angular_z: motion.map_or(0.0, |m| m.angular_z),
-        duration_s: motion.map_or(0.0, |m| m.duration_s),
         reward: outcome.map_or(0.0, |o| o.reward),
         episode_return,
         terminated: outcome.is_some_and(|o| o.terminated),
         truncated: outcome.is_some_and(|o| o.truncated),
         success: end == Some(&EndReason::Success),
         end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
+        experiment_id: experiment.1,
+        command_seq,
     }
 }
 

@@ -338,11 +338,13 @@ impl Replay {
                 report.episode_id = Some(info.episode_id);
                 episode.env = Some(env);
                 episode.experiment = info.experiment;
+                episode.experiment_id = i64::try_from(info.experiment_id).unwrap_or(i64::MAX);
             }
             Some(Channel::Step) => {
                 let step: Step = data.decode(&message)?;
                 let env = episode.env(data.path())?;
                 self.worker.set_seq(&env, step.command_seq);
+                episode.command_seq = step.command_seq;
                 self.log_pending(data, &env, episode, Some(step.command_seq), report)?;
                 let event = EpisodeEvent {
                     experiment: episode.experiment.clone(),
@@ -354,6 +356,8 @@ impl Replay {
                     truncated: step.truncated,
                     success: step.success,
                     end_reason: step.end_reason,
+                    experiment_id: episode.experiment_id,
+                    command_seq: step.command_seq,
                 };
                 let logged =
                     self.worker
@@ -377,6 +381,9 @@ impl Replay {
                         truncated: false,
                         success: end.success,
                         end_reason: end.end_reason.clone(),
+                        experiment_id: episode.experiment_id,
+                        // No command of its own: the episode's last.
+                        command_seq: episode.command_seq,
                     };
                     let logged = self
                         .worker
@@ -484,6 +491,10 @@ struct Episode {
     env: Option<EnvId>,
     /// Its experiment's name.
     experiment: String,
+    /// Its experiment's id.
+    experiment_id: i64,
+    /// The last step's command.
+    command_seq: u64,
     /// The messages since the last `Step`: the next step's.
     pending: Vec<RecordedMessage>,
 }

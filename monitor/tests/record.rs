@@ -205,6 +205,8 @@ async fn publish_step(pubs: &Session, env: &EnvId, step: u32, last: bool) -> any
         } else {
             String::new()
         },
+        experiment_id: 1,
+        command_seq: seq,
     };
     put(pubs, &env.key(Topic::Reward), encode(&event)?, None).await?;
     Ok(())
@@ -499,6 +501,8 @@ async fn a_flood_of_frames_drops_frames_not_messages_and_never_blocks() -> anyho
             truncated: false,
             success: false,
             end_reason: String::new(),
+            experiment_id: 0,
+            command_seq: 1, // every frame of the flood is `camera_frame(1)`
         };
         wire::put(&session, &env.key(Topic::Reward), &event).await?;
     }

@@ -128,6 +128,19 @@ impl EpisodeFile {
         info: &EpisodeInfo,
         compression: Option<Compression>,
     ) -> Result<Self, RecordError> {
+        Self::create_annotated(path, info, &BTreeMap::new(), compression)
+    }
+
+    /// [`EpisodeFile::create`], with `notes` added to the `offworld.episode`
+    /// metadata record (what `EpisodeInfo` cannot say, e.g. who recorded
+    /// the file and which of its fields are unknown); `EpisodeInfo`'s own
+    /// keys win over notes of the same name.
+    pub fn create_annotated(
+        path: &Path,
+        info: &EpisodeInfo,
+        notes: &BTreeMap<String, String>,
+        compression: Option<Compression>,
+    ) -> Result<Self, RecordError> {
         let io = |e: std::io::Error| RecordError::io(path, e);
         if let Some(parent) = path.parent() {
             std::fs::create_dir_all(parent).map_err(io)?;
@@ -159,9 +172,11 @@ impl EpisodeFile {
             file.channels[slot] =
                 file.with_writer(|w| w.add_channel(schema, channel.topic(), "cdr", &metadata))?;
         }
+        let mut metadata = notes.clone();
+        metadata.extend(info.metadata());
         let metadata = Metadata {
             name: METADATA_NAME.to_owned(),
-            metadata: info.metadata(),
+            metadata,
         };
         file.with_writer(|w| w.write_metadata(&metadata))?;
         let started = stamp_ns(&info.header.stamp);

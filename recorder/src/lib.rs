@@ -7,11 +7,14 @@
 //! - [`episode_file`]: one episode, one file, crash-safe step by step;
 //! - [`recording`]: an env's recorder, fed by the controller, writing on a
 //!   thread of its own;
-//! - [`read`]: reading files back (summaries, recovering a crashed one).
+//! - [`read`]: reading files back (summaries, recovering a crashed one);
+//! - [`follow`]: recording from outside the controller, as a subscriber
+//!   (`recorder record`).
 //!
 //! The format is documented in `docs/recording.md`.
 
 pub mod episode_file;
+pub mod follow;
 pub mod msg;
 pub mod read;
 pub mod recording;

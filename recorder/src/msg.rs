@@ -2,7 +2,7 @@
 //! as their `.msg` files in `recorder/msg/offworld_msgs/msg/` define them,
 //! so the CDR the runtime's codec writes is what the schemas describe.
 
-use offworld_runtime::msg::Header;
+use offworld_runtime::msg::{Action, EpisodeEvent, Header, MotionCommand};
 use serde::{Deserialize, Serialize};
 
 /// `offworld_msgs/msg/Step`: one gym transition as the controller answered
@@ -39,6 +39,42 @@ pub struct Step {
     pub success: bool,
     /// Why the episode ended; empty while it runs.
     pub end_reason: String,
+}
+
+impl Step {
+    /// The step an [`EpisodeEvent`] reports (the controller's and a
+    /// subscriber's recordings build it alike): its counters and outcome,
+    /// the `action` asked for (none: the reset, or unknown to a
+    /// subscriber) and the `motion` commanded (none: the reset, or not
+    /// received). The header is stamped from the frame when written.
+    pub fn from_event(
+        event: &EpisodeEvent,
+        action: Option<&Action>,
+        motion: Option<&MotionCommand>,
+    ) -> Self {
+        let (action_discrete, action_continuous) = match action {
+            Some(Action::Discrete(i)) => (*i, Vec::new()),
+            Some(Action::Continuous(values)) => (-1, values.clone()),
+            None => (-1, Vec::new()),
+        };
+        Self {
+            header: Header::default(),
+            episode_id: event.episode_id,
+            step: event.step,
+            command_seq: event.command_seq,
+            action_discrete,
+            action_continuous,
+            linear_x: motion.map_or(0.0, |m| m.linear_x),
+            angular_z: motion.map_or(0.0, |m| m.angular_z),
+            duration_s: motion.map_or(0.0, |m| m.duration_s),
+            reward: event.reward,
+            episode_return: event.episode_return,
+            terminated: event.terminated,
+            truncated: event.truncated,
+            success: event.success,
+            end_reason: event.end_reason.clone(),
+        }
+    }
 }
 
 /// `offworld_msgs/msg/EpisodeInfo`: what an episode file holds.
@@ -123,4 +159,21 @@ pub struct EpisodeEnd {
     pub truncated: bool,
     /// `success`, `out_of_bounds`, `step_limit`, `aborted: …`, `recorder_stopped: …`.
     pub end_reason: String,
+}
+
+impl EpisodeEnd {
+    /// The end of episode `episode_id` for `end_reason`, now, with the
+    /// counters of its `last` step (none: ended before any was recorded).
+    pub fn after(episode_id: u64, last: Option<&Step>, end_reason: &str) -> Self {
+        Self {
+            header: Header::new(offworld_runtime::msg::Time::now(), "world"),
+            episode_id,
+            steps: last.map_or(0, |s| s.step),
+            episode_return: last.map_or(0.0, |s| s.episode_return),
+            success: last.is_some_and(|s| s.success),
+            terminated: last.is_some_and(|s| s.terminated),
+            truncated: last.is_some_and(|s| s.truncated),
+            end_reason: end_reason.to_owned(),
+        }
+    }
 }

@@ -2,6 +2,7 @@
 //! and end; a thread of its own writes the files, so a step never waits
 //! for the disk on a real env.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
@@ -163,6 +164,8 @@ enum Event {
     Begin {
         path: PathBuf,
         info: Box<EpisodeInfo>,
+        /// Added to the file's metadata record.
+        notes: BTreeMap<String, String>,
         /// The odometry last received before the episode began.
         odom: Option<Received>,
     },
@@ -278,6 +281,12 @@ impl EnvRecorder {
 
     /// Starts recording the episode `info` (ends one left open).
     pub async fn begin(&self, info: EpisodeInfo) {
+        self.begin_annotated(info, BTreeMap::new()).await;
+    }
+
+    /// [`EnvRecorder::begin`] with `notes` added to the file's metadata
+    /// record (see [`EpisodeFile::create_annotated`]).
+    pub async fn begin_annotated(&self, info: EpisodeInfo, notes: BTreeMap<String, String>) {
         let generation = self.generation.fetch_add(1, Ordering::AcqRel) + 1;
         let path = self.episode_path(&info);
         // Only a recent one says where the robot starts from.
@@ -294,6 +303,7 @@ impl EnvRecorder {
             Event::Begin {
                 path,
                 info: Box::new(info),
+                notes,
                 odom,
             },
         )
@@ -386,28 +396,7 @@ struct Open {
 impl Open {
     /// Ends the file with `end_reason` (the episode's own end unknown).
     fn stop(self, env: &EnvId, durable: bool, end_reason: &str) {
-        let end = match &self.last {
-            Some(step) => EpisodeEnd {
-                header: Header::new(Time::now(), "world"),
-                episode_id: self.episode_id,
-                steps: step.step,
-                episode_return: step.episode_return,
-                success: step.success,
-                terminated: step.terminated,
-                truncated: step.truncated,
-                end_reason: end_reason.to_owned(),
-            },
-            None => EpisodeEnd {
-                header: Header::new(Time::now(), "world"),
-                episode_id: self.episode_id,
-                steps: 0,
-                episode_return: 0.0,
-                success: false,
-                terminated: false,
-                truncated: false,
-                end_reason: end_reason.to_owned(),
-            },
-        };
+        let end = EpisodeEnd::after(self.episode_id, self.last.as_ref(), end_reason);
         finish(env, self.file, &end, durable);
     }
 }
@@ -463,7 +452,12 @@ fn handle(
         );
     }
     match event {
-        Event::Begin { path, info, odom } => {
+        Event::Begin {
+            path,
+            info,
+            notes,
+            odom,
+        } => {
             if let Some(current) = open.take() {
                 current.stop(env, durable, "recorder_stopped: a new episode began first");
             }
@@ -471,12 +465,13 @@ fn handle(
             // steps thousands of times a second and every cycle counts
             // (LZ4's frame checksum alone cost more than its compression).
             let compression = durable.then_some(Compression::Zstd);
-            let created = EpisodeFile::create(&path, &info, compression).and_then(|mut file| {
-                if let Some(odom) = odom {
-                    write_odom(&mut file, &odom)?;
-                }
-                Ok(file)
-            });
+            let created = EpisodeFile::create_annotated(&path, &info, &notes, compression)
+                .and_then(|mut file| {
+                    if let Some(odom) = odom {
+                        write_odom(&mut file, &odom)?;
+                    }
+                    Ok(file)
+                });
             match created {
                 Ok(file) => {
                     *open = Some(Open {

@@ -51,6 +51,32 @@ fn a_motion_fault_has_its_documented_bytes() {
 }
 
 #[test]
+fn an_episode_event_has_its_documented_bytes() {
+    // CDR aligns each primitive to its size, counted after the 4-byte
+    // header; the offsets are the body's.
+    let mut expected: Vec<u8> = Vec::new();
+    let mut row = |bytes: &[u8]| expected.extend_from_slice(bytes);
+    row(&[0x00, 0x01, 0x00, 0x00]); // header
+    row(&[10, 0, 0, 0]); // 0: experiment, its length with the NUL
+    row(b"dqn-depth\0"); // 4
+    row(&[0, 0]); // 14: pad
+    row(&[4, 0, 0, 0, 0, 0, 0, 0]); // 16: episode_id
+    row(&[17, 0, 0, 0]); // 24: step
+    row(&[0, 0, 0, 0]); // 28: pad
+    row(&[0, 0, 0, 0, 0, 0, 0xf0, 0x3f]); // 32: reward 1.0
+    row(&[0, 0, 0, 0, 0, 0, 0xf0, 0x3f]); // 40: episode_return 1.0
+    row(&[1, 0, 1]); // 48: terminated, truncated, success
+    row(&[0]); // 51: pad
+    row(&[17, 0, 0, 0]); // 52: end_reason, its length with the NUL
+    row(b"reached monolith\0"); // 56
+    row(&[0, 0, 0, 0, 0, 0, 0]); // 73: pad
+    row(&[3, 0, 0, 0, 0, 0, 0, 0]); // 80: experiment_id
+    row(&[35, 0, 0, 0, 0, 0, 0, 0]); // 88: command_seq
+    assert_eq!(expected.len(), 4 + 96);
+    assert_eq!(encode(&common::episode_event()).expect("event"), expected);
+}
+
+#[test]
 fn encode_into_reuses_the_buffer() {
     let frame = common::camera_frame();
     let mut buf = Vec::with_capacity(4096);

@@ -737,6 +737,8 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                 truncated: false,
                 success: true,
                 end_reason: "reached monolith".into(),
+                experiment_id: 3,
+                command_seq: 35,
             },
         ),
         seed(

@@ -382,6 +382,12 @@ pub struct EpisodeEvent {
     pub success: bool,
     /// Why the episode ended ("" while running).
     pub end_reason: String,
+    /// The experiment's store id (the `exp-NNNNNN` of its recordings).
+    pub experiment_id: i64,
+    /// The `seq` of the [`crate::msg::MotionCommand`] whose `CameraFrame`
+    /// is this step's observation (the reset's observing command for step
+    /// 0): pairs the event with its frame, pose and command.
+    pub command_seq: u64,
 }
 
 /// Availability of an env.

@@ -272,6 +272,8 @@ pub fn episode_event() -> EpisodeEvent {
         truncated: false,
         success: true,
         end_reason: "reached monolith".into(),
+        experiment_id: 3,
+        command_seq: 35,
     }
 }
 
