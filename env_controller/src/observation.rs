@@ -14,7 +14,7 @@ pub const MAX_SIDE: u32 = 1024;
 pub fn validate_options(opts: &ObsOptions) -> Result<(), WireError> {
     if opts.width == 0 || opts.height == 0 || opts.width > MAX_SIDE || opts.height > MAX_SIDE {
         return Err(WireError::bad_request(format!(
-            "resolution {}x{} outside 1..={MAX_SIDE}",
+            "resolution (height, width) = ({}, {}): each side must be 1..={MAX_SIDE} pixels",
             opts.height, opts.width
         )));
     }

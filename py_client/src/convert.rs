@@ -78,10 +78,14 @@ pub fn action(space: &ActionSpace, value: &Bound<'_, PyAny>) -> PyResult<Action>
 /// Observation options from the Python keyword arguments.
 pub fn obs_options(
     channels: &str,
-    height: u32,
-    width: u32,
+    height: i64,
+    width: i64,
     depth_format: &str,
 ) -> PyResult<ObsOptions> {
+    use offworld_env_controller::observation::{validate_options, MAX_SIDE};
+    // Python ints of any size: a negative or huge side is named, not an
+    // OverflowError from the conversion.
+    let side = |v: i64| u32::try_from(v).unwrap_or(MAX_SIDE + 1);
     let channels = match channels {
         "depth" => Channels::DepthOnly,
         "rgb" => Channels::RgbOnly,
@@ -97,12 +101,18 @@ pub fn obs_options(
             )))
         }
     };
-    Ok(ObsOptions {
+    let options = ObsOptions {
         channels,
-        height,
-        width,
+        height: side(height),
+        width: side(width),
         depth_format,
-    })
+    };
+    if validate_options(&options).is_err() {
+        return Err(crate::errors::raise_bad_request(format!(
+            "resolution (height, width) = ({height}, {width}): each side must be 1..={MAX_SIDE} pixels"
+        )));
+    }
+    Ok(options)
 }
 
 /// `learning_type` from its string.

@@ -51,3 +51,9 @@ pub fn to_py(e: WireError) -> PyErr {
 pub fn local(message: String) -> PyErr {
     raise("OffWorldGymError", message, None)
 }
+
+/// A caller's mistake found before anything is sent: `BadRequest` (also a
+/// `ValueError`) without a server code.
+pub fn raise_bad_request(message: String) -> PyErr {
+    raise("BadRequest", message, None)
+}

@@ -77,8 +77,8 @@ impl NativeEnvs {
         learning_type: &str,
         algorithm_mode: &str,
         channels: &str,
-        height: u32,
-        width: u32,
+        height: i64,
+        width: i64,
         depth_format: &str,
         rerun: Option<String>,
         record: Option<String>,
@@ -103,7 +103,7 @@ impl NativeEnvs {
         let target = match (connect, env_ids) {
             (None, None) if realm == "sim" => Target::Embedded {
                 task: task.clone(),
-                resolution: (width, height),
+                resolution: (obs.width, obs.height),
                 count: num_envs,
                 record: record.map(std::path::PathBuf::from),
             },

@@ -200,6 +200,28 @@ def test_render_returns_rgb():
     frame = env.render()
     assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8 and frame.max() > 0
     env.close()
+    # Metres: the observation is float32, the rendered image still uint8,
+    # the same pixels as the observation's colour channels.
+    metres = gymnasium.make(
+        "OffWorldMonolithDiscreteSim-v0",
+        resolution=(24, 32),
+        render_mode="rgb_array",
+        depth_format="meters",
+        channel_type=Channels.RGBD,
+    )
+    obs, _ = metres.reset(seed=2)
+    frame = metres.render()
+    assert obs.dtype == np.float32 and frame.dtype == np.uint8
+    assert np.array_equal(frame, obs[..., :3].astype(np.uint8))
+    metres.close()
+
+
+@pytest.mark.parametrize("resolution", [(-1, 84), (0, 84), (84, 2**40), (4800, 6400)])
+def test_a_resolution_out_of_range_is_named_with_the_accepted_range(resolution):
+    with pytest.raises(errors.BadRequest, match=r"resolution \(height, width\) = .*each side must be 1\.\.=1024") as info:
+        gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=resolution)
+    assert f"({resolution[0]}, {resolution[1]})" in str(info.value)
+    assert isinstance(info.value, ValueError)
 
 
 def test_vector_env_shapes_and_autoreset():

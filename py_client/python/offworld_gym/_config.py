@@ -154,9 +154,15 @@ def action_space(spec: dict[str, Any]) -> gymnasium.spaces.Space:
 
 
 def split(r: Resolved, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """(observation as requested, RGB image for rendering or None)."""
+    """(observation as requested, RGB image for rendering or None). The
+    image is uint8 as gymnasium's ``rgb_array`` wants, also when the
+    observation is float32 (``depth_format="meters"`` keeps colour in 0..255)."""
     if r.render_extra_rgb:
-        return obs[..., 3:], obs[..., :3]
+        return obs[..., 3:], _rgb8(obs[..., :3])
     if r.channels in (Channels.RGB_ONLY, Channels.RGBD):
-        return obs, obs[..., :3]
+        return obs, _rgb8(obs[..., :3])
     return obs, None
+
+
+def _rgb8(rgb: np.ndarray) -> np.ndarray:
+    return rgb if rgb.dtype == np.uint8 else rgb.astype(np.uint8)
