@@ -3,7 +3,7 @@
 //! derive from both `OffWorldGymError` and the natural builtin (`NotFound`
 //! is a `LookupError` too); here each server error code picks its class.
 
-use offworld_runtime::{ErrorCode, WireError};
+use offworld_runtime::WireError;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 
@@ -26,24 +26,11 @@ fn raise(class_name: &str, message: String, code: Option<u16>) -> PyErr {
     })
 }
 
-/// The Python class of each server error code.
-fn class_of(code: ErrorCode) -> &'static str {
-    match code {
-        ErrorCode::BadRequest => "BadRequest",
-        ErrorCode::Unauthorized => "Unauthorized",
-        ErrorCode::NotFound => "NotFound",
-        ErrorCode::Busy => "Busy",
-        ErrorCode::InvalidState => "InvalidState",
-        ErrorCode::Unavailable => "Unavailable",
-        ErrorCode::Timeout => "Timeout",
-        ErrorCode::Internal => "Internal",
-    }
-}
-
 /// A wire error as the matching Python exception; `.code` is set too.
 pub fn to_py(e: WireError) -> PyErr {
     let message = format!("{} ({}): {}", e.code.name(), e.code as u16, e.message);
-    raise(class_of(e.code), message, Some(e.code as u16))
+    // The class of each code has the code's name (`ErrorCode::name`).
+    raise(e.code.name(), message, Some(e.code as u16))
 }
 
 /// A failure of this process's side (the runtime, the monitor): an
