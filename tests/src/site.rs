@@ -265,6 +265,9 @@ impl RouterSite {
         let child = command
             .args(&args)
             .env("RUST_LOG", log)
+            // As deploy/README.md runs it: glibc's default arenas double
+            // the router's growth at client reconnects (docs/soak.md).
+            .env("MALLOC_ARENA_MAX", "2")
             .stdout(stdout)
             .stderr(stderr)
             .spawn()
