@@ -255,7 +255,21 @@ impl Rig {
             )
             .await
             .unwrap_or_else(|e| panic!("{when}: open {env}: {e}"));
-            let reset = gym.reset(Seed::Fixed(7)).await;
+            // A robot that has not yet heard the controller's first
+            // heartbeat answers `Unavailable` (transient, like any start
+            // race); e-stop refusals are `InvalidState` and never retried.
+            let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+            let reset = loop {
+                match gym.reset(Seed::Fixed(7)).await {
+                    Err(e)
+                        if e.code == ErrorCode::Unavailable
+                            && tokio::time::Instant::now() < deadline =>
+                    {
+                        tokio::time::sleep(Duration::from_millis(100)).await;
+                    }
+                    reset => break reset,
+                }
+            };
             match (model.refusal(), reset) {
                 (Some(refusal), Err(e)) => {
                     assert_eq!(e.code, ErrorCode::InvalidState, "{when}: {env}: {e}");
