@@ -55,6 +55,42 @@ fn fast_renderer_matches_exact_reference_for_a_level_camera() {
     assert!(bad * 1000 <= total, "{bad} of {total} pixels disagree");
 }
 
+/// A pose where the column walk's skip-ahead used to step back to a cell
+/// it had just left, forever (found by a soak: the twin's worker hung at
+/// 100 % CPU and stopped answering). The render must finish, and agree
+/// with the exact reference.
+#[test]
+fn a_column_walk_that_used_to_loop_forever_finishes_and_is_exact() {
+    let world = WorldSpec::builtin("monolith").expect("world");
+    let scene = Scene::build(&world);
+    let intr = Intrinsics::resized(&world.camera, 84, 84);
+    let pose = CameraPose::level(
+        [
+            f32::from_bits(3_204_819_284),
+            f32::from_bits(1_066_958_835),
+            f32::from_bits(1_053_088_554),
+        ],
+        f32::from_bits(3_192_415_392),
+    );
+    let (done, rendered) = std::sync::mpsc::channel();
+    {
+        let (scene, light) = (scene.clone(), world.light.clone());
+        // A thread, so that a regression fails the test instead of hanging it.
+        std::thread::spawn(move || {
+            let mut fast = ColumnRenderer::new(intr, &light);
+            let mut frame = RgbdFrame::new(84, 84);
+            fast.render(&scene, &pose, &mut frame);
+            let _ = done.send(frame);
+        });
+    }
+    let frame = rendered
+        .recv_timeout(std::time::Duration::from_secs(60))
+        .expect("the render never finished: the column walk loops");
+    let reference = ExactRenderer::new(intr, &world.light, &scene).render(&pose);
+    let (bad, total) = agree(&frame, &reference);
+    assert!(bad * 1000 <= total, "{bad} of {total} pixels disagree");
+}
+
 #[test]
 fn monolith_seen_at_its_distance_at_the_image_centre() {
     let world = WorldSpec::builtin("monolith").expect("world");

@@ -196,11 +196,17 @@ impl ColumnRenderer {
                 if slope <= 0.0 {
                     break;
                 }
-                t = (c[2] - max_h) / slope;
-                if t >= t_end {
+                let t_clear = (c[2] - max_h) / slope;
+                if t_clear >= t_end {
                     break;
                 }
-                cell = line.cell_at(t, terrain);
+                // Only ever forward: rounding can leave the ray "above"
+                // max_h at a `t` already past `t_clear`, and going back to
+                // `t_clear`'s cell there walked the same cell forever.
+                if t_clear > t {
+                    t = t_clear;
+                    cell = line.cell_at(t, terrain);
+                }
             }
             let cell_end = cell.t_next_x.min(cell.t_next_y).min(t_end);
             // The open ray is lowest at the cell's far edge: above the
