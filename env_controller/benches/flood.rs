@@ -25,7 +25,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
@@ -140,6 +140,7 @@ async fn main() -> anyhow::Result<()> {
         task: "MonolithDiscrete".into(),
         resolution: Some((84, 84)),
         seed: 0,
+        profile: TwinProfile::default(),
     };
     let mut embedded = Embedded::start_with(
         &controller,

@@ -47,6 +47,7 @@ async fn steps_per_s(
             resolution: (w, h),
             count: 1,
             record: record.map(Path::to_owned),
+            twin_profile: offworld_sim_twin::TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

@@ -10,7 +10,7 @@
 
 use std::time::{Duration, Instant};
 
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
@@ -76,6 +76,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
         task: "MonolithDiscrete".into(),
         resolution: Some((w, h)),
         seed: 0,
+        profile: TwinProfile::default(),
     };
     let embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {

@@ -26,6 +26,7 @@ async fn main() -> anyhow::Result<()> {
             resolution: (w, h),
             count: 1,
             record: None,
+            twin_profile: offworld_sim_twin::TwinProfile::default(),
         },
         task,
     )

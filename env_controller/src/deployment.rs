@@ -7,7 +7,7 @@ use offworld_runtime::zenoh::Session;
 use offworld_runtime::{client, SessionConfig};
 
 use crate::admission::RequestLimits;
-use crate::embedded::{Embedded, SimEnv};
+use crate::embedded::{Embedded, SimEnv, TwinProfile};
 use crate::env::EnvOptions;
 use crate::error::ControllerError;
 use crate::store::Store;
@@ -25,6 +25,8 @@ pub enum Target {
         count: usize,
         /// Record every episode under this directory (`docs/recording.md`).
         record: Option<std::path::PathBuf>,
+        /// Every twin's profile (`docs/twin-profile.md`).
+        twin_profile: TwinProfile,
     },
     /// Use envs served elsewhere.
     Remote {
@@ -66,6 +68,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
             resolution,
             count,
             record,
+            twin_profile,
         } => {
             let session = SessionConfig::isolated()
                 .open()
@@ -84,6 +87,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                     task: task.clone(),
                     resolution: Some(resolution),
                     seed: i as u64,
+                    profile: twin_profile,
                 })
                 .collect();
             let embedded = Embedded::start_with(

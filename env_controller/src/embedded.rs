@@ -6,6 +6,9 @@ use std::time::Duration;
 
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::zenoh::Session;
+/// The twin profile an embedded env's twin is built with (re-exported so
+/// front ends need not depend on the twin crate).
+pub use offworld_sim_twin::TwinProfile;
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
 
 use crate::admission::RequestLimits;
@@ -26,6 +29,9 @@ pub struct SimEnv {
     pub resolution: Option<(u32, u32)>,
     /// Spawn sampler seed before any `reset(seed)`.
     pub seed: u64,
+    /// The physical robot the twin behaves like (`docs/twin-profile.md`);
+    /// the default is the nominal twin.
+    pub profile: TwinProfile,
 }
 
 /// A running in-process deployment; stops when dropped.
@@ -84,6 +90,7 @@ impl Embedded {
             let mut config = TwinConfig::builtin(&task.world.name)
                 .map_err(|e| ControllerError::Config(e.to_string()))?;
             config.resolution = sim.resolution;
+            config.profile = sim.profile;
             let twin = SimTwin::new(config).map_err(|e| ControllerError::Config(e.to_string()))?;
             twins.push(
                 TwinNode::spawn(session, sim.env.clone(), twin, Clock::Lockstep)

@@ -13,8 +13,8 @@ use offworld_runtime::msg::{
     AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState,
     EnvStatus, EpisodeEvent, EpisodeRecordEntry, ExperimentInfo, ExperimentRecord, Experiments,
     ExperimentsRequest, Header, Leaderboard, MotionCommand, ObsOptions, OpenReply, OpenRequest,
-    Pose2D, RecordingFile, ResetReply, ResetRequest, Seed, StepReply, StepRequest, Time, Twist,
-    EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
+    Pose2D, RecordingFile, ResetAccuracy, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
+    Time, Twist, EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
@@ -119,8 +119,8 @@ struct Episode {
     steps: u32,
     episode_return: f64,
     over: bool,
-    requested: Pose2D,
-    achieved: Pose2D,
+    /// Where its reset asked for and put the robot, and how long it took.
+    reset: ResetAccuracy,
     started_ms: i64,
     /// When its progress was last saved ([`PROGRESS_EVERY`]).
     saved: Instant,
@@ -142,8 +142,7 @@ impl Episode {
             episode_return: self.episode_return,
             success: end == Some(&EndReason::Success),
             end_reason: end.map_or(IN_PROGRESS, EndReason::as_str).to_owned(),
-            requested_start: [self.requested.x, self.requested.y, self.requested.yaw],
-            achieved_start: [self.achieved.x, self.achieved.y, self.achieved.yaw],
+            reset: self.reset,
             started_ms: self.started_ms,
             ended_ms,
         }
@@ -156,6 +155,8 @@ struct State {
     episode: Option<Episode>,
     sampler: SpawnSampler,
     seq: u64,
+    /// The last reset's accuracy, for `status`.
+    last_reset: ResetAccuracy,
 }
 
 /// What `status` needs of the state, posted (under the state lock) at
@@ -167,6 +168,7 @@ struct Posted {
     maintenance: Option<String>,
     /// The lease's end: when it lapses, and in Unix ms.
     lease: Option<(Instant, i64)>,
+    last_reset: ResetAccuracy,
 }
 
 impl Posted {
@@ -174,6 +176,7 @@ impl Posted {
         Self {
             maintenance: state.maintenance.clone(),
             lease: state.lease.as_ref().map(|l| (l.expires, l.expires_unix_ms)),
+            last_reset: state.last_reset,
         }
     }
 }
@@ -275,6 +278,7 @@ impl EnvServer {
                 episode: None,
                 sampler: SpawnSampler::new(options.seed),
                 seq: 0,
+                last_reset: ResetAccuracy::default(),
             }),
             posted: watch::Sender::new(Posted::default()),
             published: AsyncMutex::new(None),
@@ -356,6 +360,7 @@ impl EnvServer {
             env_id: self.env.to_string(),
             state: self.state_from(posted),
             estop: self.estops.state(),
+            last_reset: posted.last_reset,
         }
     }
 
@@ -538,6 +543,7 @@ impl EnvServer {
 
     /// `reset`: spawn (seeded), move the robot there, observe.
     pub async fn reset(&self, req: ResetRequest) -> Result<Encoded<ResetReply>, WireError> {
+        let began = Instant::now();
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
         self.holder(&mut state, &req.session_id)?;
@@ -602,16 +608,17 @@ impl EnvServer {
             requested_start: [target.x, target.y, target.yaw],
         });
         let achieved = answered.pose().planar();
-        tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, "reset");
+        let accuracy =
+            ResetAccuracy::measure(target, achieved, began.elapsed().as_secs_f64(), now_ms());
+        tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, ?accuracy, "reset");
         let episode = Episode {
             index,
             seed,
             steps: 0,
             episode_return: 0.0,
             over: false,
-            requested: target,
-            achieved,
-            started_ms: now_ms(),
+            reset: accuracy,
+            started_ms: accuracy.unix_ms,
             saved: Instant::now(),
         };
         // On record from its first moment: a controller killed mid-episode
@@ -622,6 +629,8 @@ impl EnvServer {
             .map_err(WireError::from)?;
         lease.experiment.episodes += 1;
         state.episode = Some(episode);
+        state.last_reset = accuracy;
+        self.publish_status(&mut state).await;
         let event = episode_event(&experiment, index, 0, observe.seq, None, 0.0);
         if let (Some(recorder), Some(info)) = (&self.recorder, recorded) {
             recorder.begin(info).await;

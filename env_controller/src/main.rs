@@ -1,7 +1,7 @@
 //! `env_controller`: the gym server and its record-keeping CLI.
 //!
 //! ```text
-//! env_controller serve --env sim/monolith-0=MonolithDiscrete [--embedded-twins]
+//! env_controller serve --env sim/monolith-0=MonolithDiscrete [--embedded-twins [--twin-profile FILE]]
 //! env_controller users add alice [--operator]
 //! env_controller experiments list
 //! env_controller leaderboard --env sim/monolith-0
@@ -14,7 +14,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::link::LinkSeals;
 use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::store::BookingRules;
@@ -49,6 +49,10 @@ enum Command {
         /// Also run an in-process sim twin for every `sim/` env.
         #[arg(long)]
         embedded_twins: bool,
+        /// The embedded twins behave like this physical robot (a twin
+        /// profile, docs/twin-profile.md); default: the nominal twin.
+        #[arg(long, value_name = "FILE", requires = "embedded_twins")]
+        twin_profile: Option<PathBuf>,
         /// Real envs also put the robot's pose and distance to the monolith
         /// in each step's info (sim envs always do): privileged information.
         #[arg(long)]
@@ -169,6 +173,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Serve {
             envs,
             embedded_twins,
+            twin_profile,
             share_real_pose,
             record,
             lease_idle_s,
@@ -186,6 +191,11 @@ async fn main() -> anyhow::Result<()> {
                 .iter()
                 .map(|e| parse_env(e))
                 .collect::<Result<_, _>>()?;
+            // Read before anything starts: a bad file names itself and its field.
+            let twin_profile = match &twin_profile {
+                Some(path) => TwinProfile::load(path)?,
+                None => TwinProfile::default(),
+            };
             let seals = LinkSeals {
                 command: seals.command()?.map(|key| Arc::new(Sealer::new(key))),
                 tracker: seals.tracker()?,
@@ -233,6 +243,7 @@ async fn main() -> anyhow::Result<()> {
                         task: task.name.clone(),
                         resolution: None,
                         seed: 0,
+                        profile: twin_profile,
                     })
                     .collect();
                 Running::Embedded(

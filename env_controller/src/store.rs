@@ -11,9 +11,11 @@ use std::sync::{Mutex, MutexGuard, PoisonError};
 
 use offworld_runtime::msg::{
     AlgorithmMode, Booking, EpisodeRecordEntry, ExperimentRecord, LeaderboardEntry, LearningType,
+    Pose2D, ResetAccuracy,
 };
 use rand::Rng;
 use rusqlite::{params, Connection, OptionalExtension};
+use rusqlite_migration::{Migrations, M};
 use sha2::{Digest, Sha256};
 
 use crate::error::ControllerError;
@@ -53,10 +55,8 @@ pub struct EpisodeRecord {
     pub success: bool,
     /// Why it ended.
     pub end_reason: String,
-    /// Spawn pose asked for (x, y, yaw).
-    pub requested_start: [f64; 3],
-    /// Spawn pose reached (x, y, yaw): the reset-accuracy record.
-    pub achieved_start: [f64; 3],
+    /// Spawn pose asked for and reached, and how long the reset took.
+    pub reset: ResetAccuracy,
     /// Unix ms.
     pub started_ms: i64,
     /// Unix ms.
@@ -72,8 +72,9 @@ fn insert_episode(
 ) -> Result<(), ControllerError> {
     tx.execute(
         "INSERT INTO episodes (experiment_id, episode_index, seed, steps, episode_return, success, end_reason,
-            requested_x, requested_y, requested_yaw, achieved_x, achieved_y, achieved_yaw, started_ms, ended_ms)
-         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
+            requested_x, requested_y, requested_yaw, achieved_x, achieved_y, achieved_yaw, started_ms, ended_ms,
+            reset_us)
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
         params![
             ep.experiment_id,
             ep.episode_index as i64,
@@ -82,14 +83,17 @@ fn insert_episode(
             ep.episode_return,
             ep.success,
             ep.end_reason,
-            ep.requested_start[0],
-            ep.requested_start[1],
-            ep.requested_start[2],
-            ep.achieved_start[0],
-            ep.achieved_start[1],
-            ep.achieved_start[2],
+            ep.reset.requested.x,
+            ep.reset.requested.y,
+            ep.reset.requested.yaw,
+            ep.reset.achieved.x,
+            ep.reset.achieved.y,
+            ep.reset.achieved.yaw,
             ep.started_ms,
-            ep.ended_ms
+            ep.ended_ms,
+            ep.reset
+                .measured
+                .then(|| (ep.reset.duration_s * 1e6).round() as i64)
         ],
     )
     .map_err(db)?;
@@ -99,11 +103,32 @@ fn insert_episode(
 /// WAL with `synchronous = FULL`: a committed transaction (an episode's
 /// record, a booking) is on disk before the call returns, so it survives a
 /// killed process and a power cut alike; one fsync per episode start and
-/// end is nothing beside a robot's step.
-const SCHEMA: &str = "
+/// end is nothing beside a robot's step. (Outside the migrations: a
+/// journal mode cannot change inside their transaction.)
+const PRAGMAS: &str = "
 PRAGMA journal_mode = WAL;
 PRAGMA synchronous = FULL;
 PRAGMA foreign_keys = ON;
+";
+
+/// The schema's versions, oldest first: SQLite's `user_version` says how
+/// many a database has applied, and opening it applies the rest in one
+/// transaction. Append a migration for every change; never edit one that
+/// has shipped (site databases have applied it).
+const MIGRATIONS: &[M<'static>] = &[
+    // 1: the schema as it was before versions were recorded. `IF NOT
+    // EXISTS`, so a database made then (user_version 0, tables present)
+    // takes it as a no-op.
+    M::up(SCHEMA_1),
+    // 2: how long each reset took, µs (a twin's takes well under a ms;
+    // NULL for the episodes before).
+    M::up("ALTER TABLE episodes ADD COLUMN reset_us INTEGER;"),
+];
+
+/// The schema version this build writes.
+pub const SCHEMA_VERSION: usize = MIGRATIONS.len();
+
+const SCHEMA_1: &str = "
 CREATE TABLE IF NOT EXISTS users (
     id INTEGER PRIMARY KEY,
     name TEXT NOT NULL UNIQUE,
@@ -206,8 +231,23 @@ impl Store {
         Self::init(Connection::open_in_memory().map_err(db)?)
     }
 
-    fn init(conn: Connection) -> Result<Self, ControllerError> {
-        conn.execute_batch(SCHEMA).map_err(db)?;
+    fn init(mut conn: Connection) -> Result<Self, ControllerError> {
+        let migrations = Migrations::from_slice(MIGRATIONS);
+        // Refuse a database a newer build made before touching it: its
+        // data may depend on columns this build would not write.
+        let version: usize = conn
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .map_err(db)?;
+        if version > SCHEMA_VERSION {
+            return Err(ControllerError::Store(format!(
+                "the database has schema version {version}, newer than this env_controller's \
+                 {SCHEMA_VERSION}: run the env_controller that wrote it, or a newer one"
+            )));
+        }
+        conn.execute_batch(PRAGMAS).map_err(db)?;
+        migrations
+            .to_latest(&mut conn)
+            .map_err(|e| ControllerError::Store(format!("migrating the schema: {e}")))?;
         conn.execute(
             "INSERT OR IGNORE INTO users (name, token_sha256, role, created_ms) VALUES (?1, ?2, 'user', ?3)",
             params![ANONYMOUS, hash_token(""), now_ms()],
@@ -494,7 +534,8 @@ impl Store {
         let mut stmt = self
             .conn
             .prepare(
-                "SELECT episode_index, seed, steps, episode_return, success, end_reason, started_ms, ended_ms
+                "SELECT episode_index, seed, steps, episode_return, success, end_reason, started_ms, ended_ms,
+                        requested_x, requested_y, requested_yaw, achieved_x, achieved_y, achieved_yaw, reset_us
                  FROM episodes WHERE experiment_id = ?1 AND episode_index >= ?2
                  ORDER BY episode_index LIMIT ?3",
             )
@@ -502,6 +543,28 @@ impl Store {
         let rows = stmt
             .query_map(params![experiment_id, from, limit], |r| {
                 let seed = r.get::<_, Option<i64>>(1)?;
+                let pose = |i| -> rusqlite::Result<Pose2D> {
+                    Ok(Pose2D {
+                        x: r.get(i)?,
+                        y: r.get(i + 1)?,
+                        yaw: r.get(i + 2)?,
+                    })
+                };
+                let (requested, achieved) = (pose(8)?, pose(11)?);
+                let started_unix_ms = r.get(6)?;
+                // The reset ended where the episode started.
+                let reset = match r.get::<_, Option<i64>>(14)? {
+                    Some(us) => ResetAccuracy::measure(
+                        requested,
+                        achieved,
+                        us as f64 / 1e6,
+                        started_unix_ms,
+                    ),
+                    None => ResetAccuracy {
+                        measured: false,
+                        ..ResetAccuracy::measure(requested, achieved, 0.0, 0)
+                    },
+                };
                 Ok(EpisodeRecordEntry {
                     index: r.get::<_, i64>(0)? as u64,
                     seeded: seed.is_some(),
@@ -510,8 +573,9 @@ impl Store {
                     episode_return: r.get(3)?,
                     success: r.get(4)?,
                     end_reason: r.get(5)?,
-                    started_unix_ms: r.get(6)?,
+                    started_unix_ms,
                     ended_unix_ms: r.get(7)?,
+                    reset,
                     recordings: Vec::new(),
                 })
             })
@@ -1038,6 +1102,170 @@ impl Store {
 mod tests {
     use super::*;
 
+    /// A scratch directory removed on drop (no tempfile crate, see
+    /// `tests/gym.rs`).
+    struct ScratchDir(std::path::PathBuf);
+
+    impl ScratchDir {
+        fn new() -> Self {
+            let dir = std::env::temp_dir().join(format!(
+                "offworld-store-test-{}",
+                offworld_runtime::client::random_id()
+            ));
+            std::fs::create_dir_all(&dir).expect("scratch dir");
+            Self(dir)
+        }
+    }
+
+    impl Drop for ScratchDir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn user_version(path: &Path) -> usize {
+        Connection::open(path)
+            .expect("open")
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .expect("user_version")
+    }
+
+    #[test]
+    fn the_migrations_are_valid() {
+        Migrations::from_slice(MIGRATIONS)
+            .validate()
+            .expect("valid migrations");
+    }
+
+    #[test]
+    fn a_database_from_before_schema_versions_is_migrated_with_its_records() {
+        let dir = ScratchDir::new();
+        let path = dir.0.join("site.db");
+        {
+            // What every controller before schema versions made.
+            let old = Connection::open(&path).expect("open");
+            old.execute_batch(PRAGMAS).expect("pragmas");
+            old.execute_batch(SCHEMA_1).expect("schema");
+            old.execute_batch(
+                "INSERT INTO users (name, token_sha256, role, created_ms) VALUES ('ada', 'x', 'user', 1);
+                 INSERT INTO experiments (user_id, env_id, task, name, learning_type, algorithm_mode, created_ms, updated_ms)
+                     VALUES (1, 'real/a', 'MonolithDiscrete', 'old', 'end2end', 'train', 1, 1);
+                 INSERT INTO episodes (experiment_id, episode_index, seed, steps, episode_return, success, end_reason,
+                     requested_x, requested_y, requested_yaw, achieved_x, achieved_y, achieved_yaw, started_ms, ended_ms)
+                     VALUES (1, 0, 7, 12, 1.0, 1, 'success', 1.0, 2.0, 0.5, 1.0, 2.03, 0.25, 1000, 2000);",
+            )
+            .expect("old rows");
+        }
+        assert_eq!(user_version(&path), 0);
+        let store = Store::open(&path).expect("migrated");
+        assert_eq!(user_version(&path), SCHEMA_VERSION);
+        let episodes = store.episodes(1).expect("episodes");
+        assert_eq!(episodes.len(), 1);
+        let reset = episodes[0].reset;
+        assert!(!reset.measured, "an old row has no reset duration");
+        assert_eq!(
+            (reset.requested, reset.achieved),
+            (
+                Pose2D {
+                    x: 1.0,
+                    y: 2.0,
+                    yaw: 0.5
+                },
+                Pose2D {
+                    x: 1.0,
+                    y: 2.03,
+                    yaw: 0.25
+                }
+            )
+        );
+        assert_eq!((episodes[0].steps, episodes[0].success), (12, true));
+        drop(store);
+        // Opening it again changes nothing.
+        Store::open(&path).expect("reopened");
+        assert_eq!(user_version(&path), SCHEMA_VERSION);
+    }
+
+    #[test]
+    fn a_database_from_a_newer_build_is_refused_and_left_untouched() {
+        let dir = ScratchDir::new();
+        let path = dir.0.join("site.db");
+        let store = Store::open(&path).expect("store");
+        store.add_user("ada", false).expect("user");
+        drop(store);
+        let future = SCHEMA_VERSION + 1;
+        Connection::open(&path)
+            .expect("open")
+            .pragma_update(None, "user_version", future)
+            .expect("set version");
+        let before = std::fs::read(&path).expect("read");
+        let Err(ControllerError::Store(message)) = Store::open(&path) else {
+            panic!("a newer schema must be refused");
+        };
+        assert!(
+            message.contains(&format!("schema version {future}")) && message.contains("newer"),
+            "{message}"
+        );
+        assert_eq!(
+            std::fs::read(&path).expect("read"),
+            before,
+            "file unchanged"
+        );
+        assert_eq!(user_version(&path), future);
+    }
+
+    #[test]
+    fn an_episode_keeps_its_reset_accuracy() {
+        let mut store = Store::in_memory().expect("store");
+        let token = store.add_user("ada", false).expect("user");
+        let ada = store.authenticate(&token).expect("db").expect("ada");
+        let experiment = store
+            .open_experiment(
+                &ada,
+                "real/a",
+                "MonolithDiscrete",
+                "reset",
+                false,
+                LearningType::EndToEnd,
+                AlgorithmMode::Train,
+            )
+            .expect("experiment");
+        let reset = ResetAccuracy::measure(
+            Pose2D {
+                x: 1.0,
+                y: 2.0,
+                yaw: 3.1,
+            },
+            Pose2D {
+                x: 1.03,
+                y: 2.04,
+                yaw: -3.1,
+            },
+            41.5,
+            5_000,
+        );
+        store
+            .begin_episode(&EpisodeRecord {
+                experiment_id: experiment.id,
+                episode_index: 0,
+                seed: None,
+                steps: 0,
+                episode_return: 0.0,
+                success: false,
+                end_reason: IN_PROGRESS.into(),
+                reset,
+                started_ms: 5_000,
+                ended_ms: 5_000,
+            })
+            .expect("begin");
+        let stored = store.episodes(experiment.id).expect("episodes")[0].reset;
+        assert_eq!(stored, reset);
+        assert!(stored.measured);
+        assert!((stored.position_error_m - 0.05).abs() < 1e-12);
+        // Across ±π: 0.083 rad, not 6.2.
+        assert!((stored.yaw_error_rad - (std::f64::consts::TAU - 6.2)).abs() < 1e-9);
+        assert_eq!((stored.duration_s, stored.unix_ms), (41.5, 5_000));
+    }
+
     #[test]
     fn an_episode_is_on_record_from_its_start_and_closed_after_a_crash() {
         let mut store = Store::in_memory().expect("store");
@@ -1075,8 +1303,20 @@ mod tests {
             episode_return: 1.0,
             success: end_reason == "success",
             end_reason: end_reason.into(),
-            requested_start: [1.0, 2.0, 0.5],
-            achieved_start: [1.01, 2.0, 0.5],
+            reset: ResetAccuracy::measure(
+                Pose2D {
+                    x: 1.0,
+                    y: 2.0,
+                    yaw: 0.5,
+                },
+                Pose2D {
+                    x: 1.01,
+                    y: 2.0,
+                    yaw: 0.5,
+                },
+                41.5,
+                1_000,
+            ),
             started_ms: 1_000,
             ended_ms: 2_000,
         };

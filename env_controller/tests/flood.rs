@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
@@ -71,6 +71,7 @@ async fn site(tag: &str, limits: RequestLimits) -> Site {
         task: "MonolithDiscrete".into(),
         resolution: Some((32, 32)),
         seed: 0,
+        profile: TwinProfile::default(),
     };
     let mut embedded = Embedded::start_with(
         &server,
@@ -475,6 +476,7 @@ async fn clients_on_the_controllers_own_session_are_answered() {
             resolution: (32, 32),
             count: 1,
             record: None,
+            twin_profile: TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

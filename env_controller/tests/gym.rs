@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
@@ -63,6 +63,7 @@ async fn deploy(db: &Path, task: &str, token_users: &[(&str, &str, bool)]) -> De
         task: task.into(),
         resolution: Some((84, 84)),
         seed: 0,
+        profile: TwinProfile::default(),
     };
     let embedded = Embedded::start(&server, &[sim], store)
         .await
@@ -201,6 +202,29 @@ async fn full_episode_and_seeded_determinism() {
     // Run one episode to its end: FORWARD until terminated or truncated.
     let reset = env.reset(Seed::Fixed(1)).await.expect("reset");
     let episode_id = reset.info.episode_id;
+    // The reset's accuracy is in the status: where it asked for, where the
+    // episode starts (the twin teleports, then settles on its springs: on a
+    // slope that moves it up to ~1 cm).
+    let status = client::status(&session, &d.env, Duration::from_secs(5))
+        .await
+        .expect("status");
+    let accuracy = status.last_reset;
+    assert!(accuracy.measured, "{accuracy:?}");
+    assert_eq!(
+        (
+            accuracy.achieved.x,
+            accuracy.achieved.y,
+            accuracy.achieved.yaw
+        ),
+        (reset.info.x, reset.info.y, reset.info.yaw),
+        "achieved = the pose the episode starts from"
+    );
+    assert!(accuracy.position_error_m < 0.03, "{accuracy:?}");
+    assert!(accuracy.yaw_error_rad < 0.01, "{accuracy:?}");
+    assert!(
+        accuracy.duration_s > 0.0 && accuracy.duration_s < 10.0,
+        "{accuracy:?}"
+    );
     let mut last = None;
     for _ in 0..100 {
         let r = env.step(Action::Discrete(2)).await.expect("step");
@@ -919,8 +943,10 @@ async fn experiments_are_shown_to_their_owner_and_operators_only() {
         .expect("open");
     let alice_id = env.opened().experiment.id;
     let mut played = Vec::new();
+    let mut starts = Vec::new();
     for seed in [11, 12] {
-        env.reset(Seed::Fixed(seed)).await.expect("reset");
+        let reset = env.reset(Seed::Fixed(seed)).await.expect("reset");
+        starts.push((reset.info.x, reset.info.y, reset.info.yaw));
         let (mut steps, mut total, mut ended) = (0u32, 0.0, false);
         for _ in 0..4 {
             let s = env.step(Action::Discrete(2)).await.expect("step");
@@ -1023,6 +1049,20 @@ async fn experiments_are_shown_to_their_owner_and_operators_only() {
         .episodes
         .iter()
         .all(|e| e.started_unix_ms <= e.ended_unix_ms && e.recordings.is_empty()));
+    // Each episode keeps its reset's accuracy: it starts where it was put.
+    for (episode, start) in shown.episodes.iter().zip(&starts) {
+        let reset = episode.reset;
+        assert!(reset.measured, "{reset:?}");
+        assert_eq!(
+            (reset.achieved.x, reset.achieved.y, reset.achieved.yaw),
+            *start
+        );
+        assert!(
+            reset.position_error_m < 0.03 && reset.duration_s > 0.0,
+            "{reset:?}"
+        );
+        assert_eq!(reset.unix_ms, episode.started_unix_ms);
+    }
     // The operator sees it too; the client's paging gives the same.
     let by_operator = ask_experiments(&session, &d.env, show(OPERATOR, alice_id))
         .await
@@ -1090,8 +1130,7 @@ async fn a_long_experiment_is_answered_a_page_at_a_time() {
                     episode_return: index as f64 * 0.5,
                     success: index.is_multiple_of(3),
                     end_reason: "step_limit".into(),
-                    requested_start: [0.0; 3],
-                    achieved_start: [0.0; 3],
+                    reset: Default::default(),
                     started_ms: 1_000 + index as i64,
                     ended_ms: 2_000 + index as i64,
                 })

@@ -37,6 +37,7 @@ async fn recording_sim(
             resolution,
             count: 1,
             record: Some(dir.to_owned()),
+            twin_profile: offworld_env_controller::embedded::TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

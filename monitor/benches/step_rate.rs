@@ -7,7 +7,7 @@
 
 use std::time::{Duration, Instant};
 
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
@@ -85,6 +85,7 @@ async fn main() -> anyhow::Result<()> {
         task: "MonolithDiscrete".into(),
         resolution: Some((W, H)),
         seed: 0,
+        profile: TwinProfile::default(),
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
@@ -29,6 +29,7 @@ async fn main() -> anyhow::Result<()> {
         task,
         resolution: None,
         seed: 7,
+        profile: TwinProfile::default(),
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     // The monitor rides on the env's own session, as an embedded one would.

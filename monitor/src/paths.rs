@@ -93,6 +93,12 @@ pub const RETURN: &str = "metrics/return";
 pub const SUCCESS: &str = "metrics/success";
 /// Steps of a finished episode.
 pub const EPISODE_LENGTH: &str = "metrics/episode_length";
+/// How far from its spawn pose the last reset left the robot, m.
+pub const RESET_POSITION_ERROR: &str = "metrics/reset/position_error_m";
+/// The last reset's heading error, rad.
+pub const RESET_YAW_ERROR: &str = "metrics/reset/yaw_error_rad";
+/// How long the last reset took, s.
+pub const RESET_DURATION: &str = "metrics/reset/duration_s";
 /// Per-env event log.
 pub const EVENTS: &str = "events";
 

@@ -171,6 +171,8 @@ struct EnvView {
     tracking: Option<bool>,
     status: Option<EnvState>,
     estop: Option<bool>,
+    /// When the last reset logged ended (Unix ms).
+    last_reset_ms: Option<i64>,
 }
 
 /// Settings the worker needs.
@@ -1031,6 +1033,19 @@ impl Worker {
         self.maybe_retry_world(env);
         let view = self.view(env);
         let step = view.seq;
+        let reset = status.last_reset;
+        if reset.measured && view.last_reset_ms != Some(reset.unix_ms) {
+            view.last_reset_ms = Some(reset.unix_ms);
+            self.set_times(step, None, wall);
+            for (path, value) in [
+                (paths::RESET_POSITION_ERROR, reset.position_error_m),
+                (paths::RESET_YAW_ERROR, reset.yaw_error_rad),
+                (paths::RESET_DURATION, reset.duration_s),
+            ] {
+                self.rec.log(env_path(env, path), &Scalars::single(value))?;
+            }
+        }
+        let view = self.view(env);
         if view
             .status
             .as_ref()

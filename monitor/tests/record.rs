@@ -62,6 +62,7 @@ async fn wait_for_route(
         env_id: env.to_string(),
         state: EnvState::Free,
         estop: Default::default(),
+        last_reset: Default::default(),
     };
     let deadline = Instant::now() + Duration::from_secs(20);
     while monitor.stats().statuses == 0 {

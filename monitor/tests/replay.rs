@@ -271,6 +271,7 @@ async fn recorded_episodes_replay_as_the_live_view_at_the_recorded_times() -> an
             resolution: (32, 24),
             count: 1,
             record: Some(dir.clone()),
+            twin_profile: offworld_env_controller::embedded::TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

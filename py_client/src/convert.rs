@@ -181,7 +181,27 @@ pub fn listing<'py>(
         }
     }
     dict.set_item("estops", estops)?;
+    dict.set_item("last_reset", reset_accuracy(py, &listing.last_reset)?)?;
     Ok(dict)
+}
+
+/// A reset's accuracy as a dict, or None when not measured.
+fn reset_accuracy<'py>(
+    py: Python<'py>,
+    reset: &offworld_runtime::msg::ResetAccuracy,
+) -> PyResult<Option<Bound<'py, PyDict>>> {
+    if !reset.measured {
+        return Ok(None);
+    }
+    let pose = |p: &offworld_runtime::msg::Pose2D| (p.x, p.y, p.yaw);
+    let dict = PyDict::new(py);
+    dict.set_item("requested", pose(&reset.requested))?;
+    dict.set_item("achieved", pose(&reset.achieved))?;
+    dict.set_item("position_error_m", reset.position_error_m)?;
+    dict.set_item("yaw_error_rad", reset.yaw_error_rad)?;
+    dict.set_item("duration_s", reset.duration_s)?;
+    dict.set_item("unix_ms", reset.unix_ms)?;
+    Ok(Some(dict))
 }
 
 /// One booking as a dict.
@@ -247,6 +267,7 @@ pub fn experiment_with_episodes<'py>(
         dict.set_item("end_reason", &ep.end_reason)?;
         dict.set_item("started_unix_ms", ep.started_unix_ms)?;
         dict.set_item("ended_unix_ms", ep.ended_unix_ms)?;
+        dict.set_item("reset", reset_accuracy(py, &ep.reset)?)?;
         let recordings = PyList::empty(py);
         for r in &ep.recordings {
             let file = PyDict::new(py);

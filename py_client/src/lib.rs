@@ -12,6 +12,7 @@ use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::{ActionSpace, OpenRequest, Seed};
 use offworld_runtime::{EnvId, SessionConfig, WireError};
+use offworld_sim_twin::TwinProfile;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
@@ -62,7 +63,7 @@ impl NativeEnvs {
     #[new]
     #[pyo3(signature = (task, realm, num_envs, connect, env_ids, token, experiment_name, resume_experiment,
                         learning_type, algorithm_mode, channels, height, width, depth_format,
-                        rerun=None, record=None))]
+                        rerun=None, record=None, twin_profile=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -82,6 +83,7 @@ impl NativeEnvs {
         depth_format: &str,
         rerun: Option<String>,
         record: Option<String>,
+        twin_profile: Option<String>,
     ) -> PyResult<Self> {
         if num_envs == 0 {
             return Err(PyValueError::new_err("num_envs must be at least 1"));
@@ -100,12 +102,25 @@ impl NativeEnvs {
             algorithm_mode: convert::algorithm_mode(algorithm_mode)?,
             obs,
         };
+        let embedded = connect.is_none() && env_ids.is_none() && realm == "sim";
+        // A bad file is the caller's: BadRequest naming the file and field.
+        let twin_profile = match twin_profile {
+            Some(_) if !embedded => {
+                return Err(errors::raise_bad_request(
+                    "twin_profile= shapes embedded sim twins; a deployment's twins take `sim_twin --profile`".into(),
+                ))
+            }
+            Some(path) => TwinProfile::load(std::path::Path::new(&path))
+                .map_err(|e| errors::to_py(WireError::from(e)))?,
+            None => TwinProfile::default(),
+        };
         let target = match (connect, env_ids) {
-            (None, None) if realm == "sim" => Target::Embedded {
+            (None, None) if embedded => Target::Embedded {
                 task: task.clone(),
                 resolution: (obs.width, obs.height),
                 count: num_envs,
                 record: record.map(std::path::PathBuf::from),
+                twin_profile,
             },
             (connect, None) => Target::Discover {
                 session: remote_session(connect)?,

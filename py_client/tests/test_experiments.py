@@ -56,6 +56,17 @@ def test_an_embedded_env_lists_its_episodes_with_their_recordings(tmp_path: Path
         assert (episode["end_reason"] == "reset before the episode ended") == (not ended)
         assert episode["started_unix_ms"] <= episode["ended_unix_ms"]
     assert episodes[2]["end_reason"] == "in_progress"
+    # Each keeps how well its reset put the robot at its spawn pose.
+    for episode in episodes:
+        reset = episode["reset"]
+        assert reset is not None
+        assert set(reset) == {"requested", "achieved", "position_error_m", "yaw_error_rad", "duration_s", "unix_ms"}
+        (rx, ry, _), (ax, ay, _) = reset["requested"], reset["achieved"]
+        assert abs(((ax - rx) ** 2 + (ay - ry) ** 2) ** 0.5 - reset["position_error_m"]) < 1e-9
+        # A twin teleports; settling on its springs on a slope moves it up to ~1 cm.
+        assert reset["position_error_m"] < 0.03 and reset["yaw_error_rad"] < 0.01
+        assert reset["duration_s"] > 0.0
+        assert reset["unix_ms"] == episode["started_unix_ms"]
     # Each episode names its MCAP file under the record directory.
     for episode in episodes:
         (recording,) = episode["recordings"]

@@ -9,7 +9,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use offworld_env_controller::embedded::{Embedded, SimEnv};
+use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_recorder::msg::{EpisodeEnd, Step};
 use offworld_recorder::read;
@@ -247,6 +247,7 @@ async fn a_subscriber_records_every_step_the_client_was_answered() {
         task: "MonolithDiscrete".into(),
         resolution: Some((16, 12)),
         seed: 0,
+        profile: TwinProfile::default(),
     };
     let embedded = Embedded::start(&server, &[sim], Store::in_memory().expect("store"))
         .await

@@ -347,6 +347,9 @@ pub struct EnvListing {
     /// The e-stop latches in force as its controller knows them (default,
     /// nothing engaged, when it did not answer).
     pub estop: crate::msg::EStopState,
+    /// How well its last reset put the robot at its spawn pose (not
+    /// measured when the controller did not answer or has not reset it).
+    pub last_reset: crate::msg::ResetAccuracy,
 }
 
 /// Lists the envs reachable through `session`: every env with a liveliness
@@ -381,7 +384,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
     }
     let listings = components.into_iter().map(|(env, alive)| async move {
         let has_controller = alive.contains(Component::Controller.as_str());
-        let (task, state, bookings, estop) = if has_controller {
+        let (task, state, bookings, estop, last_reset) = if has_controller {
             let now = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .unwrap_or_default();
@@ -395,13 +398,20 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
             );
             let bookings = booked.map(|b| b.bookings).unwrap_or_default();
             match (spec, status) {
-                (Ok(spec), Ok(status)) => (spec.task, status.state, bookings, status.estop),
+                (Ok(spec), Ok(status)) => (
+                    spec.task,
+                    status.state,
+                    bookings,
+                    status.estop,
+                    status.last_reset,
+                ),
                 (_, Err(e)) | (Err(e), _) => (
                     String::new(),
                     EnvState::Offline {
                         reason: format!("the controller does not answer: {}", e.message),
                     },
                     bookings,
+                    Default::default(),
                     Default::default(),
                 ),
             }
@@ -413,6 +423,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
                 },
                 Vec::new(),
                 Default::default(),
+                Default::default(),
             )
         };
         EnvListing {
@@ -422,6 +433,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
             components: alive.into_iter().collect(),
             bookings,
             estop,
+            last_reset,
         }
     });
     Ok(futures::future::join_all(listings).await)

@@ -1,6 +1,7 @@
 //! Sim twin throughput, single thread: full env steps (one discrete action
 //! of physics + one RGBD render), render-only, a frame's wire payload
-//! (rendered in place vs rendered then encoded), physics-only, and RSS.
+//! (rendered in place vs rendered then encoded), physics-only, a twin
+//! profile's tilted camera (the per-pixel renderer), and RSS.
 //!
 //! `cargo bench -p offworld-sim-twin --bench twin_step`
 
@@ -10,7 +11,7 @@ use offworld_runtime::codec;
 use offworld_runtime::msg::{CameraFrameView, PixelEncoding, Time};
 use offworld_sim_twin::frame_payload::FramePayloads;
 use offworld_sim_twin::ros_out::frame_images;
-use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig};
+use offworld_sim_twin::{CameraProfile, PlanarPose, SimTwin, TwinConfig, TwinProfile};
 
 /// The discrete action table (linear, angular, duration).
 const ACTIONS: [(f64, f64, f64); 4] = [
@@ -21,8 +22,13 @@ const ACTIONS: [(f64, f64, f64); 4] = [
 ];
 
 fn twin(world: &str, res: (u32, u32)) -> SimTwin {
+    profiled(world, res, TwinProfile::default())
+}
+
+fn profiled(world: &str, res: (u32, u32), profile: TwinProfile) -> SimTwin {
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);
+    config.profile = profile;
     SimTwin::new(config).expect("twin")
 }
 
@@ -111,10 +117,28 @@ fn main() {
         let (v, w, d) = ACTIONS[i % 4];
         small.execute(v, w, d).expect("motion");
     });
+    // A profile with a tilted camera renders per pixel (ExactRenderer).
+    let tilted = TwinProfile {
+        camera: CameraProfile {
+            pitch_deg: 5.0,
+            ..CameraProfile::default()
+        },
+        ..TwinProfile::default()
+    };
+    let mut tilted_full = profiled(&world, (320, 240), tilted);
+    let tilted_render_full = rate(5, 10, |_| {
+        tilted_full.render();
+    });
+    let mut tilted_small = profiled(&world, (84, 84), tilted);
+    let tilted_render_small = rate(5, 50, |_| {
+        tilted_small.render();
+    });
     println!("env steps/s  320x240 RGBD : {steps_full:8.0}");
     println!("env steps/s  84x84 RGBD   : {steps_small:8.0}");
     println!("render fps   320x240      : {render_full:8.0}");
     println!("render fps   84x84        : {render_small:8.0}");
+    println!("render fps   320x240, camera pitched (exact renderer) : {tilted_render_full:8.1}");
+    println!("render fps   84x84, camera pitched (exact renderer)   : {tilted_render_small:8.1}");
     println!("frame payloads/s 320x240, rendered in place  : {in_place:8.0}");
     println!("frame payloads/s 320x240, rendered + encoded : {encoded:8.0}");
     println!("physics actions/s         : {physics:8.0}");

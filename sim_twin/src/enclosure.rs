@@ -7,7 +7,10 @@
 //!   holds the last velocity until told otherwise (`cmd_timeout: None`: a
 //!   base without its own timeout, the worst case every fault test runs
 //!   against) or stops when no command came for `cmd_timeout` (a correctly
-//!   configured base: ros2_control's `cmd_vel_timeout`);
+//!   configured base: ros2_control's `cmd_vel_timeout`); a twist takes
+//!   effect the twin profile's `motion.latency_s` after it arrives (the
+//!   physics holds it in its time-ordered target queue,
+//!   [`RobotPhysics::set_targets`](crate::physics::RobotPhysics::set_targets));
 //! - publishes colour (`rgb8`), depth (`16UC1` mm, like an Astra driver) and
 //!   `nav_msgs/Odometry` on the robot's ROS 2 topics, with rmw_zenoh keys
 //!   and attachments;

@@ -10,6 +10,8 @@
 //! - [`camera`]: intrinsics and the ray-cast RGBD renderers.
 //! - [`tracker`]: the simulated Vive tracker.
 //! - [`twin`]: all of it as one deterministic simulator.
+//! - [`profile`]: the twin profile, what makes the twin match one physical
+//!   robot (`docs/twin-profile.md`).
 //! - [`overhead`]: the enclosure's overhead camera (top-down view for spectators).
 //! - [`ros_out`]: twin state as the ROS messages a real robot publishes.
 //! - [`node`]: the twin served over Zenoh (lockstep or real time).
@@ -23,6 +25,7 @@ pub mod frame_payload;
 pub mod node;
 pub mod overhead;
 pub mod physics;
+pub mod profile;
 pub mod ros_out;
 pub mod scene;
 pub mod terrain;
@@ -36,4 +39,5 @@ pub use node::{Clock, TwinNode, TwinStats};
 pub use offworld_runtime::world;
 pub use offworld_runtime::WorldSpec;
 pub use physics::PlanarPose;
+pub use profile::{CameraProfile, DepthProfile, MotionProfile, TwinProfile, PROFILE_FORMAT};
 pub use twin::{Randomization, SimTwin, TwinConfig};

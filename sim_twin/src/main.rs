@@ -6,6 +6,10 @@
 //! `sim_twin --emulate-hardware --tracker-listen 127.0.0.1:7600` instead
 //! behaves like the physical enclosure: the robot's ROS 2 topics and a raw
 //! tracker stream, for robot_agent + tracker_agent to drive.
+//!
+//! `--profile FILE` makes either behave like one physical robot (a twin
+//! profile, docs/twin-profile.md): the served twin, or the emulated
+//! "physical" robot.
 
 use std::path::PathBuf;
 
@@ -17,7 +21,7 @@ use offworld_runtime::{CommonArgs, EnvId};
 use offworld_sim_twin::tracker::TrackerConfig;
 use offworld_sim_twin::{
     Clock, EmulatedEnclosure, EnclosureConfig, PlanarPose, Randomization, SimTwin, TwinConfig,
-    TwinNode, WorldSpec,
+    TwinNode, TwinProfile, WorldSpec,
 };
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -46,12 +50,18 @@ struct Args {
     /// Tracker position noise (std dev), m.
     #[arg(long, default_value_t = 0.0)]
     tracker_noise: f32,
-    /// Depth noise (std dev as a fraction of depth).
-    #[arg(long, default_value_t = 0.0)]
+    /// Depth noise (std dev as a fraction of depth); with `--profile`, the
+    /// profile's `[depth]` says it instead.
+    #[arg(long, default_value_t = 0.0, conflicts_with = "profile")]
     depth_noise: f32,
-    /// Fraction of depth pixels dropped.
-    #[arg(long, default_value_t = 0.0)]
+    /// Fraction of depth pixels dropped; with `--profile`, the profile's
+    /// `[depth]` says it instead.
+    #[arg(long, default_value_t = 0.0, conflicts_with = "profile")]
     depth_dropout: f32,
+    /// Twin profile (TOML, docs/twin-profile.md): the physical robot this
+    /// twin (or the emulated hardware) behaves like. Default: the nominal twin.
+    #[arg(long, value_name = "FILE")]
+    profile: Option<PathBuf>,
     /// Per-episode light jitter (±fraction).
     #[arg(long, default_value_t = 0.0)]
     light_jitter: f32,
@@ -115,6 +125,10 @@ async fn main() -> anyhow::Result<()> {
     } else {
         WorldSpec::builtin(&args.world)?
     };
+    let profile = match &args.profile {
+        Some(path) => TwinProfile::load(path)?,
+        None => TwinProfile::default(),
+    };
     let config = TwinConfig {
         world,
         resolution: Some(parse_resolution(&args.resolution)?),
@@ -136,6 +150,7 @@ async fn main() -> anyhow::Result<()> {
             y: 0.5,
             yaw: 0.0,
         },
+        profile,
     };
     if args.emulate_hardware {
         let twin = SimTwin::new(TwinConfig {

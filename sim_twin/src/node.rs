@@ -455,7 +455,9 @@ impl Worker {
                 let stopped = servo.linear == 0.0
                     && servo.angular == 0.0
                     && servo.target_linear == 0.0
-                    && servo.target_angular == 0.0;
+                    && servo.target_angular == 0.0
+                    // A profile's latency may still hold the motion or its stop.
+                    && !self.twin.physics().targets_pending();
                 if self.twin.physics().time() - sim_start >= m.drive_until && stopped {
                     let seq = m.seq;
                     motion = None;

@@ -11,10 +11,12 @@
 //! wheel rays only see terrain, so a wheel touching a boulder cannot tip the
 //! chassis: the chassis box collides with boulders instead.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 
 use rapier3d::prelude::*;
 
+use crate::profile::MotionProfile;
 use crate::scene::Scene;
 use crate::terrain::Terrain;
 use crate::world::RobotSpec;
@@ -29,6 +31,9 @@ const SPRING_K: f32 = 2500.0;
 const SPRING_C: f32 = 110.0;
 /// Wheel travel below the rest position before the wheel loses the ground, m.
 const TRAVEL: f32 = 0.04;
+/// Substeps `drive` waits for the servo to stop beyond the ramp and the
+/// latency (a guard: the ramp always ends).
+const STOP_MARGIN_STEPS: usize = 600;
 
 /// A planar robot state in the world frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -85,6 +90,18 @@ pub struct RobotPhysics {
     odom: PlanarPose,
     /// Simulated time since creation, s.
     time: f64,
+    /// Substeps since creation (the latency queue's clock: exact, unlike `time`).
+    steps: u64,
+    /// How this robot's base differs from the nominal one.
+    motion: MotionProfile,
+    /// Acceleration limits after the profile's settle time, m/s², rad/s².
+    linear_accel: f32,
+    angular_accel: f32,
+    /// The profile's latency in substeps.
+    latency_steps: u64,
+    /// Servo targets given but not yet applied (latency): (substep at which
+    /// they apply, linear, angular), in order.
+    pending: VecDeque<(u64, f32, f32)>,
 }
 
 impl RobotPhysics {
@@ -113,9 +130,50 @@ impl RobotPhysics {
                 yaw: 0.0,
             },
             time: 0.0,
+            steps: 0,
+            motion: MotionProfile::default(),
+            linear_accel: 0.0,
+            angular_accel: 0.0,
+            latency_steps: 0,
+            pending: VecDeque::new(),
         };
+        physics.set_profile(MotionProfile::default());
         physics.teleport(start);
         physics
+    }
+
+    /// Makes the base behave per `motion` from now on (gains, latency,
+    /// servo ramp); targets still waiting for the old latency apply at once.
+    /// The default profile is the nominal base, bit for bit.
+    pub fn set_profile(&mut self, motion: MotionProfile) {
+        self.motion = motion;
+        (self.linear_accel, self.angular_accel) = match motion.settle_time_s {
+            None => (self.spec.max_linear_accel, self.spec.max_angular_accel),
+            Some(t) => {
+                let nominal = self.spec.max_linear_speed / self.spec.max_linear_accel;
+                let scale = nominal / t;
+                (
+                    self.spec.max_linear_accel * scale,
+                    self.spec.max_angular_accel * scale,
+                )
+            }
+        };
+        self.latency_steps = (motion.latency_s.max(0.0) / DT).round() as u64;
+        while let Some((_, linear, angular)) = self.pending.pop_front() {
+            self.servo.target_linear = linear;
+            self.servo.target_angular = angular;
+        }
+    }
+
+    /// The base's profile.
+    pub fn profile(&self) -> &MotionProfile {
+        &self.motion
+    }
+
+    /// The acceleration limits in force (the world's robot scaled by the
+    /// profile's settle time): (m/s², rad/s²).
+    pub fn accel_limits(&self) -> (f32, f32) {
+        (self.linear_accel, self.angular_accel)
     }
 
     /// Rebuilds the world with the robot resting at `pose`. Rebuilding (not
@@ -155,6 +213,7 @@ impl RobotPhysics {
         self.world = world;
         self.robot = robot;
         self.servo = ServoState::default();
+        self.pending.clear();
         for _ in 0..SETTLE_STEPS {
             self.substep();
         }
@@ -162,20 +221,23 @@ impl RobotPhysics {
 
     /// Drives at (`linear`, `angular`) for `duration` s, then commands zero
     /// and runs until the servo has stopped. Speeds beyond the robot's limits
-    /// are clamped. Returns the simulated time taken, s.
+    /// are clamped. With a latency, the base starts (and stops) that much
+    /// later. Returns the simulated time taken, s.
     pub fn drive(&mut self, linear: f32, angular: f32, duration: f32) -> f32 {
-        let linear = linear.clamp(-self.spec.max_linear_speed, self.spec.max_linear_speed);
-        let angular = angular.clamp(-self.spec.max_angular_speed, self.spec.max_angular_speed);
         let steps = (duration.max(0.0) / DT).round() as usize;
-        self.servo.target_linear = linear;
-        self.servo.target_angular = angular;
+        self.set_targets(linear, angular);
         for _ in 0..steps {
             self.substep();
         }
-        self.servo.target_linear = 0.0;
-        self.servo.target_angular = 0.0;
+        self.set_targets(0.0, 0.0);
+        let (max_linear, max_angular) = (self.spec.max_linear_speed, self.spec.max_angular_speed);
+        let ramp_s = (max_linear / self.linear_accel).max(max_angular / self.angular_accel);
+        let max_stop =
+            STOP_MARGIN_STEPS + self.latency_steps as usize + (ramp_s / DT).ceil() as usize;
         let mut stop_steps = 0;
-        while (self.servo.linear != 0.0 || self.servo.angular != 0.0) && stop_steps < 600 {
+        while (self.servo.linear != 0.0 || self.servo.angular != 0.0 || !self.pending.is_empty())
+            && stop_steps < max_stop
+        {
             self.substep();
             stop_steps += 1;
         }
@@ -184,16 +246,44 @@ impl RobotPhysics {
         (steps + stop_steps + 1) as f32 * DT
     }
 
-    /// Sets the servo targets without stepping (real-time mode steps itself).
+    /// Sets the servo targets without stepping (real-time mode steps
+    /// itself); with the profile's latency they take effect that many
+    /// substeps later, in the order given.
     pub fn set_targets(&mut self, linear: f32, angular: f32) {
-        self.servo.target_linear =
-            linear.clamp(-self.spec.max_linear_speed, self.spec.max_linear_speed);
-        self.servo.target_angular =
-            angular.clamp(-self.spec.max_angular_speed, self.spec.max_angular_speed);
+        let linear = linear.clamp(-self.spec.max_linear_speed, self.spec.max_linear_speed);
+        let angular = angular.clamp(-self.spec.max_angular_speed, self.spec.max_angular_speed);
+        if self.latency_steps == 0 {
+            self.servo.target_linear = linear;
+            self.servo.target_angular = angular;
+            return;
+        }
+        // A repeat of the newest target changes nothing: keeps the queue as
+        // short as the distinct commands in flight (a teleop repeats its twist).
+        let newest = self.pending.back().map_or(
+            (self.servo.target_linear, self.servo.target_angular),
+            |&(_, l, a)| (l, a),
+        );
+        if newest != (linear, angular) {
+            self.pending
+                .push_back((self.steps + self.latency_steps, linear, angular));
+        }
+    }
+
+    /// Whether targets given are still waiting for the latency to pass.
+    pub fn targets_pending(&self) -> bool {
+        !self.pending.is_empty()
     }
 
     /// One fixed physics step.
     pub fn substep(&mut self) {
+        while let Some(&(due, linear, angular)) = self.pending.front() {
+            if due > self.steps {
+                break;
+            }
+            self.pending.pop_front();
+            self.servo.target_linear = linear;
+            self.servo.target_angular = angular;
+        }
         self.ramp_servo();
         let Some(body) = self.world.bodies.get_mut(self.robot) else {
             return;
@@ -219,13 +309,17 @@ impl RobotPhysics {
             let heading = pose.rotation * Vector::X;
             let flat = Vector::new(heading.x, heading.y, 0.0).normalize_or_zero();
             let v = body.linvel();
-            let planar = flat * self.servo.linear;
+            // The profile's gains: the body keeps this fraction of the
+            // wheels' speed (odometry, in `ramp_servo`, keeps the wheels').
+            let planar = flat * (self.servo.linear * self.motion.linear_gain);
             body.set_linvel(Vector::new(planar.x, planar.y, v.z), true);
             let w = body.angvel();
-            body.set_angvel(Vector::new(w.x, w.y, self.servo.angular), true);
+            let yaw_rate = self.servo.angular * self.motion.angular_gain;
+            body.set_angvel(Vector::new(w.x, w.y, yaw_rate), true);
         }
         self.world.step();
         self.time += f64::from(DT);
+        self.steps += 1;
     }
 
     fn ramp_servo(&mut self) {
@@ -233,12 +327,8 @@ impl RobotPhysics {
             current + (target - current).clamp(-max_delta, max_delta)
         };
         let s = &mut self.servo;
-        s.linear = ramp(s.linear, s.target_linear, self.spec.max_linear_accel * DT);
-        s.angular = ramp(
-            s.angular,
-            s.target_angular,
-            self.spec.max_angular_accel * DT,
-        );
+        s.linear = ramp(s.linear, s.target_linear, self.linear_accel * DT);
+        s.angular = ramp(s.angular, s.target_angular, self.angular_accel * DT);
         let o = &mut self.odom;
         o.yaw += s.angular * DT;
         o.x += s.linear * o.yaw.cos() * DT;

@@ -6,9 +6,10 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use crate::camera::{CameraPose, ColumnRenderer, Intrinsics, PixelsMut, RgbdFrame};
+use crate::camera::{CameraPose, ColumnRenderer, ExactRenderer, Intrinsics, PixelsMut, RgbdFrame};
 use crate::error::SimError;
 use crate::physics::{BodyPose, PlanarPose, RobotPhysics};
+use crate::profile::{DepthProfile, TwinProfile};
 use crate::scene::Scene;
 use crate::tracker::{SimTracker, TrackerConfig};
 use crate::world::{LightSpec, WorldSpec};
@@ -17,6 +18,11 @@ use crate::world::{LightSpec, WorldSpec};
 pub const MAX_MOTION_S: f32 = 10.0;
 
 /// Domain randomisation, all off by default; seeded.
+///
+/// `depth_noise` and `depth_dropout` are the same sensor model as the twin
+/// profile's [`DepthProfile`] (kept here for the CLI flags and existing
+/// callers): a twin takes each from whichever of the two sets it, and
+/// refuses a config where both set the same one.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Randomization {
     /// Seed of every random draw below.
@@ -47,6 +53,8 @@ pub struct TwinConfig {
     pub randomization: Randomization,
     /// Where the robot starts.
     pub start: PlanarPose,
+    /// The physical robot this twin stands for (default: the nominal twin).
+    pub profile: TwinProfile,
 }
 
 impl TwinConfig {
@@ -62,6 +70,7 @@ impl TwinConfig {
                 y: 0.5,
                 yaw: 0.0,
             },
+            profile: TwinProfile::default(),
         })
     }
 }
@@ -72,9 +81,20 @@ pub struct SimTwin {
     scene: Scene,
     physics: RobotPhysics,
     renderer: ColumnRenderer,
+    /// The per-pixel renderer, used instead of `renderer` when the profile
+    /// tilts the camera (the column walk is exact only for a level camera).
+    exact: Option<ExactRenderer>,
     frame: RgbdFrame,
     tracker: SimTracker,
     randomization: Randomization,
+    profile: TwinProfile,
+    /// The camera mount in base_link with the profile's height offset, m.
+    mount: [f32; 3],
+    /// The profile's camera yaw and pitch offsets, rad.
+    yaw_offset: f32,
+    pitch_offset: f32,
+    /// The depth model in force (the profile's or the randomisation's).
+    depth: DepthProfile,
     rng: ChaCha8Rng,
     slip: f32,
 }
@@ -90,21 +110,39 @@ impl SimTwin {
                 "resolution {w}x{h} out of range"
             )));
         }
+        let profile = config.profile;
+        profile.validate()?;
+        let depth = depth_model(&config.randomization, &profile.depth)?;
         let scene = Scene::build(&config.world);
         let intrinsics = Intrinsics::resized(&config.world.camera, w, h);
         let renderer = ColumnRenderer::new(intrinsics, &config.world.light);
-        let physics = RobotPhysics::new(&scene, config.start);
+        let exact = (profile.camera.pitch_deg != 0.0)
+            .then(|| ExactRenderer::new(intrinsics, &config.world.light, &scene));
+        let mut physics = RobotPhysics::new(&scene, config.start);
+        physics.set_profile(profile.motion);
+        let [mx, my, mz] = config.world.camera.mount;
         Ok(Self {
             base_scene: scene.clone(),
             scene,
             physics,
             renderer,
+            exact,
             frame: RgbdFrame::new(w, h),
             tracker: SimTracker::new(config.tracker),
             randomization: config.randomization,
+            profile,
+            mount: [mx, my, mz + profile.camera.height_offset_m],
+            yaw_offset: profile.camera.yaw_deg.to_radians(),
+            pitch_offset: profile.camera.pitch_deg.to_radians(),
+            depth,
             rng: ChaCha8Rng::seed_from_u64(config.randomization.seed),
             slip: 0.0,
         })
+    }
+
+    /// The profile this twin was built with.
+    pub fn profile(&self) -> &TwinProfile {
+        &self.profile
     }
 
     /// Executes one motion: drive for `duration` s, then stop. Rejects
@@ -171,39 +209,64 @@ impl SimTwin {
         let base: &LightSpec = &self.base_scene.world.light;
         scene.world.light.ambient = base.ambient * light;
         scene.world.light.diffuse = base.diffuse * light;
-        self.renderer = ColumnRenderer::new(*self.renderer.intrinsics(), &scene.world.light);
+        let intrinsics = *self.renderer.intrinsics();
+        self.renderer = ColumnRenderer::new(intrinsics, &scene.world.light);
+        if self.exact.is_some() {
+            self.exact = Some(ExactRenderer::new(intrinsics, &scene.world.light, &scene));
+        }
         self.scene = scene;
     }
 
-    /// The camera's pose (level: the chassis' pitch and roll are not
-    /// rendered, see [`crate::camera`]).
+    /// The camera's pose: the mount (with the profile's offsets) on the
+    /// chassis, the chassis' pitch and roll included. What is rendered
+    /// treats the chassis as level (see [`crate::camera`]): only the
+    /// profile's mount pitch tilts the view.
     pub fn camera_pose(&self) -> CameraPose {
         let body = self.physics.body_pose();
-        let position = self.physics.to_world(self.scene.world.camera.mount);
         CameraPose {
-            position,
-            yaw: body.yaw,
-            pitch: body.pitch,
+            position: self.physics.to_world(self.mount),
+            yaw: body.yaw + self.yaw_offset,
+            pitch: body.pitch + self.pitch_offset,
             roll: body.roll,
+        }
+    }
+
+    /// The pose rendered: [`Self::camera_pose`] on a level chassis.
+    fn view_pose(&self) -> CameraPose {
+        let body = self.physics.body_pose();
+        CameraPose {
+            position: self.physics.to_world(self.mount),
+            yaw: body.yaw + self.yaw_offset,
+            pitch: self.pitch_offset,
+            roll: 0.0,
         }
     }
 
     /// Renders the current view (with noise if enabled).
     pub fn render(&mut self) -> &RgbdFrame {
-        let pose = self.camera_pose();
-        self.renderer.render(&self.scene, &pose, &mut self.frame);
-        perturb_depth(&self.randomization, &mut self.rng, &mut self.frame.depth);
+        let pose = self.view_pose();
+        match &self.exact {
+            Some(exact) => {
+                exact.render_into(&pose, &mut self.frame.pixels_mut());
+            }
+            None => self.renderer.render(&self.scene, &pose, &mut self.frame),
+        }
+        perturb_depth(&self.depth, &mut self.rng, &mut self.frame.depth);
         &self.frame
     }
 
     /// [`Self::render`] into `pixels` (e.g. a message's pixel fields), which
     /// must have the camera's resolution; false, writing nothing, if not.
     pub fn render_into(&mut self, mut pixels: PixelsMut<'_>) -> bool {
-        let pose = self.camera_pose();
-        if !self.renderer.render_into(&self.scene, &pose, &mut pixels) {
+        let pose = self.view_pose();
+        let rendered = match &self.exact {
+            Some(exact) => exact.render_into(&pose, &mut pixels),
+            None => self.renderer.render_into(&self.scene, &pose, &mut pixels),
+        };
+        if !rendered {
             return false;
         }
-        perturb_depth(&self.randomization, &mut self.rng, pixels.depth);
+        perturb_depth(&self.depth, &mut self.rng, pixels.depth);
         true
     }
 
@@ -244,16 +307,38 @@ impl SimTwin {
     }
 }
 
+/// The depth model: each knob from whichever of the randomisation and the
+/// profile sets it (both setting one is a config error: which would win is
+/// not obvious).
+fn depth_model(r: &Randomization, profile: &DepthProfile) -> Result<DepthProfile, SimError> {
+    let pick = |name: &str, randomized: f32, profiled: f32| {
+        if randomized != 0.0 && profiled != 0.0 {
+            return Err(SimError::BadCommand(format!(
+                "depth {name} is set by both the randomisation ({randomized}) and the twin profile ({profiled}): set one"
+            )));
+        }
+        Ok(if profiled != 0.0 {
+            profiled
+        } else {
+            randomized
+        })
+    };
+    Ok(DepthProfile {
+        noise: pick("noise", r.depth_noise, profile.noise)?,
+        dropout: pick("dropout", r.depth_dropout, profile.dropout)?,
+    })
+}
+
 /// Depth noise and dropout, if enabled.
-fn perturb_depth(r: &Randomization, rng: &mut ChaCha8Rng, depth: &mut [f32]) {
-    if r.depth_noise <= 0.0 && r.depth_dropout <= 0.0 {
+fn perturb_depth(model: &DepthProfile, rng: &mut ChaCha8Rng, depth: &mut [f32]) {
+    if model.noise <= 0.0 && model.dropout <= 0.0 {
         return;
     }
     for d in depth {
-        if r.depth_dropout > 0.0 && rng.random::<f32>() < r.depth_dropout {
+        if model.dropout > 0.0 && rng.random::<f32>() < model.dropout {
             *d = f32::NAN;
-        } else if r.depth_noise > 0.0 && d.is_finite() {
-            *d *= 1.0 + r.depth_noise * rng.sample::<f32, _>(StandardNormal);
+        } else if model.noise > 0.0 && d.is_finite() {
+            *d *= 1.0 + model.noise * rng.sample::<f32, _>(StandardNormal);
         }
     }
 }

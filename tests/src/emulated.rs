@@ -75,6 +75,10 @@ pub struct Options {
     /// The controller records every episode under this directory
     /// (`serve --record`).
     pub record: Option<std::path::PathBuf>,
+    /// The emulated "physical" robot behaves per this twin profile
+    /// (`sim_twin --emulate-hardware --profile`, `docs/twin-profile.md`):
+    /// how a test perturbs the hardware away from the nominal twin.
+    pub hardware_profile: Option<std::path::PathBuf>,
 }
 
 impl Options {
@@ -92,6 +96,7 @@ impl Options {
             twin: None,
             log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
             record: None,
+            hardware_profile: None,
         })
     }
 
@@ -317,6 +322,9 @@ impl EmulatedEnclosure {
                 push(&["--camera-hz", "15"]);
                 let timeout = options.base_cmd_timeout_ms.unwrap_or(0).to_string();
                 push(&["--base-cmd-timeout-ms", &timeout]);
+                if let Some(profile) = &options.hardware_profile {
+                    push(&["--profile", &profile.to_string_lossy()]);
+                }
                 push(&["--mode", "peer", "--connect", robot]);
                 push(&["--listen", &self.hardware_endpoint]);
                 "sim_twin"

@@ -462,6 +462,18 @@ impl SimFarm {
         twins: usize,
         task: &str,
     ) -> anyhow::Result<Self> {
+        Self::start_profiled(site, name, twins, task, None)
+    }
+
+    /// Like [`SimFarm::start_on`], every twin built with the twin profile
+    /// `twin_profile` (`sim_twin --profile`, `docs/twin-profile.md`).
+    pub fn start_profiled(
+        site: RouterSite,
+        name: &str,
+        twins: usize,
+        task: &str,
+        twin_profile: Option<&std::path::Path>,
+    ) -> anyhow::Result<Self> {
         let envs: Vec<EnvId> = (0..twins.max(1))
             .map(|i| EnvId::sim(&format!("{name}-{i}")))
             .collect::<Result<_, _>>()?;
@@ -473,14 +485,14 @@ impl SimFarm {
         anyhow::ensure!(added.status.success(), "env_controller users add failed");
         let token = String::from_utf8(added.stdout)?.trim().to_owned();
         let mut processes = Vec::new();
+        let profile = twin_profile.map(|p| p.to_string_lossy().into_owned());
         for env in &envs {
             let env = env.to_string();
-            processes.push(site.spawn(
-                "sim_twin",
-                Role::SimTwin,
-                &[],
-                &["--env", &env, "--resolution", "84x84"],
-            )?);
+            let mut args = vec!["--env", &env, "--resolution", "84x84"];
+            if let Some(profile) = &profile {
+                args.extend(["--profile", profile]);
+            }
+            processes.push(site.spawn("sim_twin", Role::SimTwin, &[], &args)?);
         }
         let mut serve = vec!["--db".to_owned(), db, "serve".to_owned()];
         for env in &envs {

@@ -162,7 +162,7 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
         .ready(Duration::from_secs(60))
         .await
         .expect("deployment ready");
-    let (_session, mut gym) = open(&deployment, "emulated-e2e").await;
+    let (session, mut gym) = open(&deployment, "emulated-e2e").await;
     let experiment_id = gym.opened().experiment.id;
     assert_eq!(gym.spec().task, "MonolithContinuous");
     let robot_side = robot_side(&deployment).await;
@@ -188,6 +188,34 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
             .any(|(_, v, w)| *v != 0.0 || *w != 0.0),
         "the reset drove the robot"
     );
+    // Its accuracy is in the env's status: within the navigation's
+    // tolerances (5 cm, 0.08 rad; twice that for the tracker's and the
+    // settling's share), timed by the controller.
+    let status =
+        offworld_runtime::client::status(&session, &deployment.env, Duration::from_secs(5))
+            .await
+            .expect("status");
+    let accuracy = status.last_reset;
+    assert!(accuracy.measured, "{accuracy:?}");
+    assert!(
+        accuracy.position_error_m < 0.10 && accuracy.yaw_error_rad < 0.16,
+        "{accuracy:?}"
+    );
+    assert!(
+        accuracy.duration_s > 0.0 && accuracy.duration_s <= reset_time.as_secs_f64(),
+        "{accuracy:?} vs {reset_time:?}"
+    );
+    if first.info.pose_shared {
+        assert_eq!(
+            (
+                accuracy.achieved.x,
+                accuracy.achieved.y,
+                accuracy.achieved.yaw
+            ),
+            (first.info.x, first.info.y, first.info.yaw),
+            "achieved = where the episode starts"
+        );
+    }
 
     // A scripted policy with privileged access to the tracker pose steers to
     // the monolith: the episode ends with the success reward.

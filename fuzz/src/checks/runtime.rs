@@ -663,6 +663,7 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                     until_unix_ms: 1_700_000_999_000,
                 },
                 estop: estop_sample(),
+                last_reset: ResetAccuracy::default(),
             },
         ),
         seed(
@@ -673,6 +674,7 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                     message: "wheel swap".into(),
                 },
                 estop: EStopState::default(),
+                last_reset: ResetAccuracy::default(),
             },
         ),
         seed(
@@ -782,6 +784,20 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                     end_reason: "success".into(),
                     started_unix_ms: 1_000,
                     ended_unix_ms: 1_500,
+                    reset: ResetAccuracy::measure(
+                        Pose2D {
+                            x: -1.0,
+                            y: 0.5,
+                            yaw: 0.0,
+                        },
+                        Pose2D {
+                            x: -1.0,
+                            y: 0.5,
+                            yaw: 0.0,
+                        },
+                        0.001,
+                        1_000,
+                    ),
                     recordings: vec![RecordingFile {
                         path: "sim/monolith-0/exp-000003/ep-000000.mcap".into(),
                         bytes: 123_456,

@@ -17,18 +17,26 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import sys
 
 from offworld_gym.bookings import Booking, book, bookings, cancel_booking
 from offworld_gym.discovery import list_envs
 from offworld_gym.errors import OffWorldGymError
-from offworld_gym.experiments import experiment, experiments, leaderboard
+from offworld_gym.experiments import ResetAccuracy, experiment, experiments, leaderboard
 
 
 def _when(unix_ms: int | None) -> str:
     if unix_ms is None:
         return ""
     return datetime.datetime.fromtimestamp(unix_ms / 1000, tz=datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _reset(reset: ResetAccuracy) -> str:
+    """``3.2 cm 1.4° 41.5 s``: how far from its spawn pose a reset left the robot, and how long it took."""
+    return (
+        f"{reset['position_error_m'] * 100:.1f} cm {math.degrees(reset['yaw_error_rad']):.1f}° {reset['duration_s']:.1f} s"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         for latch, reason in env.get("estops", {}).items():
             state += f" E-STOP {latch} ({reason})"
         print(f"{env['env_id']:<28} {env['task'] or '-':<26} {state:<40} {','.join(env['components'])}")
+        reset = env.get("last_reset")
+        if reset:
+            print(f"    last reset {_reset(reset)}")
         for slot in env["bookings"]:
             print(f"    booked by {slot['user']} {_when(slot['start_unix_ms'])} – {_when(slot['end_unix_ms'])}")
     if not listed:
@@ -120,10 +131,13 @@ def _records_command(args: argparse.Namespace) -> int:
             print(json.dumps({"experiment": found_experiment, "episodes": episodes}, indent=1))
             return 0
         print(f"experiment {found_experiment['id']} {found_experiment['name']!r} of {found_experiment['user']}")
-        print(f"{'episode':>7} {'steps':>5} {'return':>8}  {'end':<32} recording")
+        print(f"{'episode':>7} {'steps':>5} {'return':>8}  {'end':<32} {'reset: off by, took':<24} recording")
         for ep in episodes:
             files = ", ".join(r["path"] + ("" if r["complete"] else " (partial)") for r in ep["recordings"])
-            print(f"{ep['index']:>7} {ep['steps']:>5} {ep['episode_return']:>8.3f}  {ep['end_reason']:<32} {files or '-'}")
+            reset = _reset(ep["reset"]) if ep["reset"] else "-"
+            print(
+                f"{ep['index']:>7} {ep['steps']:>5} {ep['episode_return']:>8.3f}  {ep['end_reason']:<32} {reset:<24} {files or '-'}"
+            )
         return 0
     ranked = leaderboard(args.env, connect=args.connect)
     if args.json:

@@ -56,6 +56,7 @@ def resolve(
     render_mode: str | None = None,
     rerun: str | os.PathLike[str] | None = None,
     record: str | os.PathLike[str] | None = None,
+    twin_profile: str | os.PathLike[str] | None = None,
 ) -> Resolved:
     """Checks and resolves keyword arguments (environment variables fill gaps).
 
@@ -67,6 +68,10 @@ def resolve(
     ``record``: a directory where every episode of the embedded envs is
     recorded as an MCAP file (``docs/recording.md``); a deployment's
     controller records its envs itself (``env_controller serve --record``).
+
+    ``twin_profile``: a twin profile file (``docs/twin-profile.md``) the
+    embedded sim twins are built with, so they behave like one physical
+    robot; a bad file raises ``BadRequest`` naming the file and the field.
     """
     channels = Channels(channel_type)
     if len(resolution) != 2:
@@ -92,6 +97,10 @@ def resolve(
         raise ConfigurationError(
             "record= records embedded sim envs; a deployment records on its controller "
             "(env_controller serve --record DIR)"
+        )
+    if twin_profile is not None and (remote or realm != "sim"):
+        raise ConfigurationError(
+            "twin_profile= shapes embedded sim twins; a deployment's twins take `sim_twin --profile FILE`"
         )
     env_ids = None
     if remote:
@@ -127,6 +136,7 @@ def resolve(
             depth_format=depth_format,
             rerun=rerun,
             record=record,
+            twin_profile=os.fspath(twin_profile) if twin_profile is not None else None,
         ),
         channels=channels,
         render_extra_rgb=render_extra_rgb,

@@ -30,6 +30,7 @@ class NativeEnvs:
         depth_format: str,
         rerun: str | None = None,
         record: str | None = None,
+        twin_profile: str | None = None,
     ) -> None: ...
     @property
     def spec(self) -> dict[str, Any]: ...

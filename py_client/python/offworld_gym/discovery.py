@@ -8,6 +8,7 @@ from typing import TypedDict
 from offworld_gym import _native
 from offworld_gym._config import CONNECT_ENV
 from offworld_gym.bookings import Booking
+from offworld_gym.experiments import ResetAccuracy
 
 
 class EnvInfo(TypedDict):
@@ -29,6 +30,9 @@ class EnvInfo(TypedDict):
     #: E-stops in force: ``{"site": reason, "env": reason}`` for the engaged
     #: latches (motion is refused while any is); empty when none.
     estops: dict[str, str]
+    #: How well the env's last reset put the robot at its spawn pose; None
+    #: before its first reset (or when its controller does not answer).
+    last_reset: ResetAccuracy | None
 
 
 def list_envs(connect: str | None = None, timeout: float = 2.0) -> list[EnvInfo]:

@@ -54,6 +54,22 @@ class Recording(TypedDict):
     complete: bool
 
 
+class ResetAccuracy(TypedDict):
+    """How well a reset put the robot at its spawn pose."""
+
+    #: The spawn pose asked for: ``(x m, y m, yaw rad)``, world frame.
+    requested: tuple[float, float, float]
+    #: The pose the episode started from.
+    achieved: tuple[float, float, float]
+    position_error_m: float
+    #: Absolute, wrapped to ``[0, pi]``.
+    yaw_error_rad: float
+    #: From the reset request to its first observation.
+    duration_s: float
+    #: When the reset ended.
+    unix_ms: int
+
+
 class Episode(TypedDict):
     """One episode of an experiment."""
 
@@ -72,6 +88,9 @@ class Episode(TypedDict):
     started_unix_ms: int
     #: Equal to the start while in progress.
     ended_unix_ms: int
+    #: How well its reset put the robot at its spawn pose (None for episodes
+    #: stored before resets were timed).
+    reset: ResetAccuracy | None
     #: Its files, when the env records (none otherwise).
     recordings: list[Recording]
 

@@ -413,7 +413,7 @@ pub enum EnvState {
 }
 
 /// Status of one env, published on change and served on `status`.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EnvStatus {
     /// `sim/monolith-0` etc.
     pub env_id: String,
@@ -422,6 +422,52 @@ pub struct EnvStatus {
     /// The e-stop latches that apply (site and env): motion is refused
     /// while either is engaged, whatever `state` says.
     pub estop: super::EStopState,
+    /// How well the env's last reset put the robot where it was asked.
+    pub last_reset: ResetAccuracy,
+}
+
+/// How well a reset put the robot at its spawn pose: on a real robot the
+/// reset is a drive, and where it ends is part of the episode's truth.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct ResetAccuracy {
+    /// The other fields hold a measurement: false before an env's first
+    /// reset, and for episodes stored before resets were timed (their
+    /// poses are still filled in, their duration is 0).
+    pub measured: bool,
+    /// The spawn pose the reset asked for (world frame).
+    pub requested: super::Pose2D,
+    /// The pose the episode started from (the first observation's).
+    pub achieved: super::Pose2D,
+    /// Planar distance between the two, m.
+    pub position_error_m: f64,
+    /// Absolute heading difference, wrapped to [0, π], rad.
+    pub yaw_error_rad: f64,
+    /// From the reset request to its first observation, s.
+    pub duration_s: f64,
+    /// When the reset ended, Unix ms.
+    pub unix_ms: i64,
+}
+
+impl ResetAccuracy {
+    /// A reset that asked for `requested`, started from `achieved` and
+    /// took `duration_s`, ending at `unix_ms`.
+    pub fn measure(
+        requested: super::Pose2D,
+        achieved: super::Pose2D,
+        duration_s: f64,
+        unix_ms: i64,
+    ) -> Self {
+        let turn = (achieved.yaw - requested.yaw).rem_euclid(std::f64::consts::TAU);
+        Self {
+            measured: true,
+            requested,
+            achieved,
+            position_error_m: (achieved.x - requested.x).hypot(achieved.y - requested.y),
+            yaw_error_rad: turn.min(std::f64::consts::TAU - turn),
+            duration_s,
+            unix_ms,
+        }
+    }
 }
 
 /// Operator commands.
@@ -608,6 +654,8 @@ pub struct EpisodeRecordEntry {
     pub started_unix_ms: i64,
     /// Unix ms (the start while in progress).
     pub ended_unix_ms: i64,
+    /// How well its reset put the robot at its spawn pose.
+    pub reset: ResetAccuracy,
     /// Its recordings (none when the env does not record).
     pub recordings: Vec<RecordingFile>,
 }

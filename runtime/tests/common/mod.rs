@@ -295,6 +295,20 @@ pub fn env_status() -> EnvStatus {
             until_unix_ms: 1_700_000_999_000,
         },
         estop: estop_state(),
+        last_reset: ResetAccuracy::measure(
+            Pose2D {
+                x: 1.0,
+                y: -0.5,
+                yaw: 0.25,
+            },
+            Pose2D {
+                x: 1.03,
+                y: -0.46,
+                yaw: 0.2,
+            },
+            41.5,
+            1_700_000_998_000,
+        ),
     }
 }
 
@@ -407,6 +421,7 @@ macro_rules! for_each_sample {
                     message: "wheels".into(),
                 },
                 estop: EStopState::default(),
+                last_reset: ResetAccuracy::default(),
             },
         );
         $f(

@@ -6,7 +6,7 @@ use parry3d::math::{Pose, Vec3};
 use parry3d::query::{Ray, RayCast};
 use parry3d::shape::{Cuboid, HeightField};
 
-use super::{CameraPose, Intrinsics, RgbdFrame, Shading};
+use super::{CameraPose, Intrinsics, PixelsMut, RgbdFrame, Shading};
 use crate::scene::Scene;
 use crate::world::LightSpec;
 
@@ -48,6 +48,23 @@ impl ExactRenderer {
     pub fn render(&self, pose: &CameraPose) -> RgbdFrame {
         let intr = self.intrinsics;
         let mut frame = RgbdFrame::new(intr.width, intr.height);
+        self.render_into(pose, &mut frame.pixels_mut());
+        frame
+    }
+
+    /// The intrinsics rendered with.
+    pub fn intrinsics(&self) -> &Intrinsics {
+        &self.intrinsics
+    }
+
+    /// Renders into `pixels`, which must have the sizes of the intrinsics
+    /// (every pixel is written); returns false, writing nothing, if not.
+    pub fn render_into(&self, pose: &CameraPose, pixels: &mut PixelsMut<'_>) -> bool {
+        let intr = self.intrinsics;
+        let n = (intr.width * intr.height) as usize;
+        if pixels.rgb.len() != n * 3 || pixels.depth.len() != n {
+            return false;
+        }
         let (forward, right, up) = camera_axes(pose);
         let origin = Vec3::from(pose.position);
         for v in 0..intr.height {
@@ -74,19 +91,24 @@ impl ExactRenderer {
                     }
                 }
                 let i = (v * intr.width + u) as usize;
-                if let Some((d, n, albedo)) = best {
-                    // Face the normal towards the camera.
-                    let n = if n.dot(dir) > 0.0 { -n } else { n };
-                    frame.depth[i] = if d >= intr.min_range && d <= intr.max_range {
-                        d
-                    } else {
-                        f32::NAN
-                    };
-                    frame.rgb[i * 3..i * 3 + 3].fill(self.shading.grey([n.x, n.y, n.z], albedo));
-                }
+                let (depth, grey) = match best {
+                    Some((d, n, albedo)) => {
+                        // Face the normal towards the camera.
+                        let n = if n.dot(dir) > 0.0 { -n } else { n };
+                        let depth = if d >= intr.min_range && d <= intr.max_range {
+                            d
+                        } else {
+                            f32::NAN
+                        };
+                        (depth, self.shading.grey([n.x, n.y, n.z], albedo))
+                    }
+                    None => (f32::NAN, 0),
+                };
+                pixels.depth[i] = depth;
+                pixels.rgb[i * 3..i * 3 + 3].fill(grey);
             }
         }
-        frame
+        true
     }
 }
 

@@ -6,6 +6,7 @@
 //! ```text
 //! sim_farm --twins 2                                  # prints the trainer's environment, serves until stdin closes
 //! sim_farm --twins 4 -- python3 py_client/examples/random_agent.py
+//! sim_farm --twins 2 --twin-profile robot-a.toml      # twins that behave like one robot (docs/twin-profile.md)
 //! ```
 //! A command after `--` runs with the trainer's environment
 //! (`OFFWORLD_ZENOH_CONFIG`, `OFFWORLD_ZENOH_CFG`, `OFFWORLD_GYM_CONNECT`,
@@ -18,7 +19,8 @@ use std::process::Command;
 
 use anyhow::Context;
 use clap::Parser;
-use offworld_tests::site::SimFarm;
+use offworld_sim_twin::TwinProfile;
+use offworld_tests::site::{RouterSite, SimFarm};
 
 #[derive(Parser)]
 #[command(about = "Run a sim farm behind the zenohd router")]
@@ -29,6 +31,10 @@ struct Args {
     /// Task served.
     #[arg(long, default_value = "MonolithDiscrete")]
     task: String,
+    /// Every twin behaves like this physical robot (a twin profile,
+    /// docs/twin-profile.md; passed to each `sim_twin --profile`).
+    #[arg(long, value_name = "FILE", alias = "profile")]
+    twin_profile: Option<std::path::PathBuf>,
     /// Command to run against the farm (after `--`).
     #[arg(last = true)]
     command: Vec<String>,
@@ -38,7 +44,23 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     offworld_runtime::session::init_logging();
     let args = Args::parse();
-    let farm = SimFarm::start("farm", args.twins, &args.task).context("starting the farm")?;
+    let profile = match &args.twin_profile {
+        Some(path) => {
+            // Here, not in each twin's log: a bad file names itself and its field.
+            TwinProfile::load(path)?;
+            // The twins may run elsewhere in the tree: an absolute path.
+            Some(std::fs::canonicalize(path)?)
+        }
+        None => None,
+    };
+    let farm = SimFarm::start_profiled(
+        RouterSite::start("farm")?,
+        "farm",
+        args.twins,
+        &args.task,
+        profile.as_deref(),
+    )
+    .context("starting the farm")?;
     farm.ready(std::time::Duration::from_secs(60)).await?;
     let envs: Vec<String> = farm.envs.iter().map(ToString::to_string).collect();
     eprintln!("sim farm serving {} ({})", envs.join(", "), args.task);
