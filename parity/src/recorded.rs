@@ -1,0 +1,181 @@
+//! A recorded episode read into its steps: what was commanded, where the
+//! robot ended up, what its camera saw, and how the step was judged.
+
+use std::path::{Path, PathBuf};
+
+use offworld_recorder::msg::{EpisodeInfo, Step};
+use offworld_recorder::read::EpisodeData;
+use offworld_recorder::Channel;
+use offworld_runtime::msg::{ImageView, PixelEncoding, Pose2D, PoseStamped};
+
+use crate::ParityError;
+
+/// A depth image in metres (NaN: no return), row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthImage {
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Metres per pixel.
+    pub metres: Vec<f32>,
+}
+
+/// An RGB image, 3 bytes per pixel, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColorImage {
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Red, green, blue per pixel.
+    pub rgb: Vec<u8>,
+}
+
+/// One step as recorded (step 0 is the reset).
+#[derive(Debug, Clone)]
+pub struct RecordedStep {
+    /// The step record: command, reward, termination.
+    pub step: Step,
+    /// The pose the step was judged from (the tracker's on a robot).
+    pub pose: Pose2D,
+    /// The step's depth image, if recorded.
+    pub depth: Option<DepthImage>,
+    /// The step's colour image, if recorded.
+    pub color: Option<ColorImage>,
+}
+
+/// An episode file read into its steps.
+#[derive(Debug, Clone)]
+pub struct RecordedEpisode {
+    /// The file.
+    pub path: PathBuf,
+    /// Its first record: env, task, world, embodiment.
+    pub info: EpisodeInfo,
+    /// Its steps in order, the reset first.
+    pub steps: Vec<RecordedStep>,
+}
+
+impl RecordedEpisode {
+    /// Reads `path` (a complete file, or a `.partial` up to its cut). An
+    /// episode without its info record, a reset, or a pose for a step is
+    /// refused, naming the file.
+    pub fn read(path: &Path) -> Result<Self, ParityError> {
+        let unusable = |reason: String| ParityError::Unusable {
+            path: path.to_owned(),
+            reason,
+        };
+        let data = EpisodeData::read(path)?;
+        let mut info = None;
+        let mut steps = Vec::new();
+        let (mut pose, mut depth, mut color) = (None, None, None);
+        for message in data.messages()? {
+            let message = message?;
+            match message.channel {
+                Some(Channel::Episode) => info = Some(data.decode::<EpisodeInfo>(&message)?),
+                Some(Channel::Pose) => {
+                    let stamped: PoseStamped = data.decode(&message)?;
+                    pose = Some(Pose2D {
+                        x: stamped.pose.position.x,
+                        y: stamped.pose.position.y,
+                        yaw: stamped.pose.orientation.yaw(),
+                    });
+                }
+                Some(Channel::Depth) => {
+                    let image = image_view(&message.data).map_err(&unusable)?;
+                    depth = Some(depth_image(&image).map_err(&unusable)?);
+                }
+                Some(Channel::Color) => {
+                    let image = image_view(&message.data).map_err(&unusable)?;
+                    color = Some(color_image(&image).map_err(&unusable)?);
+                }
+                Some(Channel::Step) => {
+                    let step: Step = data.decode(&message)?;
+                    let Some(pose) = pose.take() else {
+                        return Err(unusable(format!("step {} has no pose", step.step)));
+                    };
+                    steps.push(RecordedStep {
+                        step,
+                        pose,
+                        depth: depth.take(),
+                        color: color.take(),
+                    });
+                }
+                _ => {}
+            }
+        }
+        let info = info.ok_or_else(|| unusable("no episode record (/offworld/episode)".into()))?;
+        if steps.first().map(|s| s.step.step) != Some(0) {
+            return Err(unusable("no reset step (step 0)".into()));
+        }
+        Ok(Self {
+            path: path.to_owned(),
+            info,
+            steps,
+        })
+    }
+}
+
+/// An image message read in place (its pixels are not copied).
+fn image_view(data: &[u8]) -> Result<ImageView<'_>, String> {
+    offworld_runtime::codec::decode_borrowed(data).map_err(|e| format!("a bad image message: {e}"))
+}
+
+/// `image` (`32FC1` metres or `16UC1` millimetres) in metres.
+pub fn depth_image(image: &ImageView<'_>) -> Result<DepthImage, String> {
+    let encoding = image.validate().map_err(|e| format!("depth image: {e}"))?;
+    let (w, h, step) = (
+        image.width as usize,
+        image.height as usize,
+        image.step as usize,
+    );
+    let mut metres = Vec::with_capacity(w * h);
+    for row in image.data.chunks_exact(step.max(1)).take(h) {
+        match encoding {
+            PixelEncoding::Depth32FC1 => metres.extend(
+                row[..w * 4]
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+            ),
+            PixelEncoding::Depth16UC1 => metres.extend(row[..w * 2].chunks_exact(2).map(|b| {
+                match u16::from_le_bytes([b[0], b[1]]) {
+                    0 => f32::NAN,
+                    mm => f32::from(mm) / 1000.0,
+                }
+            })),
+            other => return Err(format!("a depth image in {}", other.as_str())),
+        }
+    }
+    Ok(DepthImage {
+        width: image.width,
+        height: image.height,
+        metres,
+    })
+}
+
+/// `image` (`rgb8` or `bgr8`) as RGB.
+pub fn color_image(image: &ImageView<'_>) -> Result<ColorImage, String> {
+    let encoding = image.validate().map_err(|e| format!("colour image: {e}"))?;
+    let (w, h, step) = (
+        image.width as usize,
+        image.height as usize,
+        image.step as usize,
+    );
+    let mut rgb = Vec::with_capacity(w * h * 3);
+    for row in image.data.chunks_exact(step.max(1)).take(h) {
+        match encoding {
+            PixelEncoding::Rgb8 => rgb.extend_from_slice(&row[..w * 3]),
+            PixelEncoding::Bgr8 => {
+                for p in row[..w * 3].chunks_exact(3) {
+                    rgb.extend_from_slice(&[p[2], p[1], p[0]]);
+                }
+            }
+            other => return Err(format!("a colour image in {}", other.as_str())),
+        }
+    }
+    Ok(ColorImage {
+        width: image.width,
+        height: image.height,
+        rgb,
+    })
+}
