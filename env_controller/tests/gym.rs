@@ -203,8 +203,7 @@ async fn full_episode_and_seeded_determinism() {
     let reset = env.reset(Seed::Fixed(1)).await.expect("reset");
     let episode_id = reset.info.episode_id;
     // The reset's accuracy is in the status: where it asked for, where the
-    // episode starts (the twin teleports, then settles on its springs: on a
-    // slope that moves it up to ~1 cm).
+    // episode starts (the twin teleports there: within a millimetre).
     let status = client::status(&session, &d.env, Duration::from_secs(5))
         .await
         .expect("status");
@@ -219,8 +218,8 @@ async fn full_episode_and_seeded_determinism() {
         (reset.info.x, reset.info.y, reset.info.yaw),
         "achieved = the pose the episode starts from"
     );
-    assert!(accuracy.position_error_m < 0.03, "{accuracy:?}");
-    assert!(accuracy.yaw_error_rad < 0.01, "{accuracy:?}");
+    assert!(accuracy.position_error_m < 0.001, "{accuracy:?}");
+    assert!(accuracy.yaw_error_rad < 0.001, "{accuracy:?}");
     assert!(
         accuracy.duration_s > 0.0 && accuracy.duration_s < 10.0,
         "{accuracy:?}"
@@ -1058,7 +1057,7 @@ async fn experiments_are_shown_to_their_owner_and_operators_only() {
             *start
         );
         assert!(
-            reset.position_error_m < 0.03 && reset.duration_s > 0.0,
+            reset.position_error_m < 0.001 && reset.duration_s > 0.0,
             "{reset:?}"
         );
         assert_eq!(reset.unix_ms, episode.started_unix_ms);

@@ -63,8 +63,8 @@ def test_an_embedded_env_lists_its_episodes_with_their_recordings(tmp_path: Path
         assert set(reset) == {"requested", "achieved", "position_error_m", "yaw_error_rad", "duration_s", "unix_ms"}
         (rx, ry, _), (ax, ay, _) = reset["requested"], reset["achieved"]
         assert abs(((ax - rx) ** 2 + (ay - ry) ** 2) ** 0.5 - reset["position_error_m"]) < 1e-9
-        # A twin teleports; settling on its springs on a slope moves it up to ~1 cm.
-        assert reset["position_error_m"] < 0.03 and reset["yaw_error_rad"] < 0.01
+        # A twin teleports there: within a millimetre.
+        assert reset["position_error_m"] < 0.001 and reset["yaw_error_rad"] < 0.001
         assert reset["duration_s"] > 0.0
         assert reset["unix_ms"] == episode["started_unix_ms"]
     # Each episode names its MCAP file under the record directory.

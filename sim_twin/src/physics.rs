@@ -217,6 +217,22 @@ impl RobotPhysics {
         for _ in 0..SETTLE_STEPS {
             self.substep();
         }
+        // Settling tilts the chassis about its centre of mass, which moves
+        // base_link sideways on a slope (up to ~1 cm): put it back where it
+        // was asked for, keeping the settled height and tilt, so a reset
+        // (and a parity replay from a recorded pose) starts exactly there.
+        if let Some(body) = self.world.bodies.get_mut(self.robot) {
+            let settled = *body.position();
+            let forward = settled.rotation * Vector::X;
+            let turn = Rotation::from_rotation_z(pose.yaw - forward.y.atan2(forward.x));
+            body.set_position(
+                Pose::from_parts(
+                    Vector::new(pose.x, pose.y, settled.translation.z),
+                    turn * settled.rotation,
+                ),
+                true,
+            );
+        }
     }
 
     /// Drives at (`linear`, `angular`) for `duration` s, then commands zero
