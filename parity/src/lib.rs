@@ -6,7 +6,9 @@
 //! - [`replay`] replays them in a [`offworld_sim_twin::SimTwin`] built
 //!   with a [`offworld_sim_twin::TwinProfile`].
 //! - [`report`] sums the gaps up as a Markdown report.
+//! - [`identify`] fits a twin profile to recorded episodes.
 
+pub mod identify;
 pub mod recorded;
 pub mod replay;
 pub mod report;
@@ -27,6 +29,15 @@ pub enum ParityError {
         /// What is wrong with it.
         reason: String,
     },
+    /// Not enough data to fit a profile.
+    #[error("too little data: {reason}")]
+    TooFew {
+        /// What is missing.
+        reason: String,
+    },
+    /// The optimiser failed.
+    #[error("the fit failed: {0}")]
+    Fit(String),
     /// The twin refused the episode's world, profile or a command.
     #[error("{}: the twin: {reason}", path.display())]
     Twin {

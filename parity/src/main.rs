@@ -4,6 +4,7 @@
 //! ```text
 //! parity replay runs/real/monolith-0/               # every episode under it, nominal twin
 //! parity replay runs/ --profile robot-a.toml --out parity.md
+//! parity identify runs/real/monolith-0/ --out robot-a.toml
 //! ```
 
 use std::path::PathBuf;
@@ -11,6 +12,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
+use offworld_parity::identify::{identify, IdentifyOptions};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_parity::replay::replay;
 use offworld_parity::report;
@@ -43,6 +45,35 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         out: Option<PathBuf>,
     },
+    /// Fits a twin profile to episodes of one robot in one world (at
+    /// least 3 episodes, 20 moving steps): motion gains, camera mount,
+    /// depth noise and dropout. Writes the profile for `sim_twin
+    /// --profile`, `twin_profile=` and the sim farm.
+    Identify {
+        /// Episode files or directories of them.
+        #[arg(required = true)]
+        paths: Vec<PathBuf>,
+        /// Where to write the fitted profile.
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+        /// The profile to start from (default: the nominal twin); latency
+        /// and settle time are kept from it.
+        #[arg(long, value_name = "FILE")]
+        start: Option<PathBuf>,
+        /// Optimiser iterations per fit, at most.
+        #[arg(long, default_value_t = IdentifyOptions::default().max_iters)]
+        max_iters: u64,
+        /// Depth images the camera fit renders (spread over the episodes).
+        #[arg(long, default_value_t = IdentifyOptions::default().camera_steps)]
+        camera_steps: usize,
+    },
+}
+
+fn read_all(files: &[PathBuf]) -> anyhow::Result<Vec<RecordedEpisode>> {
+    files
+        .iter()
+        .map(|f| RecordedEpisode::read(f).map_err(Into::into))
+        .collect()
 }
 
 fn episode_files(paths: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
@@ -96,6 +127,39 @@ fn run(args: Args) -> anyhow::Result<()> {
                 }
                 None => print!("{text}"),
             }
+            Ok(())
+        }
+        Command::Identify {
+            paths,
+            out,
+            start,
+            max_iters,
+            camera_steps,
+        } => {
+            let start = match &start {
+                Some(path) => TwinProfile::load(path)?,
+                None => TwinProfile::default(),
+            };
+            let files = episode_files(&paths)?;
+            eprintln!("reading {} episodes …", files.len());
+            let episodes = read_all(&files)?;
+            let options = IdentifyOptions {
+                max_iters,
+                camera_steps,
+            };
+            let found = identify(&episodes, &start, &options, &mut |line| eprintln!("{line}"))?;
+            found.profile.save(&out)?;
+            println!(
+                "{}: one-step position error {:.2} cm → {:.2} cm, depth cost {:.2} cm → {:.2} cm \
+                 ({} moving steps, {} iterations)",
+                out.display(),
+                found.position_error_before_m * 100.0,
+                found.position_error_after_m * 100.0,
+                found.depth_cost_before_m * 100.0,
+                found.depth_cost_after_m * 100.0,
+                found.steps,
+                found.iterations
+            );
             Ok(())
         }
     }

@@ -1,0 +1,497 @@
+//! Twin identification: the profile that makes the twin replay recorded
+//! episodes best, fitted with a derivative-free optimiser (`argmin`'s
+//! Nelder–Mead) on the replay error.
+//!
+//! The parameters come apart into three fits, each on the data that sees
+//! them:
+//! 1. **motion gains** (linear, angular): one-step replays — each step
+//!    from the recorded pose before it, with its recorded command — scored
+//!    by the distance (and heading, at 0.3 m per rad) from the recorded
+//!    pose after it;
+//! 2. **camera mount** (height, pitch, yaw): depth rendered at recorded
+//!    poses against the recorded depth (pixels valid in one image only
+//!    count as a 0.5 m miss);
+//! 3. **depth noise and dropout**: measured directly at the fitted
+//!    camera — the share of pixels the twin sees and the camera lost, and
+//!    the robust spread of the relative depth residual.
+//!
+//! Latency and settle time shape *when* the robot moves, not where a step
+//! ends, so they need the odometry time series; they are kept from the
+//! starting profile (see `docs/parity.md`).
+
+use std::cell::RefCell;
+
+use argmin::core::{CostFunction, Error as ArgminError, Executor, State};
+use argmin::solver::neldermead::NelderMead;
+use offworld_runtime::msg::Pose2D;
+use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig, TwinProfile};
+
+use crate::recorded::RecordedEpisode;
+use crate::replay::yaw_error;
+use crate::ParityError;
+
+/// Fewer episodes than this are refused: a fit to one or two runs learns
+/// their noise.
+pub const MIN_EPISODES: usize = 3;
+/// Fewer moving steps in all than this are refused.
+pub const MIN_STEPS: usize = 20;
+/// Metres of position error that weigh as much as one radian of heading.
+const YAW_WEIGHT_M: f64 = 0.3;
+/// What a pixel valid in one image and not the other costs, m.
+const VALIDITY_MISS_M: f64 = 0.5;
+/// The cost of a candidate outside the profile's valid ranges.
+const OUT_OF_RANGE: f64 = 1e6;
+
+/// How the fit runs.
+#[derive(Debug, Clone, Copy)]
+pub struct IdentifyOptions {
+    /// Nelder–Mead iterations per fit, at most.
+    pub max_iters: u64,
+    /// Steps (evenly spread over all episodes) whose depth the camera fit
+    /// renders.
+    pub camera_steps: usize,
+}
+
+impl Default for IdentifyOptions {
+    fn default() -> Self {
+        Self {
+            max_iters: 150,
+            camera_steps: 24,
+        }
+    }
+}
+
+/// What identification found.
+#[derive(Debug, Clone)]
+pub struct Identified {
+    /// The fitted profile.
+    pub profile: TwinProfile,
+    /// Mean one-step position error with the starting profile, m.
+    pub position_error_before_m: f64,
+    /// The same with the fitted profile, m.
+    pub position_error_after_m: f64,
+    /// Mean depth cost at the recorded poses before and after, m.
+    pub depth_cost_before_m: f64,
+    /// After.
+    pub depth_cost_after_m: f64,
+    /// Moving steps the motion fit used.
+    pub steps: usize,
+    /// Nelder–Mead iterations of both fits.
+    pub iterations: u64,
+}
+
+/// One moving step: from where, with which command, to where.
+#[derive(Debug, Clone, Copy)]
+struct Transition {
+    episode: usize,
+    before: Pose2D,
+    after: Pose2D,
+    linear: f64,
+    angular: f64,
+    duration: f64,
+}
+
+fn planar(p: &Pose2D) -> PlanarPose {
+    PlanarPose {
+        x: p.x as f32,
+        y: p.y as f32,
+        yaw: p.yaw as f32,
+    }
+}
+
+fn unusable(episode: &RecordedEpisode, reason: String) -> ParityError {
+    ParityError::Unusable {
+        path: episode.path.clone(),
+        reason,
+    }
+}
+
+/// Checks that `episodes` can be fitted together: enough of them, one env
+/// and world, enough motion.
+fn check(episodes: &[RecordedEpisode]) -> Result<Vec<Transition>, ParityError> {
+    let Some(first) = episodes.first() else {
+        return Err(ParityError::TooFew {
+            reason: "no episodes".into(),
+        });
+    };
+    if episodes.len() < MIN_EPISODES {
+        return Err(ParityError::TooFew {
+            reason: format!(
+                "{} episodes: identification needs at least {MIN_EPISODES}",
+                episodes.len()
+            ),
+        });
+    }
+    for e in episodes {
+        if e.info.env_id != first.info.env_id || e.info.world != first.info.world {
+            return Err(unusable(
+                e,
+                format!(
+                    "recorded on {} in world {}, but {} was recorded on {} in world {}: \
+                     identify one robot in one world at a time",
+                    e.info.env_id,
+                    e.info.world,
+                    first.path.display(),
+                    first.info.env_id,
+                    first.info.world
+                ),
+            ));
+        }
+    }
+    let transitions: Vec<Transition> = episodes
+        .iter()
+        .enumerate()
+        .flat_map(|(i, e)| {
+            e.steps.windows(2).filter_map(move |w| {
+                let s = &w[1].step;
+                let moving = s.duration_s > 0.0 && (s.linear_x != 0.0 || s.angular_z != 0.0);
+                moving.then_some(Transition {
+                    episode: i,
+                    before: w[0].pose,
+                    after: w[1].pose,
+                    linear: s.linear_x,
+                    angular: s.angular_z,
+                    duration: s.duration_s,
+                })
+            })
+        })
+        .collect();
+    if transitions.len() < MIN_STEPS {
+        return Err(ParityError::TooFew {
+            reason: format!(
+                "{} moving steps in {} episodes: identification needs at least {MIN_STEPS}",
+                transitions.len(),
+                episodes.len()
+            ),
+        });
+    }
+    Ok(transitions)
+}
+
+fn twin_for(
+    episode: &RecordedEpisode,
+    profile: TwinProfile,
+    resolution: (u32, u32),
+) -> Result<SimTwin, ParityError> {
+    let mut config = TwinConfig::builtin(&episode.info.world).map_err(|e| ParityError::Twin {
+        path: episode.path.clone(),
+        reason: e.to_string(),
+    })?;
+    config.resolution = Some(resolution);
+    config.profile = profile;
+    config.start = planar(&episode.steps[0].pose);
+    SimTwin::new(config).map_err(|e| ParityError::Twin {
+        path: episode.path.clone(),
+        reason: e.to_string(),
+    })
+}
+
+/// The one-step motion error of `profile`'s motion over `transitions`.
+struct MotionFit<'a> {
+    transitions: &'a [Transition],
+    base: TwinProfile,
+    /// One twin per episode (only physics is used).
+    twins: RefCell<Vec<SimTwin>>,
+}
+
+impl MotionFit<'_> {
+    fn profile(&self, p: &[f64]) -> TwinProfile {
+        let mut profile = self.base;
+        profile.motion.linear_gain = p[0] as f32;
+        profile.motion.angular_gain = p[1] as f32;
+        profile
+    }
+
+    /// Mean squared error (m²) and mean position error (m) of `profile`.
+    fn errors(&self, profile: &TwinProfile) -> (f64, f64) {
+        let mut twins = self.twins.borrow_mut();
+        for twin in twins.iter_mut() {
+            twin.physics_mut().set_profile(profile.motion);
+        }
+        let (mut sq, mut dist) = (0.0, 0.0);
+        for t in self.transitions {
+            let twin = &mut twins[t.episode];
+            let ended = twin
+                .teleport(planar(&t.before))
+                .and_then(|()| twin.execute(t.linear, t.angular, t.duration));
+            if ended.is_err() {
+                return (OUT_OF_RANGE, OUT_OF_RANGE);
+            }
+            let p = twin.ground_truth();
+            let d =
+                (f64::from(p.position[0]) - t.after.x).hypot(f64::from(p.position[1]) - t.after.y);
+            let yaw = yaw_error(f64::from(p.yaw), t.after.yaw) * YAW_WEIGHT_M;
+            sq += d * d + yaw * yaw;
+            dist += d;
+        }
+        let n = self.transitions.len() as f64;
+        (sq / n, dist / n)
+    }
+}
+
+impl CostFunction for &MotionFit<'_> {
+    type Param = Vec<f64>;
+    type Output = f64;
+
+    fn cost(&self, p: &Self::Param) -> Result<f64, ArgminError> {
+        let profile = self.profile(p);
+        if profile.validate().is_err() {
+            return Ok(OUT_OF_RANGE);
+        }
+        Ok(self.errors(&profile).0)
+    }
+}
+
+/// A recorded depth image at a recorded pose.
+struct DepthView<'a> {
+    episode: &'a RecordedEpisode,
+    pose: Pose2D,
+    metres: &'a [f32],
+    resolution: (u32, u32),
+}
+
+/// The depth error of `profile`'s camera at recorded poses.
+struct CameraFit<'a> {
+    views: Vec<DepthView<'a>>,
+    base: TwinProfile,
+}
+
+impl CameraFit<'_> {
+    fn profile(&self, p: &[f64]) -> TwinProfile {
+        let mut profile = self.base;
+        profile.camera.height_offset_m = p[0] as f32;
+        profile.camera.pitch_deg = p[1] as f32;
+        profile.camera.yaw_deg = p[2] as f32;
+        profile
+    }
+
+    /// Renders every view with `profile` (noise-free) and hands each
+    /// (twin, robot) depth pair to `each`.
+    fn render(
+        &self,
+        profile: &TwinProfile,
+        mut each: impl FnMut(&[f32], &[f32]),
+    ) -> Result<(), ParityError> {
+        let mut clean = *profile;
+        clean.depth.noise = 0.0;
+        clean.depth.dropout = 0.0;
+        let mut twin: Option<(usize, SimTwin)> = None;
+        for view in &self.views {
+            let key = view.episode as *const RecordedEpisode as usize;
+            if twin.as_ref().map(|(k, _)| *k) != Some(key) {
+                twin = Some((key, twin_for(view.episode, clean, view.resolution)?));
+            }
+            let Some((_, t)) = twin.as_mut() else {
+                continue;
+            };
+            t.teleport(planar(&view.pose))
+                .map_err(|e| ParityError::Twin {
+                    path: view.episode.path.clone(),
+                    reason: e.to_string(),
+                })?;
+            each(&t.render().depth, view.metres);
+        }
+        Ok(())
+    }
+
+    fn cost_of(&self, profile: &TwinProfile) -> f64 {
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        let rendered = self.render(profile, |twin, robot| {
+            for (&t, &r) in twin.iter().zip(robot) {
+                sum += match (t.is_finite(), r.is_finite()) {
+                    (true, true) => f64::from((t - r).abs()),
+                    (true, false) | (false, true) => VALIDITY_MISS_M,
+                    (false, false) => 0.0,
+                };
+                n += 1;
+            }
+        });
+        if rendered.is_err() || n == 0 {
+            return OUT_OF_RANGE;
+        }
+        sum / n as f64
+    }
+
+    /// Dropout (share of the twin's valid pixels the camera lost) and
+    /// noise (robust spread of the relative residual) at `profile`.
+    fn depth_noise(&self, profile: &TwinProfile) -> Result<(f32, f32), ParityError> {
+        let (mut twin_valid, mut lost) = (0usize, 0usize);
+        let mut residuals = Vec::new();
+        self.render(profile, |twin, robot| {
+            for (&t, &r) in twin.iter().zip(robot) {
+                if !t.is_finite() {
+                    continue;
+                }
+                twin_valid += 1;
+                if r.is_finite() {
+                    residuals.push(f64::from((r - t) / t).abs());
+                } else {
+                    lost += 1;
+                }
+            }
+        })?;
+        let dropout = if twin_valid == 0 {
+            0.0
+        } else {
+            lost as f64 / twin_valid as f64
+        };
+        residuals.sort_by(f64::total_cmp);
+        // The median absolute deviation of a normal is 0.6745 σ.
+        let noise = residuals
+            .get(residuals.len() / 2)
+            .map_or(0.0, |mad| mad / 0.674_489_75);
+        Ok((dropout as f32, noise as f32))
+    }
+}
+
+impl CostFunction for &CameraFit<'_> {
+    type Param = Vec<f64>;
+    type Output = f64;
+
+    fn cost(&self, p: &Self::Param) -> Result<f64, ArgminError> {
+        let profile = self.profile(p);
+        if profile.validate().is_err() {
+            return Ok(OUT_OF_RANGE);
+        }
+        Ok(self.cost_of(&profile))
+    }
+}
+
+/// Nelder–Mead from `start` with a first simplex of `steps` along each axis.
+fn minimise<C>(
+    problem: C,
+    start: Vec<f64>,
+    steps: &[f64],
+    max_iters: u64,
+) -> Result<(Vec<f64>, u64), ParityError>
+where
+    C: CostFunction<Param = Vec<f64>, Output = f64>,
+{
+    let mut simplex = vec![start.clone()];
+    for (i, step) in steps.iter().enumerate() {
+        let mut vertex = start.clone();
+        vertex[i] += step;
+        simplex.push(vertex);
+    }
+    let solver = NelderMead::new(simplex)
+        .with_sd_tolerance(1e-12)
+        .map_err(|e| ParityError::Fit(e.to_string()))?;
+    let result = Executor::new(problem, solver)
+        .configure(|state| state.max_iters(max_iters))
+        .run()
+        .map_err(|e| ParityError::Fit(e.to_string()))?;
+    let state = result.state();
+    let best = state
+        .get_best_param()
+        .cloned()
+        .ok_or_else(|| ParityError::Fit("the optimiser found no parameters".into()))?;
+    Ok((best, state.get_iter()))
+}
+
+/// Fits a profile to `episodes`, starting from `start`.
+pub fn identify(
+    episodes: &[RecordedEpisode],
+    start: &TwinProfile,
+    options: &IdentifyOptions,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Identified, ParityError> {
+    let transitions = check(episodes)?;
+    let motion = MotionFit {
+        transitions: &transitions,
+        base: *start,
+        twins: RefCell::new(
+            episodes
+                .iter()
+                .map(|e| twin_for(e, *start, (4, 3)))
+                .collect::<Result<_, _>>()?,
+        ),
+    };
+    let (_, position_error_before_m) = motion.errors(start);
+    progress(&format!(
+        "motion: {} moving steps, mean one-step error {:.2} cm with the starting profile",
+        transitions.len(),
+        position_error_before_m * 100.0
+    ));
+    let m = &start.motion;
+    let (gains, motion_iters) = minimise(
+        &motion,
+        vec![f64::from(m.linear_gain), f64::from(m.angular_gain)],
+        &[0.1, 0.1],
+        options.max_iters,
+    )?;
+    let mut profile = motion.profile(&gains);
+    let (_, position_error_after_m) = motion.errors(&profile);
+    progress(&format!(
+        "motion: linear gain {:.4}, angular gain {:.4}: mean one-step error {:.2} cm",
+        profile.motion.linear_gain,
+        profile.motion.angular_gain,
+        position_error_after_m * 100.0
+    ));
+
+    let with_depth: Vec<DepthView<'_>> = episodes
+        .iter()
+        .flat_map(|e| {
+            e.steps.iter().filter_map(move |s| {
+                s.depth.as_ref().map(|d| DepthView {
+                    episode: e,
+                    pose: s.pose,
+                    metres: &d.metres,
+                    resolution: (d.width, d.height),
+                })
+            })
+        })
+        .collect();
+    if with_depth.is_empty() {
+        return Err(ParityError::TooFew {
+            reason: "no depth images: the camera cannot be fitted".into(),
+        });
+    }
+    let stride = with_depth.len().div_ceil(options.camera_steps.max(1));
+    let camera = CameraFit {
+        views: with_depth.into_iter().step_by(stride.max(1)).collect(),
+        base: profile,
+    };
+    let depth_cost_before_m = camera.cost_of(&profile);
+    progress(&format!(
+        "camera: {} depth images, cost {:.2} cm with the starting mount",
+        camera.views.len(),
+        depth_cost_before_m * 100.0
+    ));
+    let c = &start.camera;
+    let (mount, camera_iters) = minimise(
+        &camera,
+        vec![
+            f64::from(c.height_offset_m),
+            f64::from(c.pitch_deg),
+            f64::from(c.yaw_deg),
+        ],
+        &[0.01, 1.0, 1.0],
+        options.max_iters,
+    )?;
+    profile = camera.profile(&mount);
+    let depth_cost_after_m = camera.cost_of(&profile);
+    let (dropout, noise) = camera.depth_noise(&profile)?;
+    profile.depth.dropout = dropout;
+    profile.depth.noise = noise;
+    progress(&format!(
+        "camera: height {:+.4} m, pitch {:+.3}°, yaw {:+.3}°: cost {:.2} cm; depth noise {:.4}, dropout {:.4}",
+        profile.camera.height_offset_m,
+        profile.camera.pitch_deg,
+        profile.camera.yaw_deg,
+        depth_cost_after_m * 100.0,
+        noise,
+        dropout
+    ));
+    profile
+        .validate()
+        .map_err(|e| ParityError::Fit(e.to_string()))?;
+    Ok(Identified {
+        profile,
+        position_error_before_m,
+        position_error_after_m,
+        depth_cost_before_m,
+        depth_cost_after_m,
+        steps: transitions.len(),
+        iterations: motion_iters + camera_iters,
+    })
+}
