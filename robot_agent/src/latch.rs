@@ -11,6 +11,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use atomic_write_file::AtomicWriteFile;
 use offworld_runtime::msg::{EStopState, LatchState, Time};
 
 /// Where the e-stop state is remembered.
@@ -51,26 +52,17 @@ impl EStopLatch {
         }))
     }
 
-    /// Writes `state` (whole, synced, renamed into place, directory synced:
-    /// a crash or power cut leaves the old state or the new one).
+    /// Writes `state` (whole, synced, renamed into place, directory synced,
+    /// by `atomic-write-file`: a crash or power cut leaves the old state or
+    /// the new one).
     pub fn store(&self, state: &EStopState) -> std::io::Result<()> {
-        let dir = self
-            .path
-            .parent()
-            .filter(|d| !d.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        std::fs::create_dir_all(dir)?;
-        let text = toml::to_string(state).map_err(std::io::Error::other)?;
-        let mut staging = self.path.clone().into_os_string();
-        staging.push(".tmp");
-        let staging = PathBuf::from(staging);
-        {
-            let mut file = std::fs::File::create(&staging)?;
-            file.write_all(text.as_bytes())?;
-            file.sync_all()?;
+        if let Some(dir) = self.path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)?;
         }
-        std::fs::rename(&staging, &self.path)?;
-        std::fs::File::open(dir)?.sync_all()
+        let text = toml::to_string(state).map_err(std::io::Error::other)?;
+        let mut file = AtomicWriteFile::open(&self.path)?;
+        file.write_all(text.as_bytes())?;
+        file.commit()
     }
 }
 

@@ -6,8 +6,9 @@
 //! bit for bit like one built before profiles existed.
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
+use atomic_write_file::AtomicWriteFile;
 use serde::{Deserialize, Serialize};
 
 use crate::error::SimError;
@@ -236,32 +237,12 @@ impl TwinProfile {
     pub fn save(&self, path: &Path) -> Result<(), SimError> {
         self.validate().map_err(|e| e.in_file(path))?;
         let text = self.to_toml()?;
-        let io = |what: &str, e: std::io::Error| {
-            profile_error(Some(path), None, format!("cannot {what}: {e}"))
-        };
-        let dir = match path.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        let name = path
-            .file_name()
-            .ok_or_else(|| profile_error(Some(path), None, "not a file name".into()))?;
-        let mut temp_name = std::ffi::OsString::from(".");
-        temp_name.push(name);
-        temp_name.push(format!(".{}.tmp", std::process::id()));
-        let temp = dir.join(temp_name);
-        let written = (|| {
-            let mut file = std::fs::File::create(&temp)?;
+        let write = || -> std::io::Result<()> {
+            let mut file = AtomicWriteFile::open(path)?;
             file.write_all(text.as_bytes())?;
-            file.sync_all()
-        })();
-        if let Err(e) = written.and_then(|()| std::fs::rename(&temp, path)) {
-            let _ = std::fs::remove_file(&temp);
-            return Err(io("write", e));
-        }
-        std::fs::File::open(&dir)
-            .and_then(|d| d.sync_all())
-            .map_err(|e| io("sync its directory", e))
+            file.commit()
+        };
+        write().map_err(|e| profile_error(Some(path), None, format!("cannot write: {e}")))
     }
 }
 

@@ -17,8 +17,10 @@
 //! rotation = [0.0, 0.0, 0.0, 1.0]
 //! ```
 
+use std::io::Write;
 use std::path::Path;
 
+use atomic_write_file::AtomicWriteFile;
 use nalgebra::{
     Isometry3, Matrix3, Point3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3,
 };
@@ -248,11 +250,21 @@ impl Calibration {
             text.push('\n');
         }
         text.push_str(&self.to_toml_string()?);
-        std::fs::write(path, text).map_err(|error| CalibrationError::Io {
-            path: path.display().to_string(),
-            error,
-        })
+        write_durably(path, &text)
     }
+}
+
+/// Writes `text` to `path` so that a crash or power cut leaves the old file
+/// or the new one, never a part: a tracker agent must not start from a
+/// truncated calibration (temporary file, fsync, rename, directory fsync).
+fn write_durably(path: &Path, text: &str) -> Result<(), CalibrationError> {
+    let io = |error| CalibrationError::Io {
+        path: path.display().to_string(),
+        error,
+    };
+    let mut file = AtomicWriteFile::open(path).map_err(io)?;
+    file.write_all(text.as_bytes()).map_err(io)?;
+    file.commit().map_err(io)
 }
 
 /// base_link's pose in the tracking frame given the device's pose there and
@@ -449,12 +461,9 @@ impl ReferenceFile {
         })
     }
 
-    /// Writes the file.
+    /// Writes the file (see [`write_durably`]).
     pub fn save(&self, path: &Path) -> Result<(), CalibrationError> {
-        std::fs::write(path, self.to_toml_string()?).map_err(|error| CalibrationError::Io {
-            path: path.display().to_string(),
-            error,
-        })
+        write_durably(path, &self.to_toml_string()?)
     }
 
     /// World positions, in order.
@@ -802,18 +811,32 @@ mod tests {
             calibration
         );
 
-        let path = std::env::temp_dir().join(format!(
-            "tracker_agent_calib_{}_{:?}.toml",
+        // Saved whole, over an older (longer) file, leaving nothing beside it.
+        let dir = std::env::temp_dir().join(format!(
+            "tracker_agent_calib_{}_{:?}",
             std::process::id(),
             std::thread::current().id()
         ));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("calibration.toml");
+        std::fs::write(&path, "# an older calibration\n".repeat(200)).expect("old file");
         calibration
             .save(&path, "a comment\nover two lines")
             .expect("saved");
         let written = std::fs::read_to_string(&path).expect("readable");
         assert!(written.starts_with("# a comment\n# over two lines\n"));
+        assert!(!written.contains("older"), "{written}");
         assert_eq!(Calibration::load(&path).expect("loads"), calibration);
-        let _ = std::fs::remove_file(&path);
+        let names: Vec<_> = std::fs::read_dir(&dir)
+            .expect("list")
+            .map(|e| e.expect("entry").file_name())
+            .collect();
+        assert_eq!(names, ["calibration.toml"], "no temporary file left");
+        // A directory that does not exist: an error naming the file.
+        let missing = dir.join("no/such/dir/calibration.toml");
+        let e = calibration.save(&missing, "x").expect_err("no directory");
+        assert!(e.to_string().contains("calibration.toml"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
 
         // The documented example, with a hand-typed quaternion.
         let example = "[world_from_tracking]\ntranslation = [1, 2, 3]\nrotation = [0.0, 0.0, 0.7071, 0.7071]\n\
