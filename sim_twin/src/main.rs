@@ -186,7 +186,25 @@ async fn main() -> anyhow::Result<()> {
     let session = args.common.client_config().open().await?;
     let node = TwinNode::spawn(&session, args.env.clone(), twin, clock)?;
     tracing::info!(env = %node.env(), "ready; Ctrl-C, SIGTERM or SIGHUP to stop");
-    signals.recv().await;
+    tokio::select! {
+        _ = signals.recv() => {}
+        () = until_stuck(&node) => {
+            // The stuck thread cannot be stopped: exit (the node has
+            // withdrawn the twin) so that a supervisor starts a fresh one.
+            tracing::error!(env = %node.env(), "exiting with status {STUCK_EXIT}: restart this twin");
+            std::process::exit(STUCK_EXIT);
+        }
+    }
     drop(node);
     Ok(())
+}
+
+/// Exit status of a twin whose simulation thread got stuck (`EX_SOFTWARE`).
+const STUCK_EXIT: i32 = 70;
+
+/// Returns once `node`'s simulation thread is stuck ([`TwinNode::stuck`]).
+async fn until_stuck(node: &TwinNode) {
+    while !node.stuck() {
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    }
 }

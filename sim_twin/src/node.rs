@@ -17,9 +17,9 @@
 //! and publishes tracker poses at the tracker rate (behaves like hardware).
 //! The simulation runs on its own named thread; Zenoh callbacks only enqueue.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -72,6 +72,53 @@ pub const OVERHEAD_CAMERA: &str = "top";
 const QUEUE: usize = 256;
 /// How long a starting twin asks the network for the e-stop latches.
 const RECALL: Duration = Duration::from_millis(300);
+/// A simulation thread busy with one event longer than this is stuck (a
+/// command takes milliseconds, a full-size frame well under a second): its
+/// node withdraws its liveliness token, so the controller reports the env
+/// offline instead of timing out step after step (see [`TwinNode::stuck`]).
+pub const STUCK_AFTER: Duration = Duration::from_secs(30);
+
+/// Whether the simulation thread is working on an event, and since when;
+/// watched by the node's watchdog thread.
+#[derive(Debug)]
+struct Busy {
+    origin: Instant,
+    /// Milliseconds since `origin` + 1 when the current event began; 0: idle.
+    since_ms: AtomicU64,
+    /// The watchdog found the thread stuck.
+    stuck: AtomicBool,
+}
+
+impl Busy {
+    fn new() -> Self {
+        Self {
+            origin: Instant::now(),
+            since_ms: AtomicU64::new(0),
+            stuck: AtomicBool::new(false),
+        }
+    }
+
+    fn begin(&self) {
+        let ms = self.origin.elapsed().as_millis() as u64 + 1;
+        self.since_ms.store(ms, Ordering::Release);
+    }
+
+    fn end(&self) {
+        self.since_ms.store(0, Ordering::Release);
+    }
+
+    /// How long the current event has been worked on, if any.
+    fn busy_for(&self) -> Option<Duration> {
+        match self.since_ms.load(Ordering::Acquire) {
+            0 => None,
+            since => Some(
+                self.origin
+                    .elapsed()
+                    .saturating_sub(Duration::from_millis(since - 1)),
+            ),
+        }
+    }
+}
 
 /// What a twin node's simulation thread has done so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -115,7 +162,10 @@ pub struct TwinNode {
     env: EnvId,
     events: SyncSender<Event>,
     stats: Arc<StatCounters>,
+    busy: Arc<Busy>,
     thread: Option<JoinHandle<()>>,
+    /// Ends the watchdog thread.
+    watching: Arc<AtomicBool>,
     _declarations: Declarations,
 }
 
@@ -126,7 +176,8 @@ struct Declarations {
     _global_estop: Subscriber<()>,
     _goto: Queryable<()>,
     _estop_state: Queryable<()>,
-    _token: LivelinessToken,
+    /// Taken (undeclared) by the watchdog when the thread is stuck.
+    _token: Arc<Mutex<Option<LivelinessToken>>>,
 }
 
 impl TwinNode {
@@ -136,6 +187,18 @@ impl TwinNode {
         env: EnvId,
         twin: SimTwin,
         clock: Clock,
+    ) -> Result<Self, SimError> {
+        Self::spawn_watched(session, env, twin, clock, STUCK_AFTER)
+    }
+
+    /// [`TwinNode::spawn`], calling the simulation thread stuck after
+    /// `stuck_after` on one event.
+    pub fn spawn_watched(
+        session: &Session,
+        env: EnvId,
+        twin: SimTwin,
+        clock: Clock,
+        stuck_after: Duration,
     ) -> Result<Self, SimError> {
         let (tx, rx) = sync_channel::<Event>(QUEUE);
         let zerr = |e: offworld_runtime::zenoh::Error| SimError::Zenoh(e.to_string());
@@ -226,17 +289,31 @@ impl TwinNode {
             })
             .map_err(|e| SimError::Io(e.to_string()))?;
         let stats = Arc::new(StatCounters::default());
+        let busy = Arc::new(Busy::new());
         let mut worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
         worker.estops = estops;
         worker.shared_estops = shared_estops;
+        worker.busy = busy.clone();
         let thread = std::thread::Builder::new()
             .name(format!("sim_twin/{env}"))
             .spawn(move || worker.run(rx))
             .map_err(|e| SimError::Io(e.to_string()))?;
+        let token = Arc::new(Mutex::new(Some(token)));
+        let watching = Arc::new(AtomicBool::new(true));
+        {
+            let (busy, token, watching, env) =
+                (busy.clone(), token.clone(), watching.clone(), env.clone());
+            std::thread::Builder::new()
+                .name(format!("sim_twin/{env}/watchdog"))
+                .spawn(move || watchdog(&env, &busy, &token, &watching, stuck_after))
+                .map_err(|e| SimError::Io(e.to_string()))?;
+        }
         Ok(Self {
             env,
             events: tx,
             stats,
+            busy,
+            watching,
             thread: Some(thread),
             _declarations: Declarations {
                 _cmd: cmd,
@@ -261,15 +338,61 @@ impl TwinNode {
     pub fn stats(&self) -> TwinStats {
         self.stats.read()
     }
+
+    /// Whether the simulation thread is stuck: busy with one event longer
+    /// than the node's limit ([`STUCK_AFTER`]). The node has then withdrawn
+    /// its liveliness token (the env shows offline); a process serving it
+    /// should exit so that its supervisor starts a fresh one — the stuck
+    /// thread cannot be stopped, and dropping the node leaves it running.
+    pub fn stuck(&self) -> bool {
+        self.busy.stuck.load(Ordering::Acquire)
+    }
 }
 
 impl Drop for TwinNode {
     fn drop(&mut self) {
+        self.watching.store(false, Ordering::Release);
+        if self.stuck() {
+            // It would never see the shutdown, nor drain a full queue.
+            let _ = self.events.try_send(Event::Shutdown);
+            return;
+        }
         // Blocking send: the worker drains fast, and must see the shutdown.
         let _ = self.events.send(Event::Shutdown);
         if let Some(thread) = self.thread.take() {
             let _ = thread.join();
         }
+    }
+}
+
+/// Watches the simulation thread until the node is dropped: stuck on one
+/// event longer than `stuck_after`, it is reported (once) and the node's
+/// liveliness token is withdrawn.
+fn watchdog(
+    env: &EnvId,
+    busy: &Busy,
+    token: &Mutex<Option<LivelinessToken>>,
+    watching: &AtomicBool,
+    stuck_after: Duration,
+) {
+    let period = (stuck_after / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
+    while watching.load(Ordering::Acquire) {
+        std::thread::sleep(period);
+        let Some(for_how_long) = busy.busy_for() else {
+            continue;
+        };
+        if for_how_long < stuck_after {
+            continue;
+        }
+        busy.stuck.store(true, Ordering::Release);
+        tracing::error!(
+            %env,
+            busy_s = for_how_long.as_secs_f64(),
+            "the sim twin's simulation thread is stuck on one event: withdrawing this twin \
+             (the env shows offline); restart it"
+        );
+        drop(token.lock().unwrap_or_else(PoisonError::into_inner).take());
+        return;
     }
 }
 
@@ -302,6 +425,8 @@ struct Worker {
     rejected: u64,
     overhead: Option<OverheadStream>,
     stats: Arc<StatCounters>,
+    /// What the watchdog sees.
+    busy: Arc<Busy>,
 }
 
 /// Declared once: a declared publisher skips the per-put key resolution.
@@ -354,6 +479,7 @@ impl Worker {
             frames: FramePayloads::new(),
             rejected: 0,
             stats,
+            busy: Arc::new(Busy::new()),
         })
     }
 
@@ -368,26 +494,37 @@ impl Worker {
 
     fn run_lockstep(&mut self, events: Receiver<Event>) {
         while let Ok(event) = events.recv() {
-            match event {
-                Event::Command(sample) => {
-                    if let Some(cmd) = self.decode_command(&sample) {
-                        let started = Instant::now();
-                        let Some((v, w)) = self.allowed(&cmd) else {
-                            continue;
-                        };
-                        if let Err(e) = self.twin.execute(v, w, cmd.duration_s) {
-                            self.reject(&e);
-                            continue;
-                        }
-                        self.answer(cmd.seq, started);
-                    }
-                }
-                Event::Goto(query) => self.goto(&query),
-                Event::EStop(latch, sample) => self.estop(latch, &sample),
-                Event::Recalled(network) => self.recalled(&network),
-                Event::Shutdown => return,
+            self.busy.begin();
+            let go_on = self.handle_lockstep(event);
+            self.busy.end();
+            if !go_on {
+                return;
             }
         }
+    }
+
+    /// One event in lockstep; false at the shutdown.
+    fn handle_lockstep(&mut self, event: Event) -> bool {
+        match event {
+            Event::Command(sample) => {
+                let Some(cmd) = self.decode_command(&sample) else {
+                    return true;
+                };
+                let started = Instant::now();
+                let Some((v, w)) = self.allowed(&cmd) else {
+                    return true;
+                };
+                match self.twin.execute(v, w, cmd.duration_s) {
+                    Ok(_) => self.answer(cmd.seq, started),
+                    Err(e) => self.reject(&e),
+                }
+            }
+            Event::Goto(query) => self.goto(&query),
+            Event::EStop(latch, sample) => self.estop(latch, &sample),
+            Event::Recalled(network) => self.recalled(&network),
+            Event::Shutdown => return false,
+        }
+        true
     }
 
     fn run_real_time(&mut self, events: Receiver<Event>) {
@@ -401,7 +538,9 @@ impl Worker {
             let sim_now = self.twin.physics().time() - sim_start;
             let next_step = sim_now + f64::from(DT);
             let wait = (next_step.min(next_pose) - now).max(0.0);
-            match events.recv_timeout(Duration::from_secs_f64(wait)) {
+            let event = events.recv_timeout(Duration::from_secs_f64(wait));
+            self.busy.begin();
+            match event {
                 Ok(Event::Command(sample)) => {
                     if let Some(cmd) = self.decode_command(&sample) {
                         if !(cmd.duration_s.is_finite() && (0.0..=10.0).contains(&cmd.duration_s)) {
@@ -472,6 +611,7 @@ impl Worker {
                 next_pose = now + tracker_period;
                 self.publish_overhead();
             }
+            self.busy.end();
         }
     }
 

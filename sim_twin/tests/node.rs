@@ -422,3 +422,58 @@ async fn real_time_clock_streams_tracker_poses_and_answers_commands() {
     .sqrt();
     assert!((moved - 0.06).abs() < 0.01, "moved {moved}");
 }
+
+/// Whether `env`'s sim twin token is visible from `session`.
+async fn twin_alive(session: &Session, env: &EnvId) -> bool {
+    let replies = session
+        .liveliness()
+        .get(env.alive_key(Component::SimTwin))
+        .timeout(Duration::from_millis(500))
+        .await
+        .expect("liveliness get");
+    replies.recv_async().await.is_ok()
+}
+
+/// A simulation thread stuck on one event (here: a 2048×2048 frame through
+/// the per-pixel renderer, seconds of work, against a 300 ms limit) is
+/// reported, its twin withdrawn (the controller then shows the env
+/// offline rather than timing out every step), and dropping the node does
+/// not wait for it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stuck_simulation_thread_withdraws_its_twin() {
+    let (server, client) = loopback_pair().await.expect("loopback sessions");
+    let env = EnvId::sim("stuck-test").expect("env");
+    let mut config = TwinConfig::builtin("monolith").expect("world");
+    config.resolution = Some((2048, 2048));
+    config.profile.camera.pitch_deg = 2.0;
+    let node = TwinNode::spawn_watched(
+        &server,
+        env.clone(),
+        SimTwin::new(config).expect("twin"),
+        Clock::Lockstep,
+        Duration::from_millis(300),
+    )
+    .expect("node");
+    let client = Client::new(client, env.clone()).await;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while !twin_alive(&client.session, &env).await {
+        assert!(tokio::time::Instant::now() < deadline, "never alive");
+    }
+    assert!(!node.stuck());
+    client.command(1, 0.0, 0.0, 0.0).await;
+    while !node.stuck() {
+        assert!(tokio::time::Instant::now() < deadline, "never called stuck");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    while twin_alive(&client.session, &env).await {
+        assert!(tokio::time::Instant::now() < deadline, "token never withdrawn");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let dropped = std::thread::spawn(move || drop(node));
+    let deadline = std::time::Instant::now() + Duration::from_secs(5);
+    while !dropped.is_finished() {
+        assert!(std::time::Instant::now() < deadline, "drop waited for the stuck thread");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    drop(server);
+}
