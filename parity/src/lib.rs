@@ -7,11 +7,14 @@
 //!   with a [`offworld_sim_twin::TwinProfile`].
 //! - [`report`] sums the gaps up as a Markdown report.
 //! - [`identify`] fits a twin profile to recorded episodes.
+//! - [`rrd`] writes the replay as a rerun recording, robot and twin side
+//!   by side.
 
 pub mod identify;
 pub mod recorded;
 pub mod replay;
 pub mod report;
+pub mod rrd;
 
 use std::path::PathBuf;
 
@@ -33,6 +36,14 @@ pub enum ParityError {
     #[error("too little data: {reason}")]
     TooFew {
         /// What is missing.
+        reason: String,
+    },
+    /// An output file could not be written.
+    #[error("{}: {reason}", path.display())]
+    Output {
+        /// The file.
+        path: PathBuf,
+        /// Why.
         reason: String,
     },
     /// The optimiser failed.

@@ -14,8 +14,9 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_parity::identify::{identify, IdentifyOptions};
 use offworld_parity::recorded::RecordedEpisode;
-use offworld_parity::replay::replay;
+use offworld_parity::replay::replay_with;
 use offworld_parity::report;
+use offworld_parity::rrd::SideBySide;
 use offworld_sim_twin::TwinProfile;
 
 /// Replays recorded episodes (MCAP, from `env_controller serve --record`,
@@ -44,6 +45,10 @@ enum Command {
         /// Where to write the report (default: standard output).
         #[arg(long, value_name = "FILE")]
         out: Option<PathBuf>,
+        /// Also write a rerun recording (`.rrd`): robot and twin side by
+        /// side, step by step (open it with `rerun FILE`).
+        #[arg(long, value_name = "FILE")]
+        rrd: Option<PathBuf>,
     },
     /// Fits a twin profile to episodes of one robot in one world (at
     /// least 3 episodes, 20 moving steps): motion gains, camera mount,
@@ -96,16 +101,28 @@ fn run(args: Args) -> anyhow::Result<()> {
             paths,
             profile,
             out,
+            rrd,
         } => {
-            let (twin_profile, name) = match &profile {
+            let (twin_profile, profile_name) = match &profile {
                 Some(path) => (TwinProfile::load(path)?, path.display().to_string()),
                 None => (TwinProfile::default(), "nominal (default)".to_owned()),
             };
             let files = episode_files(&paths)?;
+            let side_by_side = rrd.as_deref().map(SideBySide::create).transpose()?;
             let mut replays = Vec::with_capacity(files.len());
             for (i, file) in files.iter().enumerate() {
                 let episode = RecordedEpisode::read(file)?;
-                let replayed = replay(&episode, &twin_profile)?;
+                let name = format!("episode-{i:03}");
+                let mut logged = Ok(());
+                let replayed = replay_with(&episode, &twin_profile, |recorded, frame, gap| {
+                    if let (Some(out), Ok(())) = (&side_by_side, &logged) {
+                        logged = out.step(&name, recorded, frame, gap);
+                    }
+                })?;
+                logged?;
+                if let Some(out) = &side_by_side {
+                    out.trajectories(&name, &replayed)?;
+                }
                 let summary = report::Summary::of(std::slice::from_ref(&replayed));
                 eprintln!(
                     "[{}/{}] {}: {} steps, open-loop end {:.1} cm, one-step mean {:.1} cm",
@@ -118,7 +135,11 @@ fn run(args: Args) -> anyhow::Result<()> {
                 );
                 replays.push(replayed);
             }
-            let text = report::markdown(&replays, &twin_profile, &name);
+            if let (Some(out), Some(path)) = (side_by_side, &rrd) {
+                out.finish()?;
+                eprintln!("rerun recording: {}", path.display());
+            }
+            let text = report::markdown(&replays, &twin_profile, &profile_name);
             match out {
                 Some(path) => {
                     std::fs::write(&path, text)

@@ -15,9 +15,10 @@
 use offworld_env_controller::episode::judge;
 use offworld_env_controller::Task;
 use offworld_runtime::msg::Pose2D;
+use offworld_sim_twin::camera::RgbdFrame;
 use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig, TwinProfile};
 
-use crate::recorded::{ColorImage, DepthImage, RecordedEpisode};
+use crate::recorded::{ColorImage, DepthImage, RecordedEpisode, RecordedStep};
 use crate::ParityError;
 
 /// The gap at one step (after its command).
@@ -150,6 +151,16 @@ pub fn replay(
     episode: &RecordedEpisode,
     profile: &TwinProfile,
 ) -> Result<EpisodeReplay, ParityError> {
+    replay_with(episode, profile, |_, _, _| {})
+}
+
+/// [`replay`], handing each step to `visit` as it is replayed: the recorded
+/// step, the one-step twin's frame at the recorded pose, and the gap.
+pub fn replay_with(
+    episode: &RecordedEpisode,
+    profile: &TwinProfile,
+    mut visit: impl FnMut(&RecordedStep, &RgbdFrame, &StepGap),
+) -> Result<EpisodeReplay, ParityError> {
     let path = &episode.path;
     let twin_error = |e: offworld_sim_twin::SimError| ParityError::Twin {
         path: path.clone(),
@@ -207,7 +218,7 @@ pub fn replay(
             .map_or(f64::NAN, |c| color_gap(&frame.rgb, &c.rgb));
         let judged = judge(&task, twin_pose.x, twin_pose.y, s.step);
         let stamp = f64::from(s.header.stamp.sec) + f64::from(s.header.stamp.nanosec) * 1e-9;
-        steps.push(StepGap {
+        let gap = StepGap {
             step: s.step,
             time_s: stamp - t0,
             recorded: after.pose,
@@ -221,7 +232,9 @@ pub fn replay(
             color_mae,
             reward: (s.reward, judged.reward),
             terminated: (s.terminated, judged.terminated),
-        });
+        };
+        visit(after, frame, &gap);
+        steps.push(gap);
     }
     Ok(EpisodeReplay {
         path: path.clone(),

@@ -192,9 +192,12 @@ async fn the_parity_command_replays_identifies_and_explains_what_is_wrong() {
     record(&runs.0, perturbed(), "MonolithDiscrete", 3, 10).await;
     let parity = env!("CARGO_BIN_EXE_parity");
     let report = runs.0.join("parity.md");
+    let rrd = runs.0.join("parity.rrd");
     let replayed = std::process::Command::new(parity)
         .args(["replay", "--out"])
         .arg(&report)
+        .arg("--rrd")
+        .arg(&rrd)
         .arg(&runs.0)
         .output()
         .expect("parity replay");
@@ -204,6 +207,35 @@ async fn the_parity_command_replays_identifies_and_explains_what_is_wrong() {
         text.starts_with("# Sim↔real parity\n") && text.contains("3 episodes"),
         "{text}"
     );
+    // The side-by-side recording, read back by the rerun SDK itself.
+    let checked = std::process::Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../monitor/tests/check_rrd.py"))
+        .arg(&rrd)
+        .output()
+        .expect("python3 (needs rerun-sdk==0.36.3)");
+    assert!(checked.status.success(), "{checked:?}");
+    let summary: serde_json::Value = serde_json::from_slice(&checked.stdout).expect("json");
+    assert_eq!(summary["verify"]["ok"], true, "{summary}");
+    let first = offworld_recorder::read::episode_files(&runs.0).expect("files")[0].clone();
+    let steps = RecordedEpisode::read(&first).expect("episode").steps.len() - 1;
+    for entity in [
+        "/episode-000/recorded/depth",
+        "/episode-000/twin/depth",
+        "/episode-000/error/depth",
+        "/episode-000/error/one_step_position_m",
+    ] {
+        assert_eq!(
+            summary["entities"][entity]["rows"], steps,
+            "{entity}: {summary}"
+        );
+    }
+    for who in ["recorded", "twin"] {
+        let entity = format!("/episode-000/{who}/trajectory");
+        assert_eq!(
+            summary["entities"][&entity]["static_rows"], 1,
+            "{entity}: {summary}"
+        );
+    }
 
     let profile = runs.0.join("robot.toml");
     let identified = std::process::Command::new(parity)
