@@ -2,95 +2,27 @@
 //! recover the perturbation (which only the recording twin was given) and
 //! shrink the replay error.
 
-use std::path::{Path, PathBuf};
+mod common;
 
-use offworld_env_controller::deployment::{connect, Target};
+use std::path::Path;
+
+use common::{episodes, record, Recording, Scratch};
 use offworld_parity::identify::{identify, IdentifyOptions};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_parity::ParityError;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
-use offworld_runtime::msg::{Action, Channels, DepthFormat, ObsOptions, OpenRequest, Seed};
+use offworld_runtime::msg::Channels;
 use offworld_sim_twin::TwinProfile;
 
-struct Scratch(PathBuf);
-
-impl Scratch {
-    fn new(name: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-identify-{name}-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-/// `episodes` episodes of seeded random discrete actions from an embedded
-/// twin with `profile`, recorded into `dir` (at most `steps` each).
-async fn record(dir: &Path, profile: TwinProfile, task: &str, episodes: u64, steps: u32) {
-    let connection = connect(
-        Target::Embedded {
-            task: task.into(),
-            resolution: (48, 36),
-            count: 1,
-            record: Some(dir.to_owned()),
-            twin_profile: profile,
-        },
+/// `episodes` episodes of up to `steps` steps of `task`, depth at 48×36.
+fn depth(task: &'static str, episodes: u64, steps: u32) -> Recording<'static> {
+    Recording {
         task,
-    )
-    .await
-    .expect("embedded twin recording");
-    let request = OpenRequest {
-        experiment_name: "identify".into(),
-        ..OpenRequest::anonymous(ObsOptions {
-            channels: Channels::DepthOnly,
-            height: 36,
-            width: 48,
-            depth_format: DepthFormat::Meters,
-        })
-    };
-    let mut client = EnvClient::open(
-        &connection.session,
-        &connection.envs[0],
-        request,
-        ClientTimeouts::default(),
-    )
-    .await
-    .expect("open");
-    let mut state = 0x9e37_79b9_7f4a_7c15_u64;
-    for episode in 0..episodes {
-        client
-            .reset(Seed::Fixed(200 + episode))
-            .await
-            .expect("reset");
-        for _ in 0..steps {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            let reply = client
-                .step(Action::Discrete((state % 4) as i64))
-                .await
-                .expect("step");
-            if reply.terminated || reply.truncated {
-                break;
-            }
-        }
+        resolution: (48, 36),
+        channels: Channels::DepthOnly,
+        episodes,
+        steps,
+        seed: 200,
     }
-    client.close().await.expect("close");
-}
-
-fn episodes(dir: &Path) -> Vec<RecordedEpisode> {
-    offworld_recorder::read::episode_files(dir)
-        .expect("files")
-        .iter()
-        .map(|f| RecordedEpisode::read(f).expect("episode"))
-        .collect()
 }
 
 /// The robot: slipping, turning further, its camera 2 cm higher, pitched
@@ -115,7 +47,7 @@ fn within(found: f32, truth: f32, share: f32) -> bool {
 async fn identification_recovers_a_perturbed_twin_and_shrinks_the_replay_error() {
     let runs = Scratch::new("perturbed");
     let truth = perturbed();
-    record(&runs.0, truth, "MonolithDiscrete", 10, 12).await;
+    record(&runs.0, truth, &depth("MonolithDiscrete", 10, 12)).await;
     let recorded = episodes(&runs.0);
     assert_eq!(recorded.len(), 10);
     let mut log = Vec::new();
@@ -149,13 +81,16 @@ async fn identification_recovers_a_perturbed_twin_and_shrinks_the_replay_error()
 async fn too_few_episodes_or_mixed_worlds_are_refused_naming_the_reason() {
     let open = Scratch::new("open");
     let obstacle = Scratch::new("obstacle");
-    record(&open.0, TwinProfile::default(), "MonolithDiscrete", 3, 8).await;
+    record(
+        &open.0,
+        TwinProfile::default(),
+        &depth("MonolithDiscrete", 3, 8),
+    )
+    .await;
     record(
         &obstacle.0,
         TwinProfile::default(),
-        "MonolithObstacleDiscrete",
-        1,
-        3,
+        &depth("MonolithObstacleDiscrete", 1, 3),
     )
     .await;
     let mut two = episodes(&open.0);
@@ -189,7 +124,7 @@ async fn too_few_episodes_or_mixed_worlds_are_refused_naming_the_reason() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_parity_command_replays_identifies_and_explains_what_is_wrong() {
     let runs = Scratch::new("cli");
-    record(&runs.0, perturbed(), "MonolithDiscrete", 3, 10).await;
+    record(&runs.0, perturbed(), &depth("MonolithDiscrete", 3, 10)).await;
     let parity = env!("CARGO_BIN_EXE_parity");
     let report = runs.0.join("parity.md");
     let rrd = runs.0.join("parity.rrd");

@@ -2,98 +2,34 @@
 //! profile they were recorded with, the gap is the replay's own error
 //! (near zero); with another profile it is the profiles' difference.
 
-use std::path::{Path, PathBuf};
+mod common;
 
-use offworld_env_controller::deployment::{connect, Target};
+use std::path::Path;
+
+use common::{episodes, record, Recording, Scratch};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_parity::replay::{replay, EpisodeReplay};
 use offworld_parity::report::{markdown, Summary};
 use offworld_parity::ParityError;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
-use offworld_runtime::msg::{Action, Channels, DepthFormat, ObsOptions, OpenRequest, Seed};
+use offworld_runtime::msg::Channels;
 use offworld_sim_twin::TwinProfile;
 
-struct Scratch(PathBuf);
-
-impl Scratch {
-    fn new(name: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-parity-{name}-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
+/// Four (or `episodes`) episodes of up to 15 steps, RGBD at 32×24.
+fn rgbd(episodes: u64, steps: u32) -> Recording<'static> {
+    Recording {
+        task: "MonolithDiscrete",
+        resolution: (32, 24),
+        channels: Channels::Rgbd,
+        episodes,
+        steps,
+        seed: 100,
     }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-/// Records `episodes` episodes of seeded random discrete actions (at most
-/// `steps` each) from an embedded twin with `profile` into `dir`.
-async fn record(dir: &Path, profile: TwinProfile, episodes: u64, steps: u32) {
-    let connection = connect(
-        Target::Embedded {
-            task: "MonolithDiscrete".into(),
-            resolution: (32, 24),
-            count: 1,
-            record: Some(dir.to_owned()),
-            twin_profile: profile,
-        },
-        "MonolithDiscrete",
-    )
-    .await
-    .expect("embedded twin recording");
-    let request = OpenRequest {
-        experiment_name: "parity".into(),
-        ..OpenRequest::anonymous(ObsOptions {
-            channels: Channels::Rgbd,
-            height: 24,
-            width: 32,
-            depth_format: DepthFormat::Meters,
-        })
-    };
-    let mut client = EnvClient::open(
-        &connection.session,
-        &connection.envs[0],
-        request,
-        ClientTimeouts::default(),
-    )
-    .await
-    .expect("open");
-    let mut state = 0x2545_f491_4f6c_dd1d_u64;
-    for episode in 0..episodes {
-        client
-            .reset(Seed::Fixed(100 + episode))
-            .await
-            .expect("reset");
-        for _ in 0..steps {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            let reply = client
-                .step(Action::Discrete((state % 4) as i64))
-                .await
-                .expect("step");
-            if reply.terminated || reply.truncated {
-                break;
-            }
-        }
-    }
-    client.close().await.expect("close");
 }
 
 fn replay_all(dir: &Path, profile: &TwinProfile) -> Vec<EpisodeReplay> {
-    offworld_recorder::read::episode_files(dir)
-        .expect("files")
+    episodes(dir)
         .iter()
-        .map(|f| {
-            let episode = RecordedEpisode::read(f).expect("episode");
-            replay(&episode, profile).expect("replay")
-        })
+        .map(|e| replay(e, profile).expect("replay"))
         .collect()
 }
 
@@ -108,8 +44,8 @@ fn slippery() -> TwinProfile {
 async fn a_replay_with_the_recording_profile_is_near_exact_and_another_profile_shows_the_gap() {
     let nominal_runs = Scratch::new("nominal");
     let slippery_runs = Scratch::new("slippery");
-    record(&nominal_runs.0, TwinProfile::default(), 4, 15).await;
-    record(&slippery_runs.0, slippery(), 4, 15).await;
+    record(&nominal_runs.0, TwinProfile::default(), &rgbd(4, 15)).await;
+    record(&slippery_runs.0, slippery(), &rgbd(4, 15)).await;
 
     let nominal = TwinProfile::default();
     let matched = [
@@ -174,7 +110,7 @@ fn unreadable_episodes_are_refused_naming_the_file() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_truncated_episode_file_is_refused_naming_it() {
     let runs = Scratch::new("cut");
-    record(&runs.0, TwinProfile::default(), 1, 5).await;
+    record(&runs.0, TwinProfile::default(), &rgbd(1, 5)).await;
     let file = offworld_recorder::read::episode_files(&runs.0).expect("files")[0].clone();
     let bytes = std::fs::read(&file).expect("read");
     let cut = runs.0.join("cut.mcap");
