@@ -466,13 +466,19 @@ async fn a_stuck_simulation_thread_withdraws_its_twin() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     while twin_alive(&client.session, &env).await {
-        assert!(tokio::time::Instant::now() < deadline, "token never withdrawn");
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "token never withdrawn"
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     let dropped = std::thread::spawn(move || drop(node));
     let deadline = std::time::Instant::now() + Duration::from_secs(5);
     while !dropped.is_finished() {
-        assert!(std::time::Instant::now() < deadline, "drop waited for the stuck thread");
+        assert!(
+            std::time::Instant::now() < deadline,
+            "drop waited for the stuck thread"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     drop(server);
