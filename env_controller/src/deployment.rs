@@ -172,10 +172,10 @@ async fn pick_free(
             return Ok(free);
         }
         if tokio::time::Instant::now() >= deadline {
+            let here = client::envs_here(session, std::time::Duration::from_secs(2)).await;
             return Err(ControllerError::NotFound(format!(
-                "{count} free {realm:?} envs of task {task} wanted, {} found (of {} envs listed)",
+                "{count} free {realm:?} envs of task {task} wanted, {} found; {here}",
                 free.len(),
-                listings.len()
             )));
         }
         tokio::time::sleep(std::time::Duration::from_millis(200)).await;
@@ -191,10 +191,11 @@ async fn wait_for_spec(
         match client::spec(session, env, std::time::Duration::from_secs(2)).await {
             Ok(spec) => return Ok(spec),
             Err(e) if tokio::time::Instant::now() >= deadline => {
+                let here = client::envs_here(session, std::time::Duration::from_secs(2)).await;
                 return Err(ControllerError::NotFound(format!(
-                    "no deployment serves {env}: {}",
+                    "no deployment serves {env} ({}); {here}",
                     e.message
-                )))
+                )));
             }
             Err(_) => tokio::time::sleep(std::time::Duration::from_millis(100)).await,
         }

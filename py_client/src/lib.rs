@@ -32,13 +32,81 @@ fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
         .map_err(|e| errors::local(format!("cannot start the runtime: {e}")))
 }
 
-/// Runs `work` on the runtime with the GIL released.
-fn block<T: Send>(
-    py: Python<'_>,
-    work: impl std::future::Future<Output = T> + Send,
-) -> PyResult<T> {
+/// How often a blocking call looks for a pending signal (Ctrl-C): the
+/// latency of `KeyboardInterrupt`, and one brief GIL hold per period.
+const SIGNAL_POLL: std::time::Duration = std::time::Duration::from_millis(50);
+
+/// Runs `work` on the runtime with the GIL released, waking every
+/// [`SIGNAL_POLL`] to run Python's signal handlers. When one raises (Ctrl-C:
+/// `KeyboardInterrupt`), `work` is dropped, which cancels it, and that error
+/// is returned. Dropping abandons the client's wait only; [`NativeEnvs`]
+/// says what state that leaves the envs in.
+///
+/// Python runs signal handlers on the main thread only; called from another
+/// thread this waits for `work` like a plain `block_on`.
+fn block_on_interruptibly<F>(py: Python<'_>, work: F) -> PyResult<F::Output>
+where
+    F: std::future::Future + Send,
+    F::Output: Send,
+{
     let rt = runtime()?;
-    Ok(py.detach(|| rt.block_on(work)))
+    // Boxed so it can be polled in slices and dropped before it completes.
+    let mut work = Box::pin(work);
+    loop {
+        // The timer is made inside `block_on`: it needs the runtime's context.
+        let slice = py.detach(|| {
+            rt.block_on(async { tokio::time::timeout(SIGNAL_POLL, work.as_mut()).await })
+        });
+        if let Ok(done) = slice {
+            return Ok(done);
+        }
+        if let Err(interrupted) = py.check_signals() {
+            // Without the GIL, in case dropping waits (work that owns a
+            // session goes through `spawn_interruptibly`, which does not).
+            py.detach(move || drop(work));
+            return Err(interrupted);
+        }
+    }
+}
+
+/// [`block_on_interruptibly`] for work that owns what it uses, such as a
+/// session it opens: it runs as a task of the runtime, which an interrupt
+/// aborts there, so closing that session (Zenoh waits for a handshake in
+/// progress up to its open timeout, 10 s) does not delay the interrupt.
+fn spawn_interruptibly<F>(py: Python<'_>, work: F) -> PyResult<F::Output>
+where
+    F: std::future::Future + Send + 'static,
+    F::Output: Send + 'static,
+{
+    let task = runtime()?.spawn(work);
+    let abort = task.abort_handle();
+    joined(block_on_interruptibly(py, task).inspect_err(|_| abort.abort())?)
+}
+
+/// Runs a blocking library call (the monitor's start and shutdown) on the
+/// runtime's blocking pool, waited for by [`block_on_interruptibly`]; an
+/// interrupted call goes on in the background to its end.
+fn block_on_pool<T: Send + 'static>(
+    py: Python<'_>,
+    call: impl FnOnce() -> T + Send + 'static,
+) -> PyResult<T> {
+    let call = runtime()?.spawn_blocking(call);
+    joined(block_on_interruptibly(py, call)?)
+}
+
+/// A task's result; its panic goes on here, as if it had run on this thread.
+fn joined<T>(result: Result<T, tokio::task::JoinError>) -> PyResult<T> {
+    result.map_err(|e| match e.try_into_panic() {
+        Ok(panic) => std::panic::resume_unwind(panic),
+        Err(e) => errors::local(format!("background task: {e}")),
+    })
+}
+
+/// Drops `value` on the runtime's blocking pool, not in the caller's way.
+fn drop_in_background<T: Send + 'static>(value: T) {
+    if let Ok(rt) = runtime() {
+        rt.spawn_blocking(move || drop(value));
+    }
 }
 
 fn controller_error(e: offworld_env_controller::ControllerError) -> PyErr {
@@ -46,6 +114,18 @@ fn controller_error(e: offworld_env_controller::ControllerError) -> PyErr {
 }
 
 /// N envs of one task (N = 1 for a plain env), opened on a deployment.
+///
+/// Interrupted calls (Ctrl-C: [`block_on_interruptibly`]) leave the envs
+/// open and usable, not closed: a request goes out on the call's first
+/// poll, before any signal check, so a reachable controller has it and runs
+/// it to its end; `EnvClient` keeps no per-request state a dropped wait
+/// could break (the step counter it sends is echoed, never checked); and
+/// the controller runs an env's requests one at a time, so the next call
+/// waits for the abandoned one, then runs or is refused with a typed error
+/// (`InvalidState` if the abandoned step ended the episode). Its
+/// observation is lost: reset next. An interrupted `close` still releases
+/// the leases (the Python envs count as closed); an interrupted
+/// constructor drops what it opened, in the background.
 #[pyclass(module = "offworld_gym._native")]
 struct NativeEnvs {
     envs: VecEnvClient,
@@ -146,16 +226,30 @@ impl NativeEnvs {
             }
         };
         let connection =
-            block(py, deployment::connect(target, &task))?.map_err(controller_error)?;
+            spawn_interruptibly(py, async move { deployment::connect(target, &task).await })?
+                .map_err(controller_error)?;
         // Watching starts before the envs open, so the recording holds every episode.
         let monitor = sink
             .map(|sink| {
                 let config = MonitorConfig::new(sink).scope(Scope::Envs(connection.envs.clone()));
-                py.detach(|| Monitor::spawn(&connection.session, config))
+                let session = connection.session.clone();
+                block_on_pool(py, move || Monitor::spawn(&session, config))
             })
             .transpose()
-            .map_err(|e| errors::local(format!("monitor: {e}")))?;
-        let clients = block(py, async {
+            .and_then(|m| {
+                m.transpose()
+                    .map_err(|e| errors::local(format!("monitor: {e}")))
+            });
+        // On a failure (or Ctrl-C) from here on, what is open is dropped in
+        // the background: closing a session or a recording waits on the network.
+        let monitor = match monitor {
+            Ok(monitor) => monitor,
+            Err(e) => {
+                drop_in_background(connection);
+                return Err(e);
+            }
+        };
+        let opened = block_on_interruptibly(py, async {
             let mut clients = Vec::new();
             for (i, env) in connection.envs.iter().enumerate() {
                 let mut request = request.clone();
@@ -169,7 +263,14 @@ impl NativeEnvs {
                 clients.push(client);
             }
             Ok::<_, PyErr>(clients)
-        })??;
+        });
+        let clients = match opened.and_then(|opened| opened) {
+            Ok(clients) => clients,
+            Err(e) => {
+                drop_in_background((monitor, connection));
+                return Err(e);
+            }
+        };
         let space = clients
             .first()
             .map(|c| c.spec().action_space.clone())
@@ -237,7 +338,7 @@ impl NativeEnvs {
             id,
             timeout,
         );
-        let (experiment, episodes) = block(py, asked)?.map_err(errors::to_py)?;
+        let (experiment, episodes) = block_on_interruptibly(py, asked)?.map_err(errors::to_py)?;
         convert::experiment_with_episodes(py, &experiment, &episodes)
     }
 
@@ -258,7 +359,7 @@ impl NativeEnvs {
             .map(|s| s.map_or(Seed::Continue, Seed::Fixed))
             .collect();
         let envs = &mut self.envs;
-        let replies = block(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
+        let replies = block_on_interruptibly(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
         let observations = PyList::empty(py);
         let infos = PyList::empty(py);
         for r in replies {
@@ -279,7 +380,7 @@ impl NativeEnvs {
             .envs
             .get_mut(0)
             .ok_or_else(|| PyValueError::new_err("no envs"))?;
-        let r = block(py, env.step(action))?.map_err(errors::to_py)?;
+        let r = block_on_interruptibly(py, env.step(action))?.map_err(errors::to_py)?;
         let info = convert::info(py, &r.info)?;
         PyTuple::new(
             py,
@@ -309,7 +410,7 @@ impl NativeEnvs {
             .map(|a| convert::action(&self.space, a))
             .collect::<PyResult<Vec<_>>>()?;
         let envs = &mut self.envs;
-        let steps = block(py, envs.step(actions))?.map_err(errors::to_py)?;
+        let steps = block_on_interruptibly(py, envs.step(actions))?.map_err(errors::to_py)?;
         let out = PyList::empty(py);
         for s in steps {
             let info = convert::info(py, &s.reply.info)?;
@@ -338,9 +439,9 @@ impl NativeEnvs {
     /// (idempotent).
     fn close(&mut self, py: Python<'_>) -> PyResult<()> {
         let envs = &mut self.envs;
-        let closed = block(py, envs.close())?.map_err(errors::to_py);
+        let closed = block_on_interruptibly(py, envs.close())?.map_err(errors::to_py);
         if let Some(monitor) = self.monitor.take() {
-            py.detach(|| monitor.shutdown())
+            block_on_pool(py, move || monitor.shutdown())?
                 .map_err(|e| errors::local(format!("monitor: {e}")))?;
         }
         closed
@@ -364,14 +465,14 @@ fn remote_session(connect: Option<String>) -> PyResult<SessionConfig> {
 fn on_deployment<T, Fut>(
     py: Python<'_>,
     connect: Option<String>,
-    work: impl FnOnce(offworld_runtime::zenoh::Session) -> Fut + Send,
+    work: impl FnOnce(offworld_runtime::zenoh::Session) -> Fut + Send + 'static,
 ) -> PyResult<T>
 where
-    T: Send,
-    Fut: std::future::Future<Output = Result<T, WireError>> + Send,
+    T: Send + 'static,
+    Fut: std::future::Future<Output = Result<T, WireError>> + Send + 'static,
 {
     let config = remote_session(connect)?;
-    block(py, async move {
+    spawn_interruptibly(py, async move {
         let session = config
             .open()
             .await
@@ -399,7 +500,7 @@ fn list_envs<'py>(
     timeout_s: f64,
 ) -> PyResult<Bound<'py, PyList>> {
     let timeout = convert::timeout(timeout_s)?;
-    let listings = on_deployment(py, connect, |session| async move {
+    let listings = on_deployment(py, connect, move |session| async move {
         offworld_runtime::client::discover(&session, timeout).await
     })?;
     let out = PyList::empty(py);
@@ -420,7 +521,7 @@ fn booking_request<'py>(
 ) -> PyResult<Bound<'py, PyList>> {
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
-    let bookings = on_deployment(py, connect, |session| async move {
+    let bookings = on_deployment(py, connect, move |session| async move {
         offworld_runtime::client::book(&session, &env, &request, timeout).await
     })?;
     let out = PyList::empty(py);
@@ -442,7 +543,7 @@ fn experiments<'py>(
 ) -> PyResult<Bound<'py, PyList>> {
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
-    let answer = on_deployment(py, connect, |session| async move {
+    let answer = on_deployment(py, connect, move |session| async move {
         let request = offworld_runtime::msg::ExperimentsRequest::List { token };
         offworld_runtime::client::experiments(&session, &env, &request, timeout).await
     })?;
@@ -462,7 +563,7 @@ fn experiment_episodes<'py>(
 ) -> PyResult<Bound<'py, PyTuple>> {
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
-    let (experiment, episodes) = on_deployment(py, connect, |session| async move {
+    let (experiment, episodes) = on_deployment(py, connect, move |session| async move {
         offworld_runtime::client::experiment_episodes(
             &session,
             &env,
@@ -486,7 +587,7 @@ fn leaderboard<'py>(
 ) -> PyResult<Bound<'py, PyList>> {
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
-    let board = on_deployment(py, connect, |session| async move {
+    let board = on_deployment(py, connect, move |session| async move {
         offworld_runtime::client::leaderboard(&session, &env, timeout).await
     })?;
     convert::leaderboard(py, &board)

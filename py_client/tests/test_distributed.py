@@ -98,8 +98,13 @@ def test_make_vec_by_discovery_steps_twins_in_separate_processes(trainer):
 
 
 def test_discovery_refuses_more_envs_than_are_free(trainer):
-    with pytest.raises(errors.NotFound, match="3 free"):
+    with pytest.raises(errors.NotFound, match="3 free") as refused:
         gymnasium.make_vec("OffWorldMonolithDiscreteSim-v0", num_envs=3, env_id="discover")
+    # The error names the envs that do exist, so the fix is in the message.
+    message = str(refused.value)
+    assert "envs reachable here:" in message
+    for env_id in trainer:
+        assert f"{env_id} (MonolithDiscrete, free)" in message, message
 
 
 def test_bookings_from_python_and_the_cli(trainer):

@@ -224,6 +224,20 @@ def test_a_resolution_out_of_range_is_named_with_the_accepted_range(resolution):
     assert isinstance(info.value, ValueError)
 
 
+@pytest.mark.parametrize("resolution", [(84.5, 84), (84, "84"), (True, 84)])
+def test_a_resolution_that_is_not_whole_pixels_is_refused_not_truncated(resolution):
+    with pytest.raises(errors.ConfigurationError, match="each side must be a whole number of pixels") as info:
+        gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=resolution)
+    assert isinstance(info.value, ValueError)
+
+
+def test_numpy_integers_are_whole_pixels():
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=(np.int64(12), np.int32(16)))
+    obs, _ = env.reset(seed=1)
+    assert obs.shape[:2] == (12, 16)
+    env.close()
+
+
 def test_vector_env_shapes_and_autoreset():
     envs = gymnasium.make_vec("OffWorldMonolithDiscreteSim-v0", num_envs=2, resolution=(32, 32))
     assert type(envs).__name__ == "OffWorldMonolithVectorEnv", "the native vector entry point is used"

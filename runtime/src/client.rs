@@ -439,6 +439,40 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
     Ok(futures::future::join_all(listings).await)
 }
 
+/// What an error saying "not found" should add: the envs that *are*
+/// reachable through `session` (id, task, state), or that none answered —
+/// which, when an env was expected, usually means the endpoint is wrong or
+/// nothing runs there.
+pub async fn envs_here(session: &Session, timeout: Duration) -> String {
+    match discover(session, timeout).await {
+        Ok(listings) if listings.is_empty() => {
+            "no env answered through this connection: check the endpoint (`--connect`, \
+             OFFWORLD_GYM_CONNECT) and that a controller or router runs there"
+                .to_owned()
+        }
+        Ok(listings) => {
+            let listed: Vec<String> = listings
+                .iter()
+                .map(|l| {
+                    let state = match &l.state {
+                        EnvState::Free => "free",
+                        EnvState::Leased { .. } => "leased",
+                        EnvState::Maintenance { .. } => "maintenance",
+                        EnvState::Offline { .. } => "offline",
+                    };
+                    if l.task.is_empty() {
+                        format!("{} ({state})", l.env)
+                    } else {
+                        format!("{} ({}, {state})", l.env, l.task)
+                    }
+                })
+                .collect();
+            format!("envs reachable here: {}", listed.join(", "))
+        }
+        Err(e) => format!("the envs reachable here could not be listed: {}", e.message),
+    }
+}
+
 /// One sub-env's result in a vector step.
 #[derive(Debug, Clone)]
 pub struct VecStep {

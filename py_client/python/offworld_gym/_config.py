@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 import os
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -76,6 +77,11 @@ def resolve(
     channels = Channels(channel_type)
     if len(resolution) != 2:
         raise ConfigurationError(f"resolution must be (height, width), got {resolution!r}")
+    # A whole number of pixels, not silently truncated: (84.5, 84) is a mistake.
+    if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in resolution):
+        raise ConfigurationError(
+            f"resolution (height, width) = {tuple(resolution)!r}: each side must be a whole number of pixels"
+        )
     height, width = (int(v) for v in resolution)
     if depth_format not in ("uint8", "meters"):
         raise ConfigurationError(f'depth_format must be "uint8" or "meters", got {depth_format!r}')

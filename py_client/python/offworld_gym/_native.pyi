@@ -7,10 +7,14 @@ import numpy as np
 
 __version__: str
 
-# Errors are raised as the classes of `offworld_gym.errors`.
+# Errors are raised as the classes of `offworld_gym.errors`; Ctrl-C during
+# any call that waits raises KeyboardInterrupt.
 
 class NativeEnvs:
-    """N envs of one task, opened on a deployment (embedded or remote)."""
+    """N envs of one task, opened on a deployment (embedded or remote).
+
+    Every waiting call raises ``KeyboardInterrupt`` on Ctrl-C and leaves the
+    envs usable; reset before stepping again (``py_client/src/lib.rs``)."""
 
     def __init__(
         self,

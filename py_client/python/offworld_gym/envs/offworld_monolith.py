@@ -18,6 +18,15 @@ class OffWorldMonolithEnv(gymnasium.Env):
     Observations are ``(height, width, channels)`` arrays; rewards +1 on
     reaching the monolith, else 0; episodes end on success, on leaving the
     boundary (terminated) or after 100 steps (truncated).
+
+    Ctrl-C during any call that waits (creating the env, ``reset``,
+    ``step``, ``close``) raises ``KeyboardInterrupt`` within ~0.1 s. The env
+    stays open and usable: the interrupted request has already reached the
+    controller, which completes it, and the next call waits for that, then
+    runs. Call ``reset()`` before stepping again (the interrupted call's
+    observation is lost; stepping an episode it ended raises
+    ``errors.InvalidState``). An interrupted ``close()`` still releases the
+    lease: the env counts as closed.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}

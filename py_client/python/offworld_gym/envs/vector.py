@@ -14,7 +14,12 @@ from offworld_gym._native import NativeEnvs
 
 
 class OffWorldMonolithVectorEnv(VectorEnv):
-    """``gymnasium.make_vec(id, num_envs=N)``: next-step autoreset, like gymnasium 1.x."""
+    """``gymnasium.make_vec(id, num_envs=N)``: next-step autoreset, like gymnasium 1.x.
+
+    Ctrl-C during a call raises ``KeyboardInterrupt`` and leaves the envs
+    usable, as for :class:`~offworld_gym.envs.offworld_monolith.OffWorldMonolithEnv`:
+    call ``reset()`` before stepping again.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.NEXT_STEP}
 
