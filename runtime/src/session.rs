@@ -209,8 +209,9 @@ pub struct CommonArgs {
     /// flag (`--robot-config`, `--calibration`, …).
     #[arg(short = 'c', long = "zenoh-config", env = ENV_CONFIG, value_name = "JSON5")]
     pub zenoh_config: Option<PathBuf>,
-    /// Session role.
-    #[arg(short, long, value_enum, default_value_t = Mode::Peer)]
+    /// Session role (the same variable the Python client reads, so one
+    /// environment connects a client and its servers alike).
+    #[arg(short, long, value_enum, default_value_t = Mode::Peer, env = ENV_MODE)]
     pub mode: Mode,
     /// Endpoints to connect to (repeatable), e.g. tcp/127.0.0.1:7447.
     #[arg(short = 'e', long, value_delimiter = ',', env = ENV_CONNECT)]

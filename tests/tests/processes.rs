@@ -380,3 +380,52 @@ async fn every_completed_episode_survives_kill_9_at_random_points() {
     drop(session);
     let _ = std::fs::remove_dir_all(&scratch);
 }
+
+/// Every program that joins a deployment takes the shared Zenoh settings
+/// from the same environment variables as the Python client (one shared
+/// clap group, `runtime::CommonArgs`), and says so in `--help`.
+#[test]
+fn every_program_reads_the_shared_zenoh_settings_from_the_same_variables() {
+    let dir = offworld_tests::binary_dir();
+    let programs: [(&str, &[&str]); 7] = [
+        ("env_controller", &["serve"]),
+        ("sim_twin", &[]),
+        ("robot_agent", &[]),
+        ("base_guard", &[]),
+        ("tracker_agent", &["run"]),
+        ("monitor", &[]),
+        ("recorder", &["record"]),
+    ];
+    for (program, subcommand) in programs {
+        let help = std::process::Command::new(dir.join(program))
+            .args(subcommand)
+            .arg("--help")
+            .output()
+            .expect(program);
+        assert!(help.status.success(), "{program} --help: {help:?}");
+        let text = String::from_utf8_lossy(&help.stdout);
+        for variable in [
+            "OFFWORLD_ZENOH_CONFIG",
+            "OFFWORLD_ZENOH_MODE",
+            "OFFWORLD_ZENOH_CONNECT",
+            "OFFWORLD_ZENOH_LISTEN",
+        ] {
+            assert!(
+                text.contains(&format!("env: {variable}")),
+                "{program} --help does not name {variable}:\n{text}"
+            );
+        }
+        // Read, not only shown: a bad mode in the variable is refused.
+        let refused = std::process::Command::new(dir.join(program))
+            .args(subcommand)
+            .env("OFFWORLD_ZENOH_MODE", "bogus")
+            .output()
+            .expect(program);
+        assert_eq!(refused.status.code(), Some(2), "{program}: {refused:?}");
+        let stderr = String::from_utf8_lossy(&refused.stderr);
+        assert!(
+            stderr.contains("bogus") && stderr.contains("--mode"),
+            "{program}: {stderr}"
+        );
+    }
+}
