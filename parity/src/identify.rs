@@ -24,6 +24,7 @@ use std::cell::RefCell;
 use argmin::core::{CostFunction, Error as ArgminError, Executor, State};
 use argmin::solver::neldermead::NelderMead;
 use offworld_runtime::msg::Pose2D;
+use offworld_sim_twin::twin::MAX_MOTION_S;
 use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig, TwinProfile};
 
 use crate::recorded::RecordedEpisode;
@@ -84,6 +85,8 @@ pub struct Identified {
 #[derive(Debug, Clone, Copy)]
 struct Transition {
     episode: usize,
+    /// The step's index in its episode (for errors).
+    step: u32,
     before: Pose2D,
     after: Pose2D,
     linear: f64,
@@ -138,24 +141,48 @@ fn check(episodes: &[RecordedEpisode]) -> Result<Vec<Transition>, ParityError> {
             ));
         }
     }
-    let transitions: Vec<Transition> = episodes
-        .iter()
-        .enumerate()
-        .flat_map(|(i, e)| {
-            e.steps.windows(2).filter_map(move |w| {
-                let s = &w[1].step;
-                let moving = s.duration_s > 0.0 && (s.linear_x != 0.0 || s.angular_z != 0.0);
-                moving.then_some(Transition {
+    let mut transitions = Vec::new();
+    for (i, e) in episodes.iter().enumerate() {
+        for w in e.steps.windows(2) {
+            let s = &w[1].step;
+            let (a, b) = (w[0].pose, w[1].pose);
+            let finite = [
+                s.linear_x,
+                s.angular_z,
+                s.duration_s,
+                a.x,
+                a.y,
+                a.yaw,
+                b.x,
+                b.y,
+                b.yaw,
+            ]
+            .iter()
+            .all(|v| v.is_finite());
+            // One bad step would make every candidate fail alike and the
+            // fit stop where it started: refuse it, naming it.
+            if !finite || !(0.0..=f64::from(MAX_MOTION_S)).contains(&s.duration_s) {
+                return Err(unusable(
+                    e,
+                    format!(
+                        "step {}: command ({}, {}) for {} s or its poses cannot be replayed",
+                        s.step, s.linear_x, s.angular_z, s.duration_s
+                    ),
+                ));
+            }
+            if s.duration_s > 0.0 && (s.linear_x != 0.0 || s.angular_z != 0.0) {
+                transitions.push(Transition {
                     episode: i,
+                    step: s.step,
                     before: w[0].pose,
                     after: w[1].pose,
                     linear: s.linear_x,
                     angular: s.angular_z,
                     duration: s.duration_s,
-                })
-            })
-        })
-        .collect();
+                });
+            }
+        }
+    }
     if transitions.len() < MIN_STEPS {
         return Err(ParityError::TooFew {
             reason: format!(
@@ -189,6 +216,8 @@ fn twin_for(
 /// The one-step motion error of `profile`'s motion over `transitions`.
 struct MotionFit<'a> {
     transitions: &'a [Transition],
+    /// Each episode's file (for errors).
+    paths: Vec<std::path::PathBuf>,
     base: TwinProfile,
     /// One twin per episode (only physics is used).
     twins: RefCell<Vec<SimTwin>>,
@@ -202,8 +231,9 @@ impl MotionFit<'_> {
         profile
     }
 
-    /// Mean squared error (m²) and mean position error (m) of `profile`.
-    fn errors(&self, profile: &TwinProfile) -> (f64, f64) {
+    /// Mean squared error (m²) and mean position error (m) of `profile`;
+    /// the first step the twin refuses (a pose outside the enclosure, …).
+    fn errors(&self, profile: &TwinProfile) -> Result<(f64, f64), ParityError> {
         let mut twins = self.twins.borrow_mut();
         for twin in twins.iter_mut() {
             twin.physics_mut().set_profile(profile.motion);
@@ -211,12 +241,12 @@ impl MotionFit<'_> {
         let (mut sq, mut dist) = (0.0, 0.0);
         for t in self.transitions {
             let twin = &mut twins[t.episode];
-            let ended = twin
-                .teleport(planar(&t.before))
-                .and_then(|()| twin.execute(t.linear, t.angular, t.duration));
-            if ended.is_err() {
-                return (OUT_OF_RANGE, OUT_OF_RANGE);
-            }
+            twin.teleport(planar(&t.before))
+                .and_then(|()| twin.execute(t.linear, t.angular, t.duration).map(drop))
+                .map_err(|e| ParityError::Twin {
+                    path: self.paths[t.episode].clone(),
+                    reason: format!("step {}: {e}", t.step),
+                })?;
             let p = twin.ground_truth();
             let d =
                 (f64::from(p.position[0]) - t.after.x).hypot(f64::from(p.position[1]) - t.after.y);
@@ -225,7 +255,7 @@ impl MotionFit<'_> {
             dist += d;
         }
         let n = self.transitions.len() as f64;
-        (sq / n, dist / n)
+        Ok((sq / n, dist / n))
     }
 }
 
@@ -238,7 +268,7 @@ impl CostFunction for &MotionFit<'_> {
         if profile.validate().is_err() {
             return Ok(OUT_OF_RANGE);
         }
-        Ok(self.errors(&profile).0)
+        Ok(self.errors(&profile).map_or(OUT_OF_RANGE, |(sq, _)| sq))
     }
 }
 
@@ -398,6 +428,7 @@ pub fn identify(
     let transitions = check(episodes)?;
     let motion = MotionFit {
         transitions: &transitions,
+        paths: episodes.iter().map(|e| e.path.clone()).collect(),
         base: *start,
         twins: RefCell::new(
             episodes
@@ -406,7 +437,9 @@ pub fn identify(
                 .collect::<Result<_, _>>()?,
         ),
     };
-    let (_, position_error_before_m) = motion.errors(start);
+    // The starting profile must replay every step: a step the twin
+    // refuses is an error naming it, not a flat cost.
+    let (_, position_error_before_m) = motion.errors(start)?;
     progress(&format!(
         "motion: {} moving steps, mean one-step error {:.2} cm with the starting profile",
         transitions.len(),
@@ -420,7 +453,7 @@ pub fn identify(
         options.max_iters,
     )?;
     let mut profile = motion.profile(&gains);
-    let (_, position_error_after_m) = motion.errors(&profile);
+    let (_, position_error_after_m) = motion.errors(&profile)?;
     progress(&format!(
         "motion: linear gain {:.4}, angular gain {:.4}: mean one-step error {:.2} cm",
         profile.motion.linear_gain,
@@ -431,13 +464,22 @@ pub fn identify(
     let with_depth: Vec<DepthView<'_>> = episodes
         .iter()
         .flat_map(|e| {
+            // One camera size per episode (its first depth image's): the
+            // twin is built once per episode at that size.
+            let size = e
+                .steps
+                .iter()
+                .find_map(|s| s.depth.as_ref().map(|d| (d.width, d.height)));
             e.steps.iter().filter_map(move |s| {
-                s.depth.as_ref().map(|d| DepthView {
-                    episode: e,
-                    pose: s.pose,
-                    metres: &d.metres,
-                    resolution: (d.width, d.height),
-                })
+                s.depth
+                    .as_ref()
+                    .filter(|d| Some((d.width, d.height)) == size)
+                    .map(|d| DepthView {
+                        episode: e,
+                        pose: s.pose,
+                        metres: &d.metres,
+                        resolution: (d.width, d.height),
+                    })
             })
         })
         .collect();
@@ -471,8 +513,18 @@ pub fn identify(
     profile = camera.profile(&mount);
     let depth_cost_after_m = camera.cost_of(&profile);
     let (dropout, noise) = camera.depth_noise(&profile)?;
+    if dropout >= 0.99 {
+        return Err(ParityError::TooFew {
+            reason: format!(
+                "the recorded depth is missing where the twin sees something at {:.1} % of pixels: \
+                 a covered or failed depth camera cannot be fitted",
+                dropout * 100.0
+            ),
+        });
+    }
     profile.depth.dropout = dropout;
-    profile.depth.noise = noise;
+    // The profile's range: a larger spread is a camera the twin cannot model.
+    profile.depth.noise = noise.min(0.5);
     progress(&format!(
         "camera: height {:+.4} m, pitch {:+.3}°, yaw {:+.3}°: cost {:.2} cm; depth noise {:.4}, dropout {:.4}",
         profile.camera.height_offset_m,

@@ -74,10 +74,18 @@ enum Command {
     },
 }
 
+/// The episodes for identification, without their colour images (the fit
+/// does not use them: an hour of 640×480 colour would be gigabytes).
 fn read_all(files: &[PathBuf]) -> anyhow::Result<Vec<RecordedEpisode>> {
     files
         .iter()
-        .map(|f| RecordedEpisode::read(f).map_err(Into::into))
+        .map(|f| {
+            let mut episode = RecordedEpisode::read(f)?;
+            for step in &mut episode.steps {
+                step.color = None;
+            }
+            Ok(episode)
+        })
         .collect()
 }
 

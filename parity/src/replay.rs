@@ -208,14 +208,17 @@ pub fn replay_with(
         // The sensor model alone: render where the robot was.
         one_step.teleport(planar(&after.pose)).map_err(twin_error)?;
         let frame = one_step.render();
+        // Compared pixel for pixel only at the twin's size (the recorded
+        // depth's): another size (a colour camera of its own) is not measured.
+        let same_size = |w: u32, h: u32| (w, h) == (frame.width, frame.height);
         let (depth_mae_m, depth_validity_disagreement) = match &after.depth {
-            Some(d) => depth_gap(&frame.depth, &d.metres),
-            None => (f64::NAN, f64::NAN),
+            Some(d) if same_size(d.width, d.height) => depth_gap(&frame.depth, &d.metres),
+            _ => (f64::NAN, f64::NAN),
         };
-        let color_mae = after
-            .color
-            .as_ref()
-            .map_or(f64::NAN, |c| color_gap(&frame.rgb, &c.rgb));
+        let color_mae = match &after.color {
+            Some(c) if same_size(c.width, c.height) => color_gap(&frame.rgb, &c.rgb),
+            _ => f64::NAN,
+        };
         let judged = judge(&task, twin_pose.x, twin_pose.y, s.step);
         let stamp = f64::from(s.header.stamp.sec) + f64::from(s.header.stamp.nanosec) * 1e-9;
         let gap = StepGap {

@@ -105,6 +105,24 @@ async fn too_few_episodes_or_mixed_worlds_are_refused_naming_the_reason() {
     assert!(matches!(e, ParityError::TooFew { .. }), "{e:?}");
     assert!(e.to_string().contains("at least 3"), "{e}");
 
+    // A step the twin cannot replay (a 20 s command) is named, not fitted
+    // around.
+    let mut bad = episodes(&open.0);
+    bad[1].steps[2].step.duration_s = 20.0;
+    let bad_path = bad[1].path.clone();
+    let e = identify(
+        &bad,
+        &TwinProfile::default(),
+        &IdentifyOptions::default(),
+        &mut |_| {},
+    )
+    .expect_err("an unreplayable step");
+    let text = e.to_string();
+    assert!(
+        text.contains(&bad_path.display().to_string()) && text.contains("step 2"),
+        "{text}"
+    );
+
     let mut mixed = episodes(&open.0);
     let other = episodes(&obstacle.0).remove(0);
     let other_path = other.path.clone();

@@ -18,7 +18,7 @@
 //! The simulation runs on its own named thread; Zenoh callbacks only enqueue.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender};
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -201,6 +201,7 @@ impl TwinNode {
         stuck_after: Duration,
     ) -> Result<Self, SimError> {
         let (tx, rx) = sync_channel::<Event>(QUEUE);
+        let busy = Arc::new(Busy::new());
         let zerr = |e: offworld_runtime::zenoh::Error| SimError::Zenoh(e.to_string());
         let forward = |tx: &SyncSender<Event>, make: fn(Sample) -> Event| {
             let tx = tx.clone();
@@ -231,12 +232,15 @@ impl TwinNode {
             .wait()
             .map_err(zerr)?;
         let estop_subscriber = |key: String, latch: Latch| {
-            let tx = tx.clone();
+            let (tx, busy) = (tx.clone(), busy.clone());
             session
                 .declare_subscriber(key)
                 .callback(move |sample: Sample| {
-                    // Never dropped: an e-stop waits for room in the queue.
-                    let _ = tx.send(Event::EStop(latch, sample));
+                    // Never dropped while the thread works: an e-stop waits
+                    // for room in the queue. A stuck thread would never make
+                    // room (nor act on it: its twin is withdrawn), and this
+                    // callback must not hold Zenoh's thread forever.
+                    send_unless_stuck(&tx, &busy, Event::EStop(latch, sample));
                 })
                 .wait()
                 .map_err(zerr)
@@ -289,7 +293,6 @@ impl TwinNode {
             })
             .map_err(|e| SimError::Io(e.to_string()))?;
         let stats = Arc::new(StatCounters::default());
-        let busy = Arc::new(Busy::new());
         let mut worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
         worker.estops = estops;
         worker.shared_estops = shared_estops;
@@ -351,16 +354,35 @@ impl TwinNode {
 
 impl Drop for TwinNode {
     fn drop(&mut self) {
-        self.watching.store(false, Ordering::Release);
-        if self.stuck() {
-            // It would never see the shutdown, nor drain a full queue.
-            let _ = self.events.try_send(Event::Shutdown);
-            return;
-        }
-        // Blocking send: the worker drains fast, and must see the shutdown.
-        let _ = self.events.send(Event::Shutdown);
+        // The watchdog keeps watching until the thread has ended: a thread
+        // stuck but not yet called so must not hang the drop forever.
+        send_unless_stuck(&self.events, &self.busy, Event::Shutdown);
         if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
+            while !thread.is_finished() && !self.stuck() {
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            if thread.is_finished() {
+                let _ = thread.join();
+            }
+            // Else left running: it cannot be stopped (see `stuck`).
+        }
+        self.watching.store(false, Ordering::Release);
+    }
+}
+
+/// Queues `event`, waiting for room while the simulation thread drains
+/// (it does, fast) — but not once it is stuck; false if not queued.
+fn send_unless_stuck(events: &SyncSender<Event>, busy: &Busy, event: Event) -> bool {
+    let mut event = event;
+    loop {
+        match events.try_send(event) {
+            Ok(()) => return true,
+            Err(TrySendError::Disconnected(_)) => return false,
+            Err(TrySendError::Full(_)) if busy.stuck.load(Ordering::Acquire) => return false,
+            Err(TrySendError::Full(back)) => {
+                event = back;
+                std::thread::sleep(Duration::from_millis(1));
+            }
         }
     }
 }
