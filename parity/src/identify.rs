@@ -259,16 +259,36 @@ impl MotionFit<'_> {
     }
 }
 
-impl CostFunction for &MotionFit<'_> {
+impl Fit for MotionFit<'_> {
+    fn profile(&self, p: &[f64]) -> TwinProfile {
+        self.profile(p)
+    }
+
+    fn score(&self, profile: &TwinProfile) -> f64 {
+        self.errors(profile).map_or(OUT_OF_RANGE, |(sq, _)| sq)
+    }
+}
+
+/// One of the fits: a candidate's parameters as a profile, and its cost.
+trait Fit {
+    fn profile(&self, p: &[f64]) -> TwinProfile;
+    fn score(&self, profile: &TwinProfile) -> f64;
+}
+
+/// A [`Fit`] as argmin's cost function: a candidate outside the profile's
+/// valid ranges costs [`OUT_OF_RANGE`].
+struct Scored<'a, F>(&'a F);
+
+impl<F: Fit> CostFunction for Scored<'_, F> {
     type Param = Vec<f64>;
     type Output = f64;
 
     fn cost(&self, p: &Self::Param) -> Result<f64, ArgminError> {
-        let profile = self.profile(p);
+        let profile = self.0.profile(p);
         if profile.validate().is_err() {
             return Ok(OUT_OF_RANGE);
         }
-        Ok(self.errors(&profile).map_or(OUT_OF_RANGE, |(sq, _)| sq))
+        Ok(self.0.score(&profile))
     }
 }
 
@@ -374,16 +394,13 @@ impl CameraFit<'_> {
     }
 }
 
-impl CostFunction for &CameraFit<'_> {
-    type Param = Vec<f64>;
-    type Output = f64;
+impl Fit for CameraFit<'_> {
+    fn profile(&self, p: &[f64]) -> TwinProfile {
+        self.profile(p)
+    }
 
-    fn cost(&self, p: &Self::Param) -> Result<f64, ArgminError> {
-        let profile = self.profile(p);
-        if profile.validate().is_err() {
-            return Ok(OUT_OF_RANGE);
-        }
-        Ok(self.cost_of(&profile))
+    fn score(&self, profile: &TwinProfile) -> f64 {
+        self.cost_of(profile)
     }
 }
 
@@ -447,7 +464,7 @@ pub fn identify(
     ));
     let m = &start.motion;
     let (gains, motion_iters) = minimise(
-        &motion,
+        Scored(&motion),
         vec![f64::from(m.linear_gain), f64::from(m.angular_gain)],
         &[0.1, 0.1],
         options.max_iters,
@@ -501,7 +518,7 @@ pub fn identify(
     ));
     let c = &start.camera;
     let (mount, camera_iters) = minimise(
-        &camera,
+        Scored(&camera),
         vec![
             f64::from(c.height_offset_m),
             f64::from(c.pitch_deg),
