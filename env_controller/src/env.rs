@@ -754,6 +754,10 @@ impl EnvServer {
         let mut state = self.state.lock().await;
         self.holder(&mut state, &req.session_id)?;
         self.abort_episode(&mut state, "closed").await;
+        if let Some(recorder) = &self.recorder {
+            // A client that closed its env finds its episodes complete.
+            recorder.caught_up().await;
+        }
         let lease = state
             .lease
             .take()
@@ -868,7 +872,7 @@ impl EnvServer {
     /// `experiments`: the caller's experiments on this env (operators:
     /// everyone's), or one of them with its episodes and recordings. Another
     /// user's experiment is answered as not found, like one that does not exist.
-    pub fn experiments(&self, req: ExperimentsRequest) -> Result<Experiments, WireError> {
+    pub async fn experiments(&self, req: ExperimentsRequest) -> Result<Experiments, WireError> {
         let env_id = self.env.to_string();
         match req {
             ExperimentsRequest::List { token } => {
@@ -907,7 +911,7 @@ impl EnvServer {
                 })?;
                 let more = episodes.len() > EXPERIMENT_EPISODES_PER_REPLY as usize;
                 episodes.truncate(EXPERIMENT_EPISODES_PER_REPLY as usize);
-                self.attach_recordings(experiment_id, &mut episodes);
+                self.attach_recordings(experiment_id, &mut episodes).await;
                 Ok(Experiments {
                     experiments: vec![experiment],
                     episodes,
@@ -920,10 +924,13 @@ impl EnvServer {
     /// Lists each episode's files, when this env records. A directory that
     /// cannot be read leaves the episodes without files (and says so in the
     /// log): the store's record is still worth answering.
-    fn attach_recordings(&self, experiment_id: i64, episodes: &mut [EpisodeRecordEntry]) {
+    async fn attach_recordings(&self, experiment_id: i64, episodes: &mut [EpisodeRecordEntry]) {
         let Some(recorder) = &self.recorder else {
             return;
         };
+        // The files match what the client did: the episodes it ended are
+        // finished, the one it began exists.
+        recorder.caught_up().await;
         let files = match recorder
             .destination()
             .experiment_files(&self.env, u64::try_from(experiment_id).unwrap_or_default())

@@ -471,7 +471,9 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
         }
         Topic::Experiments => {
             respond(query, async {
-                server.experiments(wire::decode_query::<ExperimentsRequest>(query)?)
+                server
+                    .experiments(wire::decode_query::<ExperimentsRequest>(query)?)
+                    .await
             })
             .await
         }

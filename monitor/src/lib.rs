@@ -346,7 +346,7 @@ impl Monitor {
             std::thread::Builder::new()
                 .name("offworld-monitor".into())
                 .spawn(move || {
-                    lower_thread_priority();
+                    offworld_runtime::priority::lower_current_thread();
                     let rec = match open_sink(&config.sink, config.recording_name.as_deref()) {
                         Ok(rec) => rec,
                         Err(e) => {
@@ -440,35 +440,9 @@ impl Monitor {
     }
 }
 
-/// Niceness of the monitor's threads (Linux: per thread; 0 is normal, 19
-/// the lowest priority).
-const MONITOR_NICENESS: libc::c_int = 10;
-
 /// How long shutdown waits for callbacks still running after their
 /// subscriber was undeclared.
 const CALLBACKS_FINISH: Duration = Duration::from_secs(1);
-
-/// Gives the calling thread (and the threads it starts) a lower scheduling
-/// priority. Best effort: without it the monitor still works, it just
-/// competes with the step path on equal terms.
-#[allow(unsafe_code)] // one libc call, see SAFETY below
-fn lower_thread_priority() {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: gettid and setpriority only read their arguments; on Linux
-        // PRIO_PROCESS with a thread id changes that one thread.
-        let result = unsafe {
-            let tid = libc::gettid();
-            libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, MONITOR_NICENESS)
-        };
-        if result != 0 {
-            tracing::debug!(
-                "monitor runs at normal priority: {}",
-                std::io::Error::last_os_error()
-            );
-        }
-    }
-}
 
 fn open_sink(
     sink: &Sink,

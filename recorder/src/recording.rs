@@ -173,6 +173,8 @@ enum Event {
     Odom(Received),
     /// With whom to tell once the file is finished.
     End(EpisodeEnd, Option<tokio::sync::oneshot::Sender<()>>),
+    /// Told once every event queued before it is handled.
+    CaughtUp(tokio::sync::oneshot::Sender<()>),
 }
 
 /// An odometry message and when it was received.
@@ -207,6 +209,8 @@ pub struct EnvRecorder {
     writer: Option<JoinHandle<()>>,
     /// Holds a sender of the queue: undeclared before the writer is awaited.
     odom: Option<Subscriber<()>>,
+    /// Told when the last ended episode's file is finished (lossless only).
+    finishing: std::sync::Mutex<Option<tokio::sync::oneshot::Receiver<()>>>,
 }
 
 impl EnvRecorder {
@@ -265,6 +269,7 @@ impl EnvRecorder {
             writer_gone: AtomicBool::new(false),
             writer: Some(writer),
             odom: Some(odom),
+            finishing: std::sync::Mutex::new(None),
         })
     }
 
@@ -279,7 +284,10 @@ impl EnvRecorder {
             .episode_path(&self.env, info.experiment_id, info.episode_id)
     }
 
-    /// Starts recording the episode `info` (ends one left open).
+    /// Starts recording the episode `info` (ends one left open), once the
+    /// episodes ended before are finished on disk: a client that reset its
+    /// env finds its earlier episodes complete, even if the controller is
+    /// killed right after.
     pub async fn begin(&self, info: EpisodeInfo) {
         self.begin_annotated(info, BTreeMap::new()).await;
     }
@@ -287,6 +295,7 @@ impl EnvRecorder {
     /// [`EnvRecorder::begin`] with `notes` added to the file's metadata
     /// record (see [`EpisodeFile::create_annotated`]).
     pub async fn begin_annotated(&self, info: EpisodeInfo, notes: BTreeMap<String, String>) {
+        self.ended_episodes_finished().await;
         let generation = self.generation.fetch_add(1, Ordering::AcqRel) + 1;
         let path = self.episode_path(&info);
         // Only a recent one says where the robot starts from.
@@ -316,18 +325,53 @@ impl EnvRecorder {
         self.send(generation, Event::Step(Box::new(record))).await;
     }
 
-    /// Ends the open episode's file. Lossless (sim), returns once the file
-    /// is finished and renamed: a client that closed its env finds its
-    /// episodes complete.
+    /// Ends the open episode's file. Returns at once: a lossless (sim)
+    /// recorder finishes the file while the client moves on (its next
+    /// reset overlaps the finishing), and [`EnvRecorder::begin`] and
+    /// [`EnvRecorder::caught_up`] wait for it.
     pub async fn end(&self, end: EpisodeEnd) {
         self.open.store(false, Ordering::Release);
         let generation = self.generation.load(Ordering::Acquire);
         if self.to.lossless {
             let (done, finished) = tokio::sync::oneshot::channel();
             self.send(generation, Event::End(end, Some(done))).await;
-            let _ = finished.await;
+            // The writer keeps the queue's order: this end finished means
+            // every earlier one is too.
+            if let Ok(mut pending) = self.finishing.lock() {
+                *pending = Some(finished);
+            }
         } else {
             self.send(generation, Event::End(end, None)).await;
+        }
+    }
+
+    /// Returns once the writer has handled everything handed to it before
+    /// (files of ended episodes finished and renamed, the current one
+    /// created): listings of the recordings then match what the client did.
+    /// A recorder whose writer is gone, or whose queue is full (lossy), does
+    /// not wait.
+    pub async fn caught_up(&self) {
+        let Some(queue) = &self.queue else { return };
+        let (done, handled) = tokio::sync::oneshot::channel();
+        let queued = Queued {
+            generation: self.generation.load(Ordering::Acquire),
+            event: Event::CaughtUp(done),
+        };
+        let sent = if self.to.lossless {
+            queue.send(queued).await.is_ok()
+        } else {
+            queue.try_send(queued).is_ok()
+        };
+        if sent {
+            let _ = handled.await;
+        }
+    }
+
+    /// Waits for the last ended episode's file to be finished (lossless).
+    async fn ended_episodes_finished(&self) {
+        let pending = self.finishing.lock().ok().and_then(|mut p| p.take());
+        if let Some(finished) = pending {
+            let _ = finished.await;
         }
     }
 
@@ -420,6 +464,9 @@ fn write_episodes(
     abandoned: &AtomicU64,
     durable: bool,
 ) {
+    // Writing is background work: on a machine whose cores the step path
+    // keeps busy (a sim, the robot's computer) it must not take their turn.
+    offworld_runtime::priority::lower_current_thread();
     let mut open: Option<Open> = None;
     while let Some(Queued { generation, event }) = events.blocking_recv() {
         let handled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
@@ -511,6 +558,9 @@ fn handle(
                     current.stop(env, durable, &format!("recorder_stopped: {e}"));
                 }
             }
+        }
+        Event::CaughtUp(done) => {
+            let _ = done.send(());
         }
         Event::End(end, done) => {
             if let Some(current) = open.take_if(|o| o.generation == generation) {

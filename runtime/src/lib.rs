@@ -12,6 +12,7 @@
 //!   untrusted bytes never panics.
 //! - [`wire`]: typed put / request / reply over a Zenoh session.
 //! - [`session`]: opening sessions from files, environment or flags.
+//! - [`priority`]: background threads yield to the step path.
 //! - [`shutdown`]: SIGINT, SIGTERM and SIGHUP as one "stop cleanly".
 //! - [`world`]: enclosure definitions (`runtime/worlds/*.toml`) every
 //!   component reads: geometry, task, robot, camera.
@@ -24,6 +25,7 @@ pub mod estop;
 pub mod keys;
 pub mod msg;
 pub mod pool;
+pub mod priority;
 pub mod ros2;
 pub mod seal;
 pub mod session;
