@@ -1,0 +1,148 @@
+"""Fixtures of the web page's end-to-end tests: a deployment with two sim
+envs (`env_controller serve --embedded-twins`) and `lab_web` in front of
+it, each a separate process on free loopback ports, and a headless
+Debian chromium driven by Playwright."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import socket
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ENVS = ("sim/web-a", "sim/web-b")
+
+
+def free_port() -> int:
+    """A free port below Linux's ephemeral range (32768-60999), so no
+    connection's local port can take it before the server listens."""
+    rng = random.SystemRandom()
+    for _ in range(64):
+        port = rng.randrange(20000, 32000)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free loopback port in 20000-32000")
+
+
+def binary(name: str) -> Path:
+    target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
+    path = target / "release" / name
+    if not path.exists():
+        pytest.fail(f"{path} is missing: build it with `cargo build --release --bins` (bash .ci/test does)")
+    return path
+
+
+def wait_until(what: str, check, proc: subprocess.Popen, timeout_s: float = 30.0):
+    """Polls `check` (bounded) until it returns a truthy value; fails naming
+    `what`, with the process's log if it died."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode() if proc.stderr else ""
+            raise RuntimeError(f"{what}: the process exited ({proc.returncode}): {err}")
+        value = check()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise RuntimeError(f"{what}: not within {timeout_s} s")
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+def get_json(url: str):
+    with urllib.request.urlopen(url, timeout=5) as response:
+        return json.load(response)
+
+
+@dataclass
+class Lab:
+    endpoint: str
+    url: str
+
+
+@pytest.fixture()
+def lab(tmp_path: Path):
+    """Yields the Zenoh endpoint of a two-env deployment and the URL of
+    `lab_web` serving it, once the page lists both envs."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    controller = subprocess.Popen(
+        [
+            str(binary("env_controller")),
+            "--db",
+            str(tmp_path / "gym.db"),
+            "serve",
+            *[arg for env in ENVS for arg in ("--env", f"{env}=MonolithDiscrete")],
+            "--embedded-twins",
+            "--listen",
+            endpoint,
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    web = None
+    try:
+
+        def listening() -> bool:
+            with socket.socket() as s:
+                return s.connect_ex(("127.0.0.1", port)) == 0
+
+        wait_until("env_controller listens", listening, controller)
+        http_port = free_port()
+        web = subprocess.Popen(
+            [str(binary("lab_web")), "--connect", endpoint, "--listen", f"127.0.0.1:{http_port}"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        url = f"http://127.0.0.1:{http_port}"
+
+        def both_listed() -> bool:
+            try:
+                listed = get_json(f"{url}/api/envs")
+            except (urllib.error.URLError, ConnectionError):
+                return False
+            return [e["id"] for e in listed["envs"] if e["task"]] == list(ENVS)
+
+        wait_until("lab_web lists both envs", both_listed, web)
+        yield Lab(endpoint=endpoint, url=url)
+    finally:
+        if web is not None:
+            stop(web)
+        stop(controller)
+
+
+@pytest.fixture()
+def browser():
+    """Headless Debian chromium (Playwright's own browser download is not
+    reachable from these machines)."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    executable = shutil.which("chromium") or "/usr/bin/chromium"
+    if not Path(executable).exists():
+        pytest.fail("chromium is missing: bash .ci/setup installs Debian's chromium")
+    with sync_api.sync_playwright() as playwright:
+        # No sandbox: CI runs as root, where chromium refuses to start with one.
+        browser = playwright.chromium.launch(executable_path=executable, args=["--no-sandbox"])
+        try:
+            yield browser
+        finally:
+            browser.close()

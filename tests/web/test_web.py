@@ -1,0 +1,109 @@
+"""The lab's web page in a real headless browser against a real deployment:
+both sim envs shown free, a lease taken from Python shown within 1 s
+without a reload, free again once closed; the env page; a 404 page.
+
+`OFFWORLD_WEB_SCREENSHOT=docs/img/web-envs.png` also saves the
+availability page, with one env leased, for the docs."""
+
+from __future__ import annotations
+
+import os
+import struct
+import urllib.error
+import urllib.request
+
+import gymnasium
+import offworld_gym  # noqa: F401  (registers the envs)
+import pytest
+from conftest import ENVS
+
+from playwright.sync_api import expect
+
+# The issue's requirement: a lease taken from Python is on the page within 1 s.
+LEASE_VISIBLE_MS = 1000
+# Everything else only has to happen, within a bound that fails a hung test.
+EVENTUALLY_MS = 10_000
+
+
+def row(page, env_id: str):
+    return page.locator(f'tr[data-env="{env_id}"]')
+
+
+def test_a_lease_taken_from_python_shows_within_a_second_without_reload(lab, browser, tmp_path):
+    page = browser.new_page(viewport={"width": 1200, "height": 520})
+    page.goto(lab.url)
+    for env_id in ENVS:
+        expect(row(page, env_id)).to_have_attribute("data-state", "free", timeout=EVENTUALLY_MS)
+        expect(row(page, env_id).locator('[data-field="state"]')).to_have_text("free")
+        expect(row(page, env_id).locator('[data-field="task"]')).to_have_text("MonolithDiscrete")
+    expect(page.locator("#live")).to_have_attribute("data-state", "live", timeout=EVENTUALLY_MS)
+    # A reload would lose this.
+    page.evaluate("window.notReloaded = true")
+
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=lab.endpoint, env_id=ENVS[0], resolution=(32, 32))
+    try:
+        # `make` returns holding the lease: from here the page has 1 s.
+        expect(row(page, ENVS[0])).to_have_attribute("data-state", "leased", timeout=LEASE_VISIBLE_MS)
+        expect(row(page, ENVS[0]).locator('[data-field="state"]')).to_have_text("leased")
+        expect(row(page, ENVS[0]).locator('[data-field="state-detail"]')).to_contain_text("until")
+        expect(row(page, ENVS[1])).to_have_attribute("data-state", "free")
+        assert page.evaluate("window.notReloaded") is True
+
+        env.reset(seed=1)
+        # The reset's accuracy comes with the next status.
+        expect(row(page, ENVS[0]).locator('[data-field="last-reset"]')).to_contain_text("° off", timeout=EVENTUALLY_MS)
+        screenshot = os.environ.get("OFFWORLD_WEB_SCREENSHOT") or str(tmp_path / "web-envs.png")
+        page.screenshot(path=screenshot, full_page=True)
+        with open(screenshot, "rb") as png:
+            header = png.read(24)
+        assert header[:8] == b"\x89PNG\r\n\x1a\n"
+        width, _ = struct.unpack(">II", header[16:24])
+        assert width == 1200
+    finally:
+        env.close()
+    expect(row(page, ENVS[0])).to_have_attribute("data-state", "free", timeout=EVENTUALLY_MS)
+    expect(row(page, ENVS[0]).locator('[data-field="state"]')).to_have_text("free")
+    assert page.evaluate("window.notReloaded") is True
+    page.close()
+
+
+def test_the_env_page_shows_its_state_and_an_empty_leaderboard(lab, browser):
+    page = browser.new_page()
+    response = page.goto(f"{lab.url}/envs/{ENVS[1]}")
+    assert response is not None and response.status == 200
+    expect(page.locator("h1")).to_have_text(ENVS[1])
+    expect(row(page, ENVS[1])).to_have_attribute("data-state", "free")
+    expect(page.locator("p.empty")).to_have_text("No test-mode experiment has finished an episode on this env yet.")
+    # Only this env's row, kept live.
+    expect(page.locator("tr[data-env]")).to_have_count(1)
+    expect(page.locator("#live")).to_have_attribute("data-state", "live", timeout=EVENTUALLY_MS)
+    expect(page.locator("tr[data-env]")).to_have_count(1)
+    page.close()
+
+
+@pytest.mark.parametrize(
+    "path",
+    ["/envs/sim/nowhere", "/envs/lab/web-a", "/envs/sim/%FF", "/envs/sim/web-a/extra", "/no/such/page"],
+)
+def test_unknown_and_malformed_paths_are_404_pages(lab, browser, path):
+    page = browser.new_page()
+    response = page.goto(f"{lab.url}{path}")
+    assert response is not None and response.status == 404
+    expect(page.locator("h1")).to_have_text("404 · Not Found")
+    page.close()
+
+
+def test_the_page_sets_a_strict_content_security_policy(lab):
+    with urllib.request.urlopen(lab.url, timeout=5) as response:
+        policy = response.headers["Content-Security-Policy"]
+        assert "script-src 'self'" in policy and "frame-ancestors 'none'" in policy
+        assert response.headers["X-Content-Type-Options"] == "nosniff"
+    request = urllib.request.Request(f"{lab.url}/api/envs", method="POST")
+    try:
+        urllib.request.urlopen(request, timeout=5)
+        raise AssertionError("POST was accepted")
+    except urllib.error.HTTPError as e:
+        assert e.code == 405
+    # The service keeps answering after the refusal.
+    with urllib.request.urlopen(f"{lab.url}/api/envs", timeout=5) as response:
+        assert response.status == 200

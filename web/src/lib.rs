@@ -1,0 +1,123 @@
+//! The lab's web page: live availability of every env of an OffWorld Gym
+//! deployment (real and sim), each env's leaderboard, and the same as JSON
+//! for scripts. It joins the deployment as one more Zenoh client and only
+//! reads: no page changes anything.
+//!
+//! - [`discovery`]: the Zenoh side (listing, `status` and `fault`
+//!   subscriptions), kept as a live [`model::Snapshot`];
+//! - [`model`]: what is shown, as data (the JSON API's shapes);
+//! - [`api`]: JSON handlers; [`pages`]: HTML; [`events`]: server-sent events;
+//! - [`server`]: routes, limits, security headers, the accept loop;
+//! - [`error`]: HTTP errors.
+
+pub mod api;
+pub mod discovery;
+pub mod error;
+pub mod events;
+pub mod model;
+pub mod pages;
+pub mod server;
+
+use std::net::SocketAddr;
+
+use offworld_runtime::zenoh::Session;
+use offworld_runtime::WireError;
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+
+pub use discovery::{Discovery, DiscoveryConfig};
+pub use server::Limits;
+
+/// How the service runs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct WebOptions {
+    /// Query deadlines and sweep interval.
+    pub discovery: DiscoveryConfig,
+    /// HTTP limits.
+    pub limits: Limits,
+}
+
+/// Why the service could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// The HTTP address could not be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address asked for.
+        addr: SocketAddr,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Zenoh refused a subscription.
+    #[error("cannot subscribe to the deployment: {0}")]
+    Zenoh(WireError),
+}
+
+/// A running web service; stops when dropped.
+pub struct LabWeb {
+    local_addr: SocketAddr,
+    discovery: Discovery,
+    stop: Option<oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl LabWeb {
+    /// Starts discovering envs through `session` and answering HTTP on
+    /// `listen` (port 0: any free port, see [`LabWeb::local_addr`]).
+    pub async fn start(
+        session: Session,
+        listen: SocketAddr,
+        options: WebOptions,
+    ) -> Result<Self, StartError> {
+        let listener = TcpListener::bind(listen)
+            .await
+            .map_err(|source| StartError::Bind {
+                addr: listen,
+                source,
+            })?;
+        let local_addr = listener.local_addr().map_err(|source| StartError::Bind {
+            addr: listen,
+            source,
+        })?;
+        let discovery = Discovery::start(session, options.discovery)
+            .await
+            .map_err(StartError::Zenoh)?;
+        let app = server::router(discovery.clone(), &options.limits);
+        let (stop, stopped) = oneshot::channel::<()>();
+        let task = tokio::spawn(server::serve(listener, app, options.limits, async {
+            let _ = stopped.await;
+        }));
+        Ok(Self {
+            local_addr,
+            discovery,
+            stop: Some(stop),
+            task,
+        })
+    }
+
+    /// The address HTTP is served on.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// The live availability behind the pages.
+    pub fn discovery(&self) -> &Discovery {
+        &self.discovery
+    }
+
+    /// Stops answering (open connections are closed) and discovering.
+    pub async fn stop(mut self) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        let _ = (&mut self.task).await;
+        self.discovery.stop();
+    }
+}
+
+impl Drop for LabWeb {
+    fn drop(&mut self) {
+        self.task.abort();
+        self.discovery.stop();
+    }
+}

@@ -1,0 +1,119 @@
+//! `lab_web`: the lab's web page for an OffWorld Gym deployment.
+//!
+//! ```text
+//! lab_web                                      # deployment on tcp/127.0.0.1:7447, page on 127.0.0.1:8080
+//! lab_web --listen 0.0.0.0:8080 -e tcp/router.lab:7447
+//! lab_web -c deploy/roles/web.json5            # TLS, credentials from a role file
+//! ```
+
+use std::net::SocketAddr;
+use std::num::NonZeroU32;
+use std::time::Duration;
+
+use clap::{CommandFactory, FromArgMatches, Parser};
+use offworld_runtime::CommonArgs;
+use offworld_web::{DiscoveryConfig, LabWeb, Limits, WebOptions};
+
+/// Serves the lab's web page: live availability of every env (real and
+/// sim) and each env's leaderboard, read from the deployment over Zenoh.
+/// Read-only.
+#[derive(Debug, Parser)]
+#[command(name = "lab_web", version)]
+struct Args {
+    /// HTTP address to serve on (behind a TLS reverse proxy for the world).
+    #[arg(
+        long = "listen",
+        value_name = "ADDR",
+        default_value = "127.0.0.1:8080",
+        env = "OFFWORLD_WEB_LISTEN"
+    )]
+    http_listen: SocketAddr,
+    /// Deadline of each Zenoh query (listing, status, leaderboard), ms: a
+    /// dead deployment shows as offline after this long, never hangs a page.
+    #[arg(long, value_name = "MS", default_value_t = 2000)]
+    query_timeout_ms: u64,
+    /// Time between two listings of the envs when nothing changes, ms
+    /// (status changes and components coming or going show at once).
+    #[arg(long, value_name = "MS", default_value_t = 5000)]
+    sweep_interval_ms: u64,
+    /// Open HTTP connections at most.
+    #[arg(long, default_value_t = Limits::default().max_connections)]
+    max_connections: usize,
+    /// Requests answered at once at most (more: 503).
+    #[arg(long, default_value_t = Limits::default().max_in_flight)]
+    max_in_flight: usize,
+    /// Open live-update streams at most (more: 503).
+    #[arg(long, default_value_t = Limits::default().max_event_streams)]
+    max_event_streams: usize,
+    /// Requests per second one client address may send, sustained (more: 429).
+    #[arg(long, default_value_t = Limits::default().rate_per_client)]
+    rate_per_client: NonZeroU32,
+    /// Requests one client address may send at once above the rate.
+    #[arg(long, default_value_t = Limits::default().burst_per_client)]
+    burst_per_client: NonZeroU32,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    offworld_runtime::session::init_logging();
+    let args = parse_args();
+    let options = WebOptions {
+        discovery: DiscoveryConfig {
+            query_timeout: Duration::from_millis(args.query_timeout_ms.max(1)),
+            sweep_interval: Duration::from_millis(args.sweep_interval_ms.max(100)),
+        },
+        limits: Limits {
+            max_connections: args.max_connections.max(1),
+            max_in_flight: args.max_in_flight.max(1),
+            max_event_streams: args.max_event_streams,
+            rate_per_client: args.rate_per_client,
+            burst_per_client: args.burst_per_client,
+            ..Limits::default()
+        },
+    };
+    let session = args.common.clone().client_config().open().await?;
+    let web = LabWeb::start(session.clone(), args.http_listen, options).await?;
+    tracing::info!("lab web page on http://{}", web.local_addr());
+    let signal = offworld_runtime::shutdown::signalled().await?;
+    tracing::info!("stopping ({signal:?})");
+    web.stop().await;
+    let _ = session.close().await;
+    Ok(())
+}
+
+/// The command line: `--listen` is the page's HTTP address (what a web
+/// service's users look for), so the shared session flag of that name,
+/// Zenoh's listen endpoints, is `-l/--zenoh-listen` here.
+fn command() -> clap::Command {
+    Args::command().mut_arg("listen", |arg| arg.long("zenoh-listen"))
+}
+
+fn parse_args() -> Args {
+    let mut matches = command().get_matches();
+    // Errors (and `--help`) print as clap prints them, with its exit codes.
+    Args::from_arg_matches_mut(&mut matches).unwrap_or_else(|e| e.exit())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        command().debug_assert();
+        let args = command()
+            .try_get_matches_from([
+                "lab_web",
+                "--listen",
+                "0.0.0.0:9000",
+                "-l",
+                "tcp/127.0.0.1:7000",
+            ])
+            .and_then(|mut m| Args::from_arg_matches_mut(&mut m))
+            .expect("parse");
+        assert_eq!(args.http_listen, "0.0.0.0:9000".parse().expect("addr"));
+        assert_eq!(args.common.listen, ["tcp/127.0.0.1:7000"]);
+    }
+}

@@ -1,0 +1,293 @@
+//! The HTTP side: routes, the limits that keep a flood from taking the
+//! service down, security headers, and the accept loop (hyper's HTTP/1
+//! server driven directly: the tree's axum is built without `serve`).
+//!
+//! Limits, outermost first:
+//! 1. connections: at most `max_connections` open (more wait in the
+//!    kernel's backlog), each given `header_read_timeout` to send its
+//!    request head (slow-loris clients are cut);
+//! 2. per client address, a request rate (GCRA): over it, 429 with
+//!    `Retry-After`;
+//! 3. requests in progress across the service: over `max_in_flight`, 503 at
+//!    once (tower's load shedding in front of a global concurrency limit);
+//! 4. each request's deadline: 504 (the Zenoh queries have shorter ones);
+//! 5. event streams: at most `max_event_streams` open, else 503.
+
+use std::future::Future;
+use std::net::{IpAddr, SocketAddr};
+use std::num::NonZeroU32;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::error_handling::HandleErrorLayer;
+use axum::extract::rejection::PathRejection;
+use axum::extract::{Path, Request, State};
+use axum::http::{header, HeaderValue, Uri};
+use axum::middleware::{self, Next};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::get;
+use axum::{BoxError, Router};
+use governor::clock::{Clock, DefaultClock};
+use governor::{DefaultKeyedRateLimiter, Quota, RateLimiter};
+use hyper_util::rt::{TokioIo, TokioTimer};
+use tokio::net::TcpListener;
+use tokio::sync::Semaphore;
+use tower::limit::GlobalConcurrencyLimitLayer;
+use tower::ServiceBuilder;
+
+use crate::discovery::Discovery;
+use crate::error::{Format, HttpError};
+use crate::{api, events, pages};
+
+/// The service's limits (see the module documentation).
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    /// Open connections.
+    pub max_connections: usize,
+    /// Requests being answered at once (event streams excluded).
+    pub max_in_flight: usize,
+    /// Open event streams.
+    pub max_event_streams: usize,
+    /// Sustained requests per second per client address.
+    pub rate_per_client: NonZeroU32,
+    /// Requests one client address may send at once above the rate.
+    pub burst_per_client: NonZeroU32,
+    /// Deadline of one request.
+    pub request_timeout: Duration,
+    /// Time a connection has to send a request head.
+    pub header_read_timeout: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_connections: 512,
+            max_in_flight: 64,
+            max_event_streams: 128,
+            rate_per_client: NonZeroU32::new(20).unwrap_or(NonZeroU32::MIN),
+            burst_per_client: NonZeroU32::new(60).unwrap_or(NonZeroU32::MIN),
+            request_timeout: Duration::from_secs(10),
+            header_read_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What every handler shares.
+#[derive(Clone)]
+pub struct AppState {
+    /// The live availability.
+    pub discovery: Discovery,
+    /// Places for open event streams.
+    pub event_streams: Arc<Semaphore>,
+    rates: Arc<DefaultKeyedRateLimiter<IpAddr>>,
+    request_timeout: Duration,
+}
+
+/// The peer address of a request's connection (set by [`serve`]).
+#[derive(Debug, Clone, Copy)]
+pub struct PeerAddr(pub SocketAddr);
+
+/// The application: every route behind its limits and headers.
+pub fn router(discovery: Discovery, limits: &Limits) -> Router {
+    let state = AppState {
+        discovery,
+        event_streams: Arc::new(Semaphore::new(limits.max_event_streams)),
+        rates: Arc::new(RateLimiter::keyed(
+            Quota::per_second(limits.rate_per_client).allow_burst(limits.burst_per_client),
+        )),
+        request_timeout: limits.request_timeout,
+    };
+    forget_idle_clients(&state.rates);
+    let shed = ServiceBuilder::new()
+        .layer(HandleErrorLayer::new(|uri: Uri, _: BoxError| async move {
+            HttpError::overloaded("requests in progress").as_format(Format::for_path(uri.path()))
+        }))
+        .load_shed()
+        .layer(GlobalConcurrencyLimitLayer::new(limits.max_in_flight));
+    Router::new()
+        .route("/", get(availability_page))
+        .route("/envs/{realm}/{name}", get(env_page))
+        .route("/events", get(events::html))
+        .route("/api/envs", get(api::envs))
+        .route("/api/envs/{realm}/{name}", get(api::env))
+        .route(
+            "/api/envs/{realm}/{name}/leaderboard",
+            get(api::leaderboard),
+        )
+        .route("/api/events", get(events::json))
+        .route("/static/style.css", get(style))
+        .route("/static/app.js", get(script))
+        .route("/healthz", get(|| async { "ok" }))
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(middleware::from_fn_with_state(state.clone(), deadline))
+        .layer(shed)
+        .layer(middleware::from_fn_with_state(state.clone(), rate_limit))
+        .layer(middleware::from_fn(security_headers))
+        .with_state(state)
+}
+
+async fn availability_page(State(state): State<AppState>) -> Html<String> {
+    Html(pages::availability(&state.discovery.snapshot()).into_string())
+}
+
+async fn env_page(
+    State(state): State<AppState>,
+    path: Result<Path<(String, String)>, PathRejection>,
+) -> Result<Html<String>, HttpError> {
+    let id = api::env_from_path(path)?;
+    let snapshot = state.discovery.snapshot();
+    let Some(env) = snapshot.env(&id) else {
+        return Err(api::unknown_env(&id));
+    };
+    // The env's state is shown whatever the leaderboard query gives.
+    let board = api::fetch_leaderboard(&state, &id).await;
+    let board = board.as_ref().map_err(|e| e.message.as_str());
+    Ok(Html(pages::env_page(&snapshot, env, board).into_string()))
+}
+
+async fn style() -> Response {
+    asset("text/css; charset=utf-8", pages::STYLE_CSS)
+}
+
+async fn script() -> Response {
+    asset("text/javascript; charset=utf-8", pages::APP_JS)
+}
+
+fn asset(content_type: &'static str, body: &'static str) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, content_type),
+            (header::CACHE_CONTROL, "public, max-age=300"),
+        ],
+        body,
+    )
+        .into_response()
+}
+
+async fn not_found(uri: Uri) -> HttpError {
+    HttpError::not_found(format!("no such page: {}", uri.path()))
+        .as_format(Format::for_path(uri.path()))
+}
+
+async fn method_not_allowed(uri: Uri) -> HttpError {
+    HttpError::method_not_allowed().as_format(Format::for_path(uri.path()))
+}
+
+async fn rate_limit(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    // Requests that did not come through `serve` (none in production)
+    // share one budget.
+    let ip = request
+        .extensions()
+        .get::<PeerAddr>()
+        .map_or(IpAddr::from([0, 0, 0, 0]), |peer| peer.0.ip());
+    if let Err(not_until) = state.rates.check_key(&ip) {
+        let wait = not_until.wait_time_from(DefaultClock::default().now());
+        let seconds = wait.as_secs() + u64::from(wait.subsec_nanos() > 0);
+        return HttpError::rate_limited(seconds.max(1))
+            .as_format(Format::for_path(request.uri().path()))
+            .into_response();
+    }
+    next.run(request).await
+}
+
+async fn deadline(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let format = Format::for_path(request.uri().path());
+    match tokio::time::timeout(state.request_timeout, next.run(request)).await {
+        Ok(response) => response,
+        Err(_) => HttpError::timeout(format!(
+            "the request took longer than {} s",
+            state.request_timeout.as_secs_f64()
+        ))
+        .as_format(format)
+        .into_response(),
+    }
+}
+
+/// Headers on every response: no inline code, no framing, no sniffing, no
+/// referrer; pages are never cached (they are live).
+async fn security_headers(request: Request, next: Next) -> Response {
+    let mut response = next.run(request).await;
+    let headers = response.headers_mut();
+    for (name, value) in [
+        (
+            header::CONTENT_SECURITY_POLICY,
+            "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self'; \
+             connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
+        ),
+        (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
+        (header::X_FRAME_OPTIONS, "DENY"),
+        (header::REFERRER_POLICY, "no-referrer"),
+    ] {
+        headers.insert(name, HeaderValue::from_static(value));
+    }
+    headers
+        .entry(header::CACHE_CONTROL)
+        .or_insert(HeaderValue::from_static("no-store"));
+    response
+}
+
+/// Answers connections from `listener` with `app` until `shutdown`
+/// resolves; open connections are then closed.
+pub async fn serve(
+    listener: TcpListener,
+    app: Router,
+    limits: Limits,
+    shutdown: impl Future<Output = ()>,
+) {
+    let places = Arc::new(Semaphore::new(limits.max_connections));
+    let mut connections = tokio::task::JoinSet::new();
+    tokio::pin!(shutdown);
+    loop {
+        // A place first: at the limit, new connections wait in the backlog.
+        let place = tokio::select! {
+            place = Arc::clone(&places).acquire_owned() => place,
+            () = &mut shutdown => break,
+        };
+        let Ok(place) = place else { break };
+        let (stream, peer) = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok(accepted) => accepted,
+                Err(e) => {
+                    // Out of file descriptors and the like: pause rather
+                    // than spin.
+                    tracing::warn!("accept failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                }
+            },
+            () = &mut shutdown => break,
+        };
+        let app = app.clone();
+        connections.spawn(async move {
+            let _place = place;
+            let service =
+                hyper::service::service_fn(move |mut request: Request<hyper::body::Incoming>| {
+                    request.extensions_mut().insert(PeerAddr(peer));
+                    tower::ServiceExt::oneshot(app.clone(), request)
+                });
+            let connection = hyper::server::conn::http1::Builder::new()
+                .timer(TokioTimer::new())
+                .header_read_timeout(limits.header_read_timeout)
+                .serve_connection(TokioIo::new(stream), service);
+            if let Err(e) = connection.await {
+                tracing::debug!(%peer, "connection ended: {e}");
+            }
+        });
+        while connections.try_join_next().is_some() {}
+    }
+    connections.abort_all();
+}
+
+/// Forgets idle client addresses now and then, so the rate limiter's table
+/// stays as small as the set of recent clients; ends with the router.
+fn forget_idle_clients(rates: &Arc<DefaultKeyedRateLimiter<IpAddr>>) {
+    let rates = Arc::downgrade(rates);
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(Duration::from_secs(60)).await;
+            let Some(rates) = rates.upgrade() else { return };
+            rates.retain_recent();
+        }
+    });
+}
