@@ -21,7 +21,7 @@ use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 
 const DEFAULT_ROUNDS: usize = 5;
-const STEPS: usize = 400;
+const STEPS: usize = 1000;
 
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
