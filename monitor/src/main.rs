@@ -4,10 +4,10 @@
 //!
 //! ```text
 //! monitor --all --viewer rerun+http://127.0.0.1:9876/proxy
-//! monitor --env real/enclosure-a --serve            # viewers: rerun --connect
+//! monitor --env real/monolith-0 --serve            # viewers: rerun --connect
 //! monitor --env sim/monolith-0 --save run.rrd -e tcp/127.0.0.1:7447
 //! monitor replay runs/sim/monolith-0 --save episodes.rrd
-//! monitor replay runs/real/enclosure-a/exp-000003/ep-000042.mcap --viewer rerun+http://127.0.0.1:9876/proxy
+//! monitor replay runs/real/monolith-0/exp-000003/ep-000042.mcap --viewer rerun+http://127.0.0.1:9876/proxy
 //! ```
 
 use std::net::SocketAddr;
@@ -30,7 +30,7 @@ use offworld_runtime::{CommonArgs, EnvId};
 struct Args {
     #[command(subcommand)]
     command: Option<Command>,
-    /// Watch this env, e.g. `sim/monolith-0` or `real/enclosure-a`
+    /// Watch this env, e.g. `sim/monolith-0` or `real/monolith-0`
     /// (repeat for several).
     #[arg(long)]
     env: Vec<EnvId>,
@@ -333,7 +333,7 @@ mod tests {
         let args = Args::try_parse_from([
             "monitor",
             "--env",
-            "real/enclosure-a",
+            "real/monolith-0",
             "--viewer",
             "rerun+http://127.0.0.1:9876/proxy",
             "-e",

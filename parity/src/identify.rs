@@ -15,9 +15,11 @@
 //!    camera — the share of pixels the twin sees and the camera lost, and
 //!    the robust spread of the relative depth residual.
 //!
-//! Latency and settle time shape *when* the robot moves, not where a step
-//! ends, so they need the odometry time series; they are kept from the
-//! starting profile (see `docs/parity.md`).
+//! Before these, **latency and settle time**, which shape *when* the robot
+//! moves more than where a step ends, are fitted to the wheel-odometry
+//! time series ([`crate::timing`]) when the episodes hold one (a robot
+//! agent streams its odometry); else they are kept from the starting
+//! profile. The motion gains are then fitted with the fitted servo.
 
 use std::cell::RefCell;
 
@@ -29,6 +31,7 @@ use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig, TwinProfile};
 
 use crate::recorded::RecordedEpisode;
 use crate::replay::yaw_error;
+use crate::timing::TimingData;
 use crate::ParityError;
 
 /// Fewer episodes than this are refused: a fit to one or two runs learns
@@ -75,10 +78,43 @@ pub struct Identified {
     pub depth_cost_before_m: f64,
     /// After.
     pub depth_cost_after_m: f64,
+    /// The latency and settle-time fit, when the episodes hold an
+    /// odometry time series.
+    pub timing: Option<TimingFitted>,
     /// Moving steps the motion fit used.
     pub steps: usize,
     /// Nelder–Mead iterations of both fits.
     pub iterations: u64,
+}
+
+/// How well the servo's timing matches the odometry.
+#[derive(Debug, Clone, Copy)]
+pub struct TimingFitted {
+    /// Odometry samples used.
+    pub samples: usize,
+    /// RMS speed error with the starting profile, m/s (yaw rate weighted).
+    pub speed_error_before: f64,
+    /// The same with the fitted latency and settle time.
+    pub speed_error_after: f64,
+}
+
+/// The servo's speed error of `profile`'s latency and settle time.
+struct TimingFit<'a> {
+    data: &'a TimingData,
+    base: TwinProfile,
+}
+
+impl Fit for TimingFit<'_> {
+    fn profile(&self, p: &[f64]) -> TwinProfile {
+        let mut profile = self.base;
+        profile.motion.latency_s = p[0] as f32;
+        profile.motion.settle_time_s = Some(p[1] as f32);
+        profile
+    }
+
+    fn score(&self, profile: &TwinProfile) -> f64 {
+        self.data.cost(profile)
+    }
 }
 
 /// One moving step: from where, with which command, to where.
@@ -443,14 +479,65 @@ pub fn identify(
     progress: &mut dyn FnMut(&str),
 ) -> Result<Identified, ParityError> {
     let transitions = check(episodes)?;
+    let world =
+        offworld_runtime::world::WorldSpec::builtin(&episodes[0].info.world).map_err(|e| {
+            ParityError::Twin {
+                path: episodes[0].path.clone(),
+                reason: e.to_string(),
+            }
+        })?;
+    let (timed, timing, timing_iters) = match TimingData::from_episodes(episodes, &world.robot) {
+        None => {
+            progress(&format!(
+                "timing: no odometry time series (fewer than {} samples per moving step): \
+                 latency {} s and settle time kept from the starting profile",
+                crate::timing::MIN_SAMPLES_PER_STEP,
+                start.motion.latency_s
+            ));
+            (*start, None, 0)
+        }
+        Some(data) => {
+            let fit = TimingFit {
+                data: &data,
+                base: *start,
+            };
+            let nominal_settle = world.robot.max_linear_speed / world.robot.max_linear_accel;
+            let settle = start.motion.settle_time_s.unwrap_or(nominal_settle);
+            let before = data.cost(start).sqrt();
+            let (best, iters) = minimise(
+                Scored(&fit),
+                vec![f64::from(start.motion.latency_s), f64::from(settle)],
+                &[0.05, 0.2],
+                options.max_iters,
+            )?;
+            let fitted = fit.profile(&best);
+            let after = data.cost(&fitted).sqrt();
+            progress(&format!(
+                "timing: {} odometry samples over {} moving steps: latency {:.3} s, settle time {:.3} s; \
+                 speed error {:.3} → {:.3} m/s",
+                data.samples(),
+                data.moving_steps(),
+                fitted.motion.latency_s,
+                fitted.motion.settle_time_s.unwrap_or(nominal_settle),
+                before,
+                after
+            ));
+            let summary = TimingFitted {
+                samples: data.samples(),
+                speed_error_before: before,
+                speed_error_after: after,
+            };
+            (fitted, Some(summary), iters)
+        }
+    };
     let motion = MotionFit {
         transitions: &transitions,
         paths: episodes.iter().map(|e| e.path.clone()).collect(),
-        base: *start,
+        base: timed,
         twins: RefCell::new(
             episodes
                 .iter()
-                .map(|e| twin_for(e, *start, (4, 3)))
+                .map(|e| twin_for(e, timed, (4, 3)))
                 .collect::<Result<_, _>>()?,
         ),
     };
@@ -462,7 +549,7 @@ pub fn identify(
         transitions.len(),
         position_error_before_m * 100.0
     ));
-    let m = &start.motion;
+    let m = &timed.motion;
     let (gains, motion_iters) = minimise(
         Scored(&motion),
         vec![f64::from(m.linear_gain), f64::from(m.angular_gain)],
@@ -560,7 +647,8 @@ pub fn identify(
         position_error_after_m,
         depth_cost_before_m,
         depth_cost_after_m,
+        timing,
         steps: transitions.len(),
-        iterations: motion_iters + camera_iters,
+        iterations: timing_iters + motion_iters + camera_iters,
     })
 }

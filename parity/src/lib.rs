@@ -6,15 +6,21 @@
 //! - [`replay`] replays them in a [`offworld_sim_twin::SimTwin`] built
 //!   with a [`offworld_sim_twin::TwinProfile`].
 //! - [`report`] sums the gaps up as a Markdown report.
-//! - [`identify`] fits a twin profile to recorded episodes.
+//! - [`plots`] draws the replay as PNG figures the report links:
+//!   trajectories over the enclosure map, errors over the steps, depth
+//!   images of the worst steps.
+//! - [`identify`] fits a twin profile to recorded episodes; [`timing`]
+//!   its latency and settle time to their odometry time series.
 //! - [`rrd`] writes the replay as a rerun recording, robot and twin side
 //!   by side.
 
 pub mod identify;
+pub mod plots;
 pub mod recorded;
 pub mod replay;
 pub mod report;
 pub mod rrd;
+pub mod timing;
 
 use std::path::PathBuf;
 

@@ -4,6 +4,7 @@
 //! ```text
 //! parity replay runs/real/monolith-0/               # every episode under it, nominal twin
 //! parity replay runs/ --profile robot-a.toml --out parity.md
+//! parity replay runs/ --out report/parity.md --plots report/plots   # with PNG figures
 //! parity identify runs/real/monolith-0/ --out robot-a.toml
 //! ```
 
@@ -13,6 +14,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_parity::identify::{identify, IdentifyOptions};
+use offworld_parity::plots::{self, WorstDepth};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_parity::replay::replay_with;
 use offworld_parity::report;
@@ -49,6 +51,12 @@ enum Command {
         /// side, step by step (open it with `rerun FILE`).
         #[arg(long, value_name = "FILE")]
         rrd: Option<PathBuf>,
+        /// Also write PNG figures into this directory (created if
+        /// missing), linked from the report: trajectories over the
+        /// enclosure map, errors over the steps, depth images of the
+        /// worst steps.
+        #[arg(long, value_name = "DIR")]
+        plots: Option<PathBuf>,
     },
     /// Fits a twin profile to episodes of one robot in one world (at
     /// least 3 episodes, 20 moving steps): motion gains, camera mount,
@@ -110,6 +118,7 @@ fn run(args: Args) -> anyhow::Result<()> {
             profile,
             out,
             rrd,
+            plots,
         } => {
             let (twin_profile, profile_name) = match &profile {
                 Some(path) => (TwinProfile::load(path)?, path.display().to_string()),
@@ -117,6 +126,7 @@ fn run(args: Args) -> anyhow::Result<()> {
             };
             let files = episode_files(&paths)?;
             let side_by_side = rrd.as_deref().map(SideBySide::create).transpose()?;
+            let mut worst_depth = WorstDepth::default();
             let mut replays = Vec::with_capacity(files.len());
             for (i, file) in files.iter().enumerate() {
                 let episode = RecordedEpisode::read(file)?;
@@ -125,6 +135,9 @@ fn run(args: Args) -> anyhow::Result<()> {
                 let replayed = replay_with(&episode, &twin_profile, |recorded, frame, gap| {
                     if let (Some(out), Ok(())) = (&side_by_side, &logged) {
                         logged = out.step(&name, recorded, frame, gap);
+                    }
+                    if plots.is_some() {
+                        worst_depth.visit(i, file, recorded, frame, gap);
                     }
                 })?;
                 logged?;
@@ -147,7 +160,23 @@ fn run(args: Args) -> anyhow::Result<()> {
                 out.finish()?;
                 eprintln!("rerun recording: {}", path.display());
             }
-            let text = report::markdown(&replays, &twin_profile, &profile_name);
+            let figures = match &plots {
+                Some(dir) => {
+                    std::fs::create_dir_all(dir)
+                        .with_context(|| format!("creating {}", dir.display()))?;
+                    let base = plots::link_base(out.as_deref(), dir);
+                    let figures = plots::write(dir, &base, &replays, &worst_depth)?;
+                    eprintln!("figures: {}", dir.display());
+                    Some(figures)
+                }
+                None => None,
+            };
+            let text = report::markdown_with_figures(
+                &replays,
+                &twin_profile,
+                &profile_name,
+                figures.as_ref(),
+            );
             match out {
                 Some(path) => {
                     std::fs::write(&path, text)

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use offworld_recorder::msg::{EpisodeInfo, Step};
 use offworld_recorder::read::EpisodeData;
 use offworld_recorder::Channel;
-use offworld_runtime::msg::{ImageView, PixelEncoding, Pose2D, PoseStamped};
+use offworld_runtime::msg::{ImageView, Odometry, PixelEncoding, Pose2D, PoseStamped};
 
 use crate::ParityError;
 
@@ -43,6 +43,20 @@ pub struct RecordedStep {
     pub depth: Option<DepthImage>,
     /// The step's colour image, if recorded.
     pub color: Option<ColorImage>,
+    /// When its command was sent (the `/cmd_vel` log time, ns since the
+    /// epoch); none for the reset.
+    pub commanded_ns: Option<u64>,
+}
+
+/// One wheel-odometry message: the base's speeds at a time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OdometrySample {
+    /// The message's stamp (its capture time), ns since the epoch.
+    pub at_ns: u64,
+    /// Forward speed, m/s.
+    pub linear: f64,
+    /// Yaw rate, rad/s.
+    pub angular: f64,
 }
 
 /// An episode file read into its steps.
@@ -54,6 +68,10 @@ pub struct RecordedEpisode {
     pub info: EpisodeInfo,
     /// Its steps in order, the reset first.
     pub steps: Vec<RecordedStep>,
+    /// The wheel odometry recorded during the episode, by stamp, each stamp
+    /// once (a robot agent streams it; a twin in lockstep records one per
+    /// step).
+    pub odometry: Vec<OdometrySample>,
 }
 
 impl RecordedEpisode {
@@ -68,7 +86,8 @@ impl RecordedEpisode {
         let data = EpisodeData::read(path)?;
         let mut info = None;
         let mut steps = Vec::new();
-        let (mut pose, mut depth, mut color) = (None, None, None);
+        let (mut pose, mut depth, mut color, mut commanded_ns) = (None, None, None, None);
+        let mut odometry = Vec::new();
         for message in data.messages()? {
             let message = message?;
             match message.channel {
@@ -89,6 +108,18 @@ impl RecordedEpisode {
                     let image = image_view(&message.data).map_err(&unusable)?;
                     color = Some(color_image(&image).map_err(&unusable)?);
                 }
+                Some(Channel::CmdVel) => commanded_ns = Some(message.log_time_ns),
+                Some(Channel::Odom) => {
+                    let odom: Odometry = data.decode(&message)?;
+                    let twist = &odom.twist.twist;
+                    if twist.linear.x.is_finite() && twist.angular.z.is_finite() {
+                        odometry.push(OdometrySample {
+                            at_ns: offworld_recorder::episode_file::stamp_ns(&odom.header.stamp),
+                            linear: twist.linear.x,
+                            angular: twist.angular.z,
+                        });
+                    }
+                }
                 Some(Channel::Step) => {
                     let step: Step = data.decode(&message)?;
                     let Some(pose) = pose.take() else {
@@ -99,6 +130,7 @@ impl RecordedEpisode {
                         pose,
                         depth: depth.take(),
                         color: color.take(),
+                        commanded_ns: commanded_ns.take(),
                     });
                 }
                 _ => {}
@@ -108,10 +140,14 @@ impl RecordedEpisode {
         if steps.first().map(|s| s.step.step) != Some(0) {
             return Err(unusable("no reset step (step 0)".into()));
         }
+        // The answer to a command is also streamed: the same stamp twice.
+        odometry.sort_by_key(|o| o.at_ns);
+        odometry.dedup_by_key(|o| o.at_ns);
         Ok(Self {
             path: path.to_owned(),
             info,
             steps,
+            odometry,
         })
     }
 }

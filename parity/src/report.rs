@@ -5,6 +5,7 @@ use std::fmt::Write as _;
 
 use offworld_sim_twin::TwinProfile;
 
+use crate::plots::Figures;
 use crate::replay::{EpisodeReplay, StepGap};
 
 /// Summary statistics of one error over many steps.
@@ -146,6 +147,15 @@ fn pct(x: f64) -> String {
     }
 }
 
+/// A link target as Markdown reads it (`<…>` around one with spaces).
+fn href(link: &str) -> String {
+    if link.contains([' ', '(', ')']) {
+        format!("<{link}>")
+    } else {
+        link.to_owned()
+    }
+}
+
 fn stats_row(out: &mut String, what: &str, s: &Stats, fmt: fn(f64) -> String) {
     let _ = writeln!(
         out,
@@ -161,6 +171,19 @@ fn stats_row(out: &mut String, what: &str, s: &Stats, fmt: fn(f64) -> String) {
 /// The report: what was replayed with which profile, the summary table,
 /// one row per episode and the worst steps.
 pub fn markdown(replays: &[EpisodeReplay], profile: &TwinProfile, profile_name: &str) -> String {
+    markdown_with_figures(replays, profile, profile_name, None)
+}
+
+/// [`markdown`], linking the PNG figures of [`crate::plots::write`] where
+/// they belong: the map and the errors over the steps under the summary,
+/// each episode's map in its row, and a section of depth images of the
+/// worst depth steps.
+pub fn markdown_with_figures(
+    replays: &[EpisodeReplay],
+    profile: &TwinProfile,
+    profile_name: &str,
+    figures: Option<&Figures>,
+) -> String {
     let summary = Summary::of(replays);
     let mut out = String::new();
     let _ = writeln!(out, "# Sim↔real parity\n");
@@ -229,17 +252,45 @@ pub fn markdown(replays: &[EpisodeReplay], profile: &TwinProfile, profile_name: 
         pct(summary.reward_agreement),
         pct(summary.termination_agreement)
     );
+    if let Some(f) = figures.and_then(|f| f.trajectories.as_ref()) {
+        let _ = writeln!(
+            out,
+            "![Trajectories over the enclosure map: recorded (solid blue) and the \
+             open-loop twin (dashed orange)]({})\n",
+            href(&f.link)
+        );
+    }
+    if let Some(f) = figures.and_then(|f| f.errors.as_ref()) {
+        let _ = writeln!(
+            out,
+            "![Position, heading and depth error over the steps, open loop and one step]({})\n",
+            href(&f.link)
+        );
+    }
+    let maps = figures.map(|f| f.episode_trajectories.as_slice());
     let _ = writeln!(out, "## Episodes\n");
     let _ = writeln!(
         out,
-        "| file | env | embodiment | steps | open-loop end, cm | one-step mean, cm | depth MAE, cm | reward agrees |"
+        "| file | env | embodiment | steps | open-loop end, cm | one-step mean, cm | depth MAE, cm | reward agrees |{}",
+        if maps.is_some() { " map |" } else { "" }
     );
-    let _ = writeln!(out, "|---|---|---|---:|---:|---:|---:|---:|");
-    for r in replays {
+    let _ = writeln!(
+        out,
+        "|---|---|---|---:|---:|---:|---:|---:|{}",
+        if maps.is_some() { "---|" } else { "" }
+    );
+    for (i, r) in replays.iter().enumerate() {
         let s = Summary::of(std::slice::from_ref(r));
+        let map = match maps {
+            Some(maps) => maps.get(i).map_or_else(
+                || " – |".to_owned(),
+                |f| format!(" [map]({}) |", href(&f.link)),
+            ),
+            None => String::new(),
+        };
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} |{map}",
             r.path.file_name().map_or_else(
                 || r.path.display().to_string(),
                 |n| n.to_string_lossy().into_owned()
@@ -281,5 +332,55 @@ pub fn markdown(replays: &[EpisodeReplay], profile: &TwinProfile, profile_name: 
             cm(s.depth_mae_m),
         );
     }
+    if let Some(figures) = figures {
+        depth_section(&mut out, figures);
+    }
     out
+}
+
+/// The worst depth steps, each with its recorded | twin | error image.
+fn depth_section(out: &mut String, figures: &Figures) {
+    let _ = writeln!(out, "\n## Depth error, worst steps\n");
+    if figures.depth.is_empty() {
+        let _ = writeln!(
+            out,
+            "No step has a depth error measured (no depth recorded at the twin's \
+             resolution, or no pixel valid in both images)."
+        );
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "The steps with the largest depth MAE: the recorded depth, the twin's \
+         at the recorded pose, and |twin − robot| (grey: no return; blue: \
+         valid in one image only).\n"
+    );
+    let _ = writeln!(
+        out,
+        "| rank | file | step | depth MAE, cm | validity disagreement | one-step, cm | image |"
+    );
+    let _ = writeln!(out, "|---:|---|---:|---:|---:|---:|---|");
+    for (rank, d) in figures.depth.iter().enumerate() {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} | {} | {} | {} | [depth]({}) |",
+            rank + 1,
+            d.file
+                .file_name()
+                .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+            d.gap.step,
+            cm(d.gap.depth_mae_m),
+            pct(d.gap.depth_validity_disagreement),
+            cm(d.gap.one_step_position_m),
+            href(&d.figure.link),
+        );
+    }
+    for (rank, d) in figures.depth.iter().enumerate() {
+        let _ = writeln!(
+            out,
+            "\n![Depth, worst step {}: recorded, twin, |error|]({})",
+            rank + 1,
+            href(&d.figure.link)
+        );
+    }
 }

@@ -3,6 +3,7 @@ any deployment named by OFFWORLD_GYM_CONNECT / OFFWORLD_GYM_ACCESS_TOKEN.
 
     python py_client/examples/random_agent.py --episodes 3
     python py_client/examples/random_agent.py --env OffWorldMonolithDiscreteReal-v0 --max-steps 20
+    python py_client/examples/random_agent.py --env OffWorldMonolithDiscreteSim-v0 --env-id sim/farm-2
     python py_client/examples/random_agent.py --episodes 10 --record runs/   # MCAP per episode
 """
 
@@ -19,7 +20,12 @@ from offworld_gym.envs.common.channels import Channels
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--env", default="OffWorldMonolithDiscreteSim-v0")
+    parser.add_argument("--env", default="OffWorldMonolithDiscreteSim-v0", help="gymnasium id")
+    parser.add_argument(
+        "--env-id",
+        metavar="REALM/NAME",
+        help="which env of a deployment (default: <realm>/<world>-0, or OFFWORLD_GYM_ENV); 'discover' takes any free one",
+    )
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-steps", type=int, default=0, help="stop after this many steps in all (0 = no limit)")
@@ -33,6 +39,8 @@ def main() -> None:
 
     started = time.perf_counter()
     options = {"record": args.record} if args.record else {}
+    if args.env_id:
+        options["env_id"] = args.env_id
     # Recordings keep colour and depth whatever the agent sees.
     channels = Channels.RGBD if args.record else Channels.DEPTH_ONLY
     env = gymnasium.make(args.env, channel_type=channels, resolution=tuple(args.resolution), **options)

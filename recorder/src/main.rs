@@ -60,7 +60,7 @@ enum Command {
 #[command(group(ArgGroup::new("scope").required(true).args(["env", "all"])))]
 #[command(group(ArgGroup::new("dir").required(true).args(["out", "path"])))]
 struct RecordArgs {
-    /// Record this env, e.g. `sim/monolith-0` or `real/enclosure-a`
+    /// Record this env, e.g. `sim/monolith-0` or `real/monolith-0`
     /// (repeat for several).
     #[arg(long)]
     env: Vec<EnvId>,

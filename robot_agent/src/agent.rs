@@ -138,6 +138,7 @@ pub async fn spawn<H: RobotHardware>(
         }
     });
     let declarations = Declarations::declare(session, &env, tx, pose_tx, estop_rx, seals).await?;
+    let odometry = OdometryStream::start(session, &env, robot.sensors()).await?;
     let agent = Agent {
         outbox: Outbox::declare(session, &env).await?,
         env,
@@ -162,6 +163,7 @@ pub async fn spawn<H: RobotHardware>(
         last_tick: Instant::now(),
         watch_camera_from: Instant::now(),
         _declarations: declarations,
+        _odometry: odometry,
     };
     Ok(NodeHandle::spawn(|stop| agent.run(events, stop)))
 }
@@ -458,6 +460,56 @@ impl Outbox {
     }
 }
 
+/// Forwards every odometry message of the base on the env's `odom` key, as
+/// it arrives (the one answering a command also goes out with its
+/// `SeqTag`, through the outbox): recordings then hold the base's speed
+/// over time, which `parity identify` fits latency and settle time to, and
+/// monitors draw the wheel odometry between steps. A stream: dropped, not
+/// queued, on a congested link.
+struct OdometryStream {
+    task: JoinHandle<()>,
+}
+
+impl OdometryStream {
+    async fn start(
+        session: &Session,
+        env: &EnvId,
+        mut sensors: watch::Receiver<Sensors>,
+    ) -> Result<Self, AgentError> {
+        let out = wire::publisher(session, env.key(Topic::Odom), Delivery::Latest).await?;
+        let task = tokio::spawn(async move {
+            let mut last = None;
+            // Ends when the robot's sensors are gone (or on drop, aborted).
+            while sensors.changed().await.is_ok() {
+                let odom = sensors
+                    .borrow_and_update()
+                    .odom
+                    .as_ref()
+                    .map(|o| o.msg.clone());
+                let Some(odom) = odom else { continue };
+                // Colour and depth frames change the sensors too.
+                if last
+                    .as_ref()
+                    .is_some_and(|l| std::sync::Arc::ptr_eq(l, &odom))
+                {
+                    continue;
+                }
+                if let Err(e) = wire::publish(&out, &*odom) {
+                    tracing::debug!("odometry stream put failed: {e}");
+                }
+                last = Some(odom);
+            }
+        });
+        Ok(Self { task })
+    }
+}
+
+impl Drop for OdometryStream {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
 /// What the robot is doing.
 enum Activity {
     Idle,
@@ -530,6 +582,7 @@ struct Agent<H: RobotHardware> {
     /// silence it did not watch is no evidence against the camera).
     watch_camera_from: Instant,
     _declarations: Declarations,
+    _odometry: OdometryStream,
 }
 
 impl<H: RobotHardware> Agent<H> {

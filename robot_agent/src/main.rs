@@ -1,6 +1,6 @@
 //! `robot_agent`: serve a real enclosure's robot.
 //!
-//! `robot_agent --env real/enclosure-a --robot-config robot.toml` connects to
+//! `robot_agent --env real/monolith-0 --robot-config robot.toml` connects to
 //! tcp/127.0.0.1:7447 unless endpoints are given; without `--robot-config` it
 //! drives a ROSbot on rmw_zenoh domain 0 in the root namespace.
 
@@ -19,7 +19,7 @@ use offworld_runtime::{CommonArgs, EnvId, Realm};
 )]
 struct Args {
     /// Env id served (under `real/`).
-    #[arg(long, default_value = "real/enclosure-0")]
+    #[arg(long, default_value = "real/monolith-0")]
     env: EnvId,
     /// Agent configuration (TOML, see robot.example.toml); defaults fit a
     /// ROSbot on rmw_zenoh. The Zenoh configuration is `--zenoh-config`.

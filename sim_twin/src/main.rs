@@ -91,6 +91,11 @@ struct Args {
     /// Emulated camera frame rate, Hz (an Astra runs at 30).
     #[arg(long, default_value_t = 30.0)]
     camera_hz: f64,
+    /// Emulated camera resolution WIDTHxHEIGHT (default: the world camera's
+    /// own). A smaller camera keeps a pitched profile's per-pixel renderer
+    /// affordable in real time.
+    #[arg(long, value_name = "WxH", requires = "emulate_hardware")]
+    camera_resolution: Option<String>,
     /// The emulated base stops when no velocity command came for this long,
     /// ms (a base with ros2_control's `cmd_vel_timeout`); 0 holds the last
     /// velocity forever (the worst case, the default).
@@ -153,8 +158,12 @@ async fn main() -> anyhow::Result<()> {
         profile,
     };
     if args.emulate_hardware {
+        let resolution = match &args.camera_resolution {
+            Some(text) => Some(parse_resolution(text)?),
+            None => None,
+        };
         let twin = SimTwin::new(TwinConfig {
-            resolution: None,
+            resolution,
             ..config
         })?;
         let mut enclosure = EnclosureConfig::rosbot(args.tracker_listen)?;

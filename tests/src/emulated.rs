@@ -79,6 +79,9 @@ pub struct Options {
     /// (`sim_twin --emulate-hardware --profile`, `docs/twin-profile.md`):
     /// how a test perturbs the hardware away from the nominal twin.
     pub hardware_profile: Option<std::path::PathBuf>,
+    /// The emulated camera's resolution (width, height); default the world
+    /// camera's own (`sim_twin --camera-resolution`).
+    pub hardware_camera: Option<(u32, u32)>,
 }
 
 impl Options {
@@ -97,6 +100,7 @@ impl Options {
             log: std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
             record: None,
             hardware_profile: None,
+            hardware_camera: None,
         })
     }
 
@@ -324,6 +328,9 @@ impl EmulatedEnclosure {
                 push(&["--base-cmd-timeout-ms", &timeout]);
                 if let Some(profile) = &options.hardware_profile {
                     push(&["--profile", &profile.to_string_lossy()]);
+                }
+                if let Some((w, h)) = options.hardware_camera {
+                    push(&["--camera-resolution", &format!("{w}x{h}")]);
                 }
                 push(&["--mode", "peer", "--connect", robot]);
                 push(&["--listen", &self.hardware_endpoint]);

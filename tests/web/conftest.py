@@ -110,7 +110,7 @@ def lab(tmp_path: Path):
         wait_until("env_controller listens", listening, controller)
         http_port = free_port()
         web = subprocess.Popen(
-            [str(binary("lab_web")), "--connect", endpoint, "--listen", f"127.0.0.1:{http_port}"],
+            [str(binary("lab_web")), "--connect", endpoint, "--http", f"127.0.0.1:{http_port}"],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
         )

@@ -2,7 +2,7 @@
 """Stream Vive tracker poses from libsurvive as tracker_agent protocol lines.
 
     python3 pysurvive_source.py [--only SERIAL] [--unix-time] [libsurvive args...] \
-        | tracker_agent run --env real/enclosure-a --source stdin --calibration tracker.toml
+        | tracker_agent run --env real/monolith-0 --source stdin --calibration tracker.toml
 
 Each tracked device update becomes one line on stdout (flushed at once):
 

@@ -1,8 +1,8 @@
 //! `tracker_agent`: publish the robot's tracked pose, or calibrate.
 //!
 //! ```text
-//! tracker_agent run --env real/enclosure-a --source tcp://127.0.0.1:6969 --calibration tracker.toml
-//! python3 pysurvive_source.py | tracker_agent run --env real/enclosure-a --source stdin --calibration tracker.toml
+//! tracker_agent run --env real/monolith-0 --source tcp://127.0.0.1:6969 --calibration tracker.toml
+//! python3 pysurvive_source.py | tracker_agent run --env real/monolith-0 --source stdin --calibration tracker.toml
 //! tracker_agent calibrate --reference marks.toml --source tcp://127.0.0.1:6969 --out tracker.toml
 //! tracker_agent calibrate --samples measured.toml --out tracker.toml
 //! ```
@@ -49,7 +49,7 @@ enum Command {
 
 #[derive(Args)]
 struct RunArgs {
-    /// Env id to serve, e.g. real/enclosure-a.
+    /// Env id to serve, e.g. real/monolith-0.
     #[arg(long)]
     env: EnvId,
     /// stdin | tcp://HOST:PORT | udp://BIND:PORT | replay:PATH[?rate=R].

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! lab_web                                      # deployment on tcp/127.0.0.1:7447, page on 127.0.0.1:8080
-//! lab_web --listen 0.0.0.0:8080 -e tcp/router.lab:7447
+//! lab_web --http 0.0.0.0:8080 -e tcp/router.lab:7447
 //! lab_web -c deploy/roles/web.json5            # TLS, credentials from a role file
 //! ```
 
@@ -10,7 +10,7 @@ use std::net::SocketAddr;
 use std::num::NonZeroU32;
 use std::time::Duration;
 
-use clap::{CommandFactory, FromArgMatches, Parser};
+use clap::Parser;
 use offworld_runtime::CommonArgs;
 use offworld_web::{DiscoveryConfig, LabWeb, Limits, WebOptions};
 
@@ -22,10 +22,10 @@ use offworld_web::{DiscoveryConfig, LabWeb, Limits, WebOptions};
 struct Args {
     /// HTTP address to serve on (behind a TLS reverse proxy for the world).
     #[arg(
-        long = "listen",
+        long = "http",
         value_name = "ADDR",
         default_value = "127.0.0.1:8080",
-        env = "OFFWORLD_WEB_LISTEN"
+        env = "OFFWORLD_WEB_HTTP"
     )]
     http_listen: SocketAddr,
     /// Deadline of each Zenoh query (listing, status, leaderboard), ms: a
@@ -83,36 +83,28 @@ async fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The command line: `--listen` is the page's HTTP address (what a web
-/// service's users look for), so the shared session flag of that name,
-/// Zenoh's listen endpoints, is `-l/--zenoh-listen` here.
-fn command() -> clap::Command {
-    Args::command().mut_arg("listen", |arg| arg.long("zenoh-listen"))
-}
-
+/// The command line. `--listen` keeps the meaning it has in every program
+/// (Zenoh's listen endpoints); the page's address is `--http`.
 fn parse_args() -> Args {
-    let mut matches = command().get_matches();
-    // Errors (and `--help`) print as clap prints them, with its exit codes.
-    Args::from_arg_matches_mut(&mut matches).unwrap_or_else(|e| e.exit())
+    Args::parse()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::CommandFactory;
 
     #[test]
     fn the_command_line_is_consistent() {
-        command().debug_assert();
-        let args = command()
-            .try_get_matches_from([
-                "lab_web",
-                "--listen",
-                "0.0.0.0:9000",
-                "-l",
-                "tcp/127.0.0.1:7000",
-            ])
-            .and_then(|mut m| Args::from_arg_matches_mut(&mut m))
-            .expect("parse");
+        Args::command().debug_assert();
+        let args = Args::try_parse_from([
+            "lab_web",
+            "--http",
+            "0.0.0.0:9000",
+            "--listen",
+            "tcp/127.0.0.1:7000",
+        ])
+        .expect("parse");
         assert_eq!(args.http_listen, "0.0.0.0:9000".parse().expect("addr"));
         assert_eq!(args.common.listen, ["tcp/127.0.0.1:7000"]);
     }

@@ -1,12 +1,12 @@
 """``python -m offworld_gym``: what a deployment offers, from the command line.
 
     python -m offworld_gym envs --connect quic/router.example:7447
-    python -m offworld_gym bookings --env real/enclosure-a
-    python -m offworld_gym book --env real/enclosure-a --start 2026-12-01T14:00 --minutes 60
-    python -m offworld_gym cancel-booking --env real/enclosure-a --id 3
-    python -m offworld_gym experiments --env real/enclosure-a
-    python -m offworld_gym episodes --env real/enclosure-a --id 12
-    python -m offworld_gym leaderboard --env real/enclosure-a
+    python -m offworld_gym bookings --env real/monolith-0
+    python -m offworld_gym book --env real/monolith-0 --start 2026-12-01T14:00 --minutes 60
+    python -m offworld_gym cancel-booking --env real/monolith-0 --id 3
+    python -m offworld_gym experiments --env real/monolith-0
+    python -m offworld_gym episodes --env real/monolith-0 --id 12
+    python -m offworld_gym leaderboard --env real/monolith-0
 
 Credentials: ``OFFWORLD_GYM_ACCESS_TOKEN`` (or ``--token``); TLS and Zenoh
 user/password from the config file in ``OFFWORLD_ZENOH_CONFIG``.
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     shown.add_argument("--id", type=int, required=True, help="experiment id (see `experiments`)")
     board = sub.add_parser("leaderboard", help="an env's test-mode experiments, best first")
     for p in (listing, made, cancel, mine, shown, board):
-        p.add_argument("--env", required=True, help="env id, e.g. real/enclosure-a")
+        p.add_argument("--env", required=True, help="env id, e.g. real/monolith-0")
         p.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
         p.add_argument("--json", action="store_true", help="print JSON")
     for p in (made, cancel, mine, shown):

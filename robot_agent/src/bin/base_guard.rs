@@ -5,7 +5,7 @@
 //! `offworld_robot_agent::guard`.
 //!
 //! ```text
-//! base_guard --env real/enclosure-a --robot-config robot.toml --mode client --connect tcp/127.0.0.1:7447
+//! base_guard --env real/monolith-0 --robot-config robot.toml --mode client --connect tcp/127.0.0.1:7447
 //! ```
 
 use std::path::PathBuf;
@@ -22,7 +22,7 @@ use offworld_runtime::{CommonArgs, EnvId, Realm};
 )]
 struct Args {
     /// Env id whose robot is guarded (under `real/…`).
-    #[arg(long, default_value = "real/enclosure-0")]
+    #[arg(long, default_value = "real/monolith-0")]
     env: EnvId,
     /// The robot agent's configuration (TOML): the ROS graph, topics and
     /// the `[guard]` timings are read from it.
