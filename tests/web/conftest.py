@@ -20,6 +20,9 @@ from pathlib import Path
 import pytest
 
 ENVS = ("sim/web-a", "sim/web-b")
+# The bookable env of the booking test: a real env whose controller answers
+# bookings without a robot.
+REAL_ENV = "real/web-bench"
 
 
 def free_port() -> int:
@@ -80,6 +83,12 @@ class Lab:
     url: str
 
 
+@dataclass
+class BookingLab:
+    url: str
+    token: str
+
+
 @pytest.fixture()
 def lab(tmp_path: Path):
     """Yields the Zenoh endpoint of a two-env deployment and the URL of
@@ -125,6 +134,56 @@ def lab(tmp_path: Path):
 
         wait_until("lab_web lists both envs", both_listed, web)
         yield Lab(endpoint=endpoint, url=url)
+    finally:
+        if web is not None:
+            stop(web)
+        stop(controller)
+
+
+@pytest.fixture()
+def booking_lab(tmp_path: Path):
+    """Yields the URL of `lab_web` in front of a controller serving the real
+    env `REAL_ENV` (no robot: bookings need none) and the access token of its
+    user `alice`, registered with `env_controller users add`."""
+    db = tmp_path / "gym.db"
+    token = subprocess.run(
+        [str(binary("env_controller")), "--db", str(db), "users", "add", "alice"],
+        check=True,
+        capture_output=True,
+        timeout=30,
+    ).stdout.decode().strip().splitlines()[-1]
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    controller = subprocess.Popen(
+        [str(binary("env_controller")), "--db", str(db), "serve", "--env", f"{REAL_ENV}=MonolithDiscrete", "--listen", endpoint],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    web = None
+    try:
+
+        def listening() -> bool:
+            with socket.socket() as s:
+                return s.connect_ex(("127.0.0.1", port)) == 0
+
+        wait_until("env_controller listens", listening, controller)
+        http_port = free_port()
+        web = subprocess.Popen(
+            [str(binary("lab_web")), "--connect", endpoint, "--http", f"127.0.0.1:{http_port}"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        url = f"http://127.0.0.1:{http_port}"
+
+        def controller_listed() -> bool:
+            try:
+                listed = get_json(f"{url}/api/envs")
+            except (urllib.error.URLError, ConnectionError):
+                return False
+            return any(e["id"] == REAL_ENV and "controller" in e["components"] for e in listed["envs"])
+
+        wait_until("lab_web lists the real env's controller", controller_listed, web)
+        yield BookingLab(url=url, token=token)
     finally:
         if web is not None:
             stop(web)

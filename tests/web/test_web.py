@@ -1,6 +1,8 @@
 """The lab's web page in a real headless browser against a real deployment:
 both sim envs shown free, a lease taken from Python shown within 1 s
-without a reload, free again once closed; the env page; a 404 page.
+without a reload, free again once closed; the env page; a 404 page;
+signing in with an access token, booking a slot on a real env, seeing it
+listed, and an overlapping slot refused with the controller's reason.
 
 `OFFWORLD_WEB_SCREENSHOT=docs/img/web-envs.png` also saves the
 availability page, with one env leased, for the docs."""
@@ -15,7 +17,7 @@ import urllib.request
 import gymnasium
 import offworld_gym  # noqa: F401  (registers the envs)
 import pytest
-from conftest import ENVS
+from conftest import ENVS, REAL_ENV
 
 from playwright.sync_api import expect
 
@@ -107,3 +109,45 @@ def test_the_page_sets_a_strict_content_security_policy(lab):
     # The service keeps answering after the refusal.
     with urllib.request.urlopen(f"{lab.url}/api/envs", timeout=5) as response:
         assert response.status == 200
+
+
+def test_a_signed_in_user_books_a_slot_and_an_overlap_is_refused(booking_lab, browser):
+    page = browser.new_page(viewport={"width": 1200, "height": 720})
+    page.set_default_timeout(EVENTUALLY_MS)
+    # A wrong token is refused, saying why.
+    page.goto(f"{booking_lab.url}/account")
+    page.fill("#token", "not-a-token-at-all")
+    page.click("button[type=submit]")
+    expect(page.locator("#notice")).to_contain_text("unknown access token")
+    assert "not-a-token-at-all" not in page.content()
+    # The right one signs in; the cookie holding the session is HttpOnly.
+    page.fill("#token", booking_lab.token)
+    page.click("button[type=submit]")
+    expect(page.locator("#signed-in")).to_contain_text("You are signed in")
+    assert booking_lab.token not in page.content()
+    assert page.evaluate("document.cookie") == "", "no script can read the session cookie"
+
+    page.goto(f"{booking_lab.url}/envs/{REAL_ENV}/bookings")
+    expect(page.locator("#no-bookings")).to_have_text("Nothing is booked.")
+    # The form's default start (the next full hour, in the browser's zone), 30 minutes.
+    page.fill("#minutes", "30")
+    page.click("form[data-slot-form] button[type=submit]")
+    expect(page.locator("#notice")).to_contain_text("Booked: slot #")
+    mine = page.locator('tr[data-booking][data-user="alice"]')
+    expect(mine).to_have_count(1)
+    expect(mine.locator(".badge.yours")).to_have_text("yours")
+
+    # The same start again overlaps: refused with the controller's reason.
+    page.fill("#minutes", "45")
+    response_status = []
+    page.on("response", lambda r: response_status.append(r.status) if r.request.method == "POST" else None)
+    page.click("form[data-slot-form] button[type=submit]")
+    notice = page.locator("#notice")
+    expect(notice).to_have_attribute("role", "alert")
+    expect(notice).to_contain_text(f"Not booked: {REAL_ENV} is booked by alice from")
+    assert response_status == [409], response_status
+    expect(page.locator("tr[data-booking]")).to_have_count(1)
+    screenshot = os.environ.get("OFFWORLD_WEB_BOOKINGS_SCREENSHOT")
+    if screenshot:
+        page.screenshot(path=screenshot, full_page=True)
+    page.close()

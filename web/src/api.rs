@@ -44,12 +44,17 @@ pub fn env_from_path(
             "no such page: the path is not a valid env id",
         ));
     };
+    parse_env(&realm, &name)
+}
+
+/// The env `<realm>/<name>` names; anything else is a 404.
+pub fn parse_env(realm: &str, name: &str) -> Result<EnvId, HttpError> {
     let realm = realm.parse().map_err(|_| {
         HttpError::not_found(format!(
             "no such realm `{realm}`: envs are under sim/ or real/"
         ))
     })?;
-    EnvId::new(realm, &name).map_err(|e| HttpError::not_found(format!("no such env: {e}")))
+    EnvId::new(realm, name).map_err(|e| HttpError::not_found(format!("no such env: {e}")))
 }
 
 /// `GET /api/envs`: every env and the deployment's health.

@@ -17,7 +17,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use offworld_runtime::client::{self, EnvListing};
 use offworld_runtime::keys::{self, EnvId, Topic};
-use offworld_runtime::msg::{EnvStatus, Leaderboard, MotionFault};
+use offworld_runtime::msg::{
+    BookingRequest, Bookings, EnvStatus, Experiments, ExperimentsRequest, Leaderboard, MotionFault,
+};
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{codec, WireError};
 use tokio::sync::{watch, Notify};
@@ -205,6 +207,34 @@ impl Discovery {
     /// timeout.
     pub async fn leaderboard(&self, env: &EnvId) -> Result<Leaderboard, WireError> {
         client::leaderboard(&self.inner.session, env, self.inner.config.query_timeout).await
+    }
+
+    /// Makes, lists or cancels bookings of `env` (its controller checks
+    /// the token and the rules), bounded by the query timeout.
+    pub async fn book(&self, env: &EnvId, request: &BookingRequest) -> Result<Bookings, WireError> {
+        client::book(
+            &self.inner.session,
+            env,
+            request,
+            self.inner.config.query_timeout,
+        )
+        .await
+    }
+
+    /// Lists the caller's experiments on `env` or shows one, bounded by
+    /// the query timeout.
+    pub async fn experiments(
+        &self,
+        env: &EnvId,
+        request: &ExperimentsRequest,
+    ) -> Result<Experiments, WireError> {
+        client::experiments(
+            &self.inner.session,
+            env,
+            request,
+            self.inner.config.query_timeout,
+        )
+        .await
     }
 }
 

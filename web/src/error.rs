@@ -31,6 +31,15 @@ impl Format {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Kind {
+    /// The request's values are invalid (a form field, a slot the
+    /// controller's rules refuse).
+    BadRequest,
+    /// Not signed in, or the controller refused the access token.
+    Unauthorized,
+    /// A POST from another site, or without its CSRF token.
+    Forbidden,
+    /// Not now: the slot overlaps another, the controller is busy.
+    Conflict,
     /// No such page or env.
     NotFound,
     /// Only GET (and HEAD) are served.
@@ -83,8 +92,39 @@ impl HttpError {
         Self::new(
             StatusCode::METHOD_NOT_ALLOWED,
             Kind::MethodNotAllowed,
-            "this service is read-only: only GET and HEAD are served",
+            "this address does not take that method: pages are GET and HEAD, \
+             only the booking and sign-in forms are POSTed",
         )
+    }
+
+    /// 400.
+    pub fn bad_request(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::BAD_REQUEST, Kind::BadRequest, message)
+    }
+
+    /// 401.
+    pub fn unauthorized(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::UNAUTHORIZED, Kind::Unauthorized, message)
+    }
+
+    /// 403.
+    pub fn forbidden(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::FORBIDDEN, Kind::Forbidden, message)
+    }
+
+    /// A controller's typed refusal of a user's request about `what`,
+    /// passed on with its meaning: 400 (invalid), 401 (token), 404, 409
+    /// (overlap, busy, not now); its failures as in [`HttpError::from_wire`].
+    pub fn from_controller(what: &str, e: &WireError) -> Self {
+        let message = format!("{what}: {}", e.message);
+        match e.code {
+            ErrorCode::BadRequest => Self::bad_request(message),
+            ErrorCode::Unauthorized => Self::unauthorized(message),
+            ErrorCode::Busy | ErrorCode::InvalidState => {
+                Self::new(StatusCode::CONFLICT, Kind::Conflict, message)
+            }
+            _ => Self::from_wire(what, e),
+        }
     }
 
     /// 429.
@@ -114,6 +154,11 @@ impl HttpError {
     /// 504, a request over its deadline.
     pub fn timeout(message: impl Into<String>) -> Self {
         Self::new(StatusCode::GATEWAY_TIMEOUT, Kind::Timeout, message)
+    }
+
+    /// 503, the deployment cannot be asked now.
+    pub fn unavailable(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::SERVICE_UNAVAILABLE, Kind::Unavailable, message)
     }
 
     /// 500.

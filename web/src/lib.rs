@@ -1,22 +1,31 @@
 //! The lab's web page: live availability of every env of an OffWorld Gym
 //! deployment (real and sim), each env's leaderboard, and the same as JSON
-//! for scripts. It joins the deployment as one more Zenoh client and only
-//! reads: no page changes anything.
+//! for scripts; for users signed in with their gym access token, each
+//! env's bookings (book, cancel) and their experiments with learning
+//! curves. It joins the deployment as one more Zenoh client; the only
+//! changes it asks for are a signed-in user's bookings, with their token,
+//! checked by the controller as the CLI's are.
 //!
 //! - [`discovery`]: the Zenoh side (listing, `status` and `fault`
 //!   subscriptions), kept as a live [`model::Snapshot`];
 //! - [`model`]: what is shown, as data (the JSON API's shapes);
 //! - [`api`]: JSON handlers; [`pages`]: HTML; [`events`]: server-sent events;
+//! - [`account`], [`account_pages`], [`chart`]: sign-in, bookings,
+//!   experiments and their learning curves; [`session`]: sessions, CSRF;
 //! - [`server`]: routes, limits, security headers, the accept loop;
 //! - [`error`]: HTTP errors.
 
+pub mod account;
+pub mod account_pages;
 pub mod api;
+pub mod chart;
 pub mod discovery;
 pub mod error;
 pub mod events;
 pub mod model;
 pub mod pages;
 pub mod server;
+pub mod session;
 
 use std::net::SocketAddr;
 
@@ -35,6 +44,9 @@ pub struct WebOptions {
     pub discovery: DiscoveryConfig,
     /// HTTP limits.
     pub limits: Limits,
+    /// Mark cookies `Secure`: the service is reached through TLS (a
+    /// reverse proxy); browsers then send them over HTTPS only.
+    pub secure_cookies: bool,
 }
 
 /// Why the service could not start.
@@ -82,7 +94,7 @@ impl LabWeb {
         let discovery = Discovery::start(session, options.discovery)
             .await
             .map_err(StartError::Zenoh)?;
-        let app = server::router(discovery.clone(), &options.limits);
+        let app = server::router(discovery.clone(), &options);
         let (stop, stopped) = oneshot::channel::<()>();
         let task = tokio::spawn(server::serve(listener, app, options.limits, async {
             let _ = stopped.await;

@@ -15,8 +15,8 @@ use offworld_runtime::CommonArgs;
 use offworld_web::{DiscoveryConfig, LabWeb, Limits, WebOptions};
 
 /// Serves the lab's web page: live availability of every env (real and
-/// sim) and each env's leaderboard, read from the deployment over Zenoh.
-/// Read-only.
+/// sim), each env's leaderboard, bookings and (signed in with a gym access
+/// token) a user's experiments, from the deployment over Zenoh.
 #[derive(Debug, Parser)]
 #[command(name = "lab_web", version)]
 struct Args {
@@ -51,6 +51,17 @@ struct Args {
     /// Requests one client address may send at once above the rate.
     #[arg(long, default_value_t = Limits::default().burst_per_client)]
     burst_per_client: NonZeroU32,
+    /// Signed-in sessions kept at most (the least recently used is signed
+    /// out first).
+    #[arg(long, default_value_t = Limits::default().max_sessions)]
+    max_sessions: usize,
+    /// A signed-in session lapses after this many minutes without a request.
+    #[arg(long, value_name = "MIN", default_value_t = 720)]
+    session_idle_min: u64,
+    /// Mark cookies `Secure` (set it when users reach the page through a
+    /// TLS reverse proxy).
+    #[arg(long, env = "OFFWORLD_WEB_SECURE_COOKIES")]
+    secure_cookies: bool,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -70,8 +81,11 @@ async fn main() -> anyhow::Result<()> {
             max_event_streams: args.max_event_streams,
             rate_per_client: args.rate_per_client,
             burst_per_client: args.burst_per_client,
+            max_sessions: args.max_sessions.max(1),
+            session_idle: Duration::from_secs(args.session_idle_min.max(1).saturating_mul(60)),
             ..Limits::default()
         },
+        secure_cookies: args.secure_cookies,
     };
     let session = args.common.clone().client_config().open().await?;
     let web = LabWeb::start(session.clone(), args.http_listen, options).await?;

@@ -11,7 +11,7 @@ use maud::{html, Markup, DOCTYPE};
 use crate::model::{DeploymentView, EnvView, LeaderboardView, Snapshot, StateKind};
 
 /// A page: the shared head, header and footer around `body`.
-fn layout(title: &str, body: Markup) -> Markup {
+pub(crate) fn layout(title: &str, body: Markup) -> Markup {
     html! {
         (DOCTYPE)
         html lang="en" {
@@ -28,12 +28,14 @@ fn layout(title: &str, body: Markup) -> Markup {
                     span.subtitle { "lab status" }
                     nav {
                         a href="/" { "Availability" }
+                        a href="/bookings" { "Bookings" }
+                        a href="/account" { "Account" }
                         a href="/api/envs" { "JSON" }
                     }
                 }
                 main { (body) }
                 footer {
-                    "Read-only view of the deployment. "
+                    "Live view of the deployment; bookings and experiments need sign-in. "
                     span #live data-state="static" { "Live updates need JavaScript." }
                 }
             }
@@ -75,6 +77,11 @@ pub fn env_page(
             table.envs data-live {
                 (env_table_head())
                 tbody data-single { (env_row(env)) }
+            }
+            p.links {
+                a href={ "/envs/" (env.realm) "/" (env.name) "/bookings" } { "Bookings" }
+                " · "
+                a href={ "/envs/" (env.realm) "/" (env.name) "/experiments" } { "Your experiments" }
             }
             h2 #leaderboard { "Leaderboard" }
             p.lead { "Test-mode experiments on this env, best first. Click a column to sort." }
@@ -236,7 +243,7 @@ fn state_detail(env: &EnvView) -> Markup {
 
 /// A time the browser reformats in the reader's zone (`clock`) or as
 /// "… ago" (`relative`); UTC for readers without JavaScript.
-fn time(unix_ms: i64, style: &str) -> Markup {
+pub(crate) fn time(unix_ms: i64, style: &str) -> Markup {
     let utc = u64::try_from(unix_ms)
         .ok()
         .and_then(|ms| UNIX_EPOCH.checked_add(Duration::from_millis(ms)))

@@ -25,7 +25,7 @@ use axum::extract::{Path, Request, State};
 use axum::http::{header, HeaderValue, Uri};
 use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{get, post};
 use axum::{BoxError, Router};
 use governor::clock::{Clock, DefaultClock};
 use governor::{DefaultKeyedRateLimiter, Quota, RateLimiter};
@@ -37,7 +37,8 @@ use tower::ServiceBuilder;
 
 use crate::discovery::Discovery;
 use crate::error::{Format, HttpError};
-use crate::{api, events, pages};
+use crate::session::Sessions;
+use crate::{account, api, events, pages, WebOptions};
 
 /// The service's limits (see the module documentation).
 #[derive(Debug, Clone, Copy)]
@@ -56,6 +57,12 @@ pub struct Limits {
     pub request_timeout: Duration,
     /// Time a connection has to send a request head.
     pub header_read_timeout: Duration,
+    /// Signed-in sessions kept at most (the least recently used goes first).
+    pub max_sessions: usize,
+    /// A session lapses after this long without a request.
+    pub session_idle: Duration,
+    /// Sign-in attempts per minute per client address, sustained.
+    pub signins_per_minute: NonZeroU32,
 }
 
 impl Default for Limits {
@@ -68,6 +75,9 @@ impl Default for Limits {
             burst_per_client: NonZeroU32::new(60).unwrap_or(NonZeroU32::MIN),
             request_timeout: Duration::from_secs(10),
             header_read_timeout: Duration::from_secs(10),
+            max_sessions: 10_000,
+            session_idle: Duration::from_secs(12 * 3600),
+            signins_per_minute: NonZeroU32::new(30).unwrap_or(NonZeroU32::MIN),
         }
     }
 }
@@ -79,6 +89,14 @@ pub struct AppState {
     pub discovery: Discovery,
     /// Places for open event streams.
     pub event_streams: Arc<Semaphore>,
+    /// Signed-in users.
+    pub sessions: Arc<Sessions>,
+    /// Sign-in attempts per client address.
+    pub signins: Arc<DefaultKeyedRateLimiter<IpAddr>>,
+    /// Cookies are marked `Secure` (the service is behind TLS).
+    pub secure_cookies: bool,
+    /// A session cookie's lifetime, s.
+    pub session_idle_s: u64,
     rates: Arc<DefaultKeyedRateLimiter<IpAddr>>,
     request_timeout: Duration,
 }
@@ -88,16 +106,25 @@ pub struct AppState {
 pub struct PeerAddr(pub SocketAddr);
 
 /// The application: every route behind its limits and headers.
-pub fn router(discovery: Discovery, limits: &Limits) -> Router {
+pub fn router(discovery: Discovery, options: &WebOptions) -> Router {
+    let limits = &options.limits;
     let state = AppState {
         discovery,
         event_streams: Arc::new(Semaphore::new(limits.max_event_streams)),
+        sessions: Arc::new(Sessions::new(limits.max_sessions, limits.session_idle)),
+        signins: Arc::new(RateLimiter::keyed(
+            Quota::per_minute(limits.signins_per_minute)
+                .allow_burst(NonZeroU32::new(10).unwrap_or(NonZeroU32::MIN)),
+        )),
+        secure_cookies: options.secure_cookies,
+        session_idle_s: limits.session_idle.as_secs(),
         rates: Arc::new(RateLimiter::keyed(
             Quota::per_second(limits.rate_per_client).allow_burst(limits.burst_per_client),
         )),
         request_timeout: limits.request_timeout,
     };
     forget_idle_clients(&state.rates);
+    forget_idle_clients(&state.signins);
     let shed = ServiceBuilder::new()
         .layer(HandleErrorLayer::new(|uri: Uri, _: BoxError| async move {
             HttpError::overloaded("requests in progress").as_format(Format::for_path(uri.path()))
@@ -114,7 +141,31 @@ pub fn router(discovery: Discovery, limits: &Limits) -> Router {
             "/api/envs/{realm}/{name}/leaderboard",
             get(api::leaderboard),
         )
+        .route(
+            "/api/envs/{realm}/{name}/bookings",
+            get(account::bookings_json),
+        )
         .route("/api/events", get(events::json))
+        .route("/account", get(account::account))
+        .route("/account/signin", post(account::signin))
+        .route("/account/signout", post(account::signout))
+        .route("/bookings", get(account::bookings_index))
+        .route(
+            "/envs/{realm}/{name}/bookings",
+            get(account::bookings_page).post(account::make_booking),
+        )
+        .route(
+            "/envs/{realm}/{name}/bookings/{id}/cancel",
+            post(account::cancel_booking),
+        )
+        .route(
+            "/envs/{realm}/{name}/experiments",
+            get(account::experiments_page),
+        )
+        .route(
+            "/envs/{realm}/{name}/experiments/{id}",
+            get(account::experiment_page),
+        )
         .route("/static/style.css", get(style))
         .route("/static/app.js", get(script))
         .route("/healthz", get(|| async { "ok" }))
@@ -204,8 +255,10 @@ async fn deadline(State(state): State<AppState>, request: Request, next: Next) -
     }
 }
 
-/// Headers on every response: no inline code, no framing, no sniffing, no
-/// referrer; pages are never cached (they are live).
+/// Headers on every response: no inline code, forms only to this site, no
+/// framing, no sniffing, no referrer to other sites (same-site requests
+/// keep theirs, so a form POST carries its `Origin`); pages are never
+/// cached (they are live, and some are a signed-in user's).
 async fn security_headers(request: Request, next: Next) -> Response {
     let mut response = next.run(request).await;
     let headers = response.headers_mut();
@@ -213,11 +266,11 @@ async fn security_headers(request: Request, next: Next) -> Response {
         (
             header::CONTENT_SECURITY_POLICY,
             "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self'; \
-             connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
+             connect-src 'self'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'",
         ),
         (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
         (header::X_FRAME_OPTIONS, "DENY"),
-        (header::REFERRER_POLICY, "no-referrer"),
+        (header::REFERRER_POLICY, "same-origin"),
     ] {
         headers.insert(name, HeaderValue::from_static(value));
     }

@@ -94,7 +94,30 @@
     });
   };
 
+  // The booking form: the start is typed in the reader's zone; the
+  // server gets it as Unix ms (without this script it reads UTC).
+  const pad = (n) => String(n).padStart(2, "0");
+  const localInput = (date) =>
+    `${date.getFullYear()}-${pad(date.getMonth() + 1)}-${pad(date.getDate())}T${pad(date.getHours())}:${pad(date.getMinutes())}`;
+  const slotForm = (form) => {
+    const start = form.elements.start;
+    const ms = form.elements.start_unix_ms;
+    if (!start || !ms) return;
+    // The server's default (next full hour, UTC) shown in local time.
+    if (start.defaultValue && !form.dataset.kept) {
+      const utc = new Date(`${start.defaultValue}:00Z`);
+      if (!Number.isNaN(utc.getTime())) start.value = localInput(utc);
+    }
+    const zone = form.querySelector("[data-zone]");
+    if (zone) zone.textContent = `(${Intl.DateTimeFormat().resolvedOptions().timeZone || "local time"})`;
+    form.addEventListener("submit", () => {
+      const local = new Date(start.value);
+      ms.value = Number.isNaN(local.getTime()) ? "" : String(local.getTime());
+    });
+  };
+
   document.addEventListener("DOMContentLoaded", () => {
+    document.querySelectorAll("form[data-slot-form]").forEach(slotForm);
     formatTimes(document);
     document.querySelectorAll("table.sortable").forEach(sortable);
     follow();
