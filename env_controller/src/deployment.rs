@@ -139,8 +139,9 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
 }
 
 async fn open_remote(config: &SessionConfig) -> Result<Session, ControllerError> {
+    // An unreachable endpoint is an error naming it, not an empty deployment.
     config
-        .open()
+        .open_reaching(offworld_runtime::session::REACH_WITHIN)
         .await
         .map_err(|e| ControllerError::Zenoh(e.to_string()))
 }

@@ -633,7 +633,14 @@ impl EnvServer {
         self.publish_status(&mut state).await;
         let event = episode_event(&experiment, index, 0, observe.seq, None, 0.0);
         if let (Some(recorder), Some(info)) = (&self.recorder, recorded) {
-            recorder.begin(info).await;
+            // How well the reset placed the robot, with the episode
+            // (`parity replay` reports it).
+            // (The achieved pose is the reset step's recorded pose.)
+            let notes = std::collections::BTreeMap::from([(
+                offworld_recorder::episode_file::RESET_DURATION_NOTE.to_owned(),
+                format!("{:.6}", accuracy.duration_s),
+            )]);
+            recorder.begin_annotated(info, notes).await;
             let step = Step::from_event(&event, None, None);
             self.record_step(frame, &answered, step, None).await;
         }

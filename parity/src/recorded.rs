@@ -59,6 +59,30 @@ pub struct OdometrySample {
     pub angular: f64,
 }
 
+/// How well the episode's reset placed the robot: where it was asked to
+/// start and where it started (the reset step's recorded pose).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ResetRecord {
+    /// The pose the reset asked for.
+    pub requested: Pose2D,
+    /// The pose the episode started from.
+    pub achieved: Pose2D,
+    /// How long the reset took, s, when its recorder noted it.
+    pub duration_s: Option<f64>,
+}
+
+impl ResetRecord {
+    /// Planar distance between requested and achieved, m.
+    pub fn position_error_m(&self) -> f64 {
+        (self.achieved.x - self.requested.x).hypot(self.achieved.y - self.requested.y)
+    }
+
+    /// Absolute heading difference, rad.
+    pub fn yaw_error_rad(&self) -> f64 {
+        crate::replay::yaw_error(self.achieved.yaw, self.requested.yaw)
+    }
+}
+
 /// An episode file read into its steps.
 #[derive(Debug, Clone)]
 pub struct RecordedEpisode {
@@ -68,6 +92,8 @@ pub struct RecordedEpisode {
     pub info: EpisodeInfo,
     /// Its steps in order, the reset first.
     pub steps: Vec<RecordedStep>,
+    /// The reset's accuracy.
+    pub reset: ResetRecord,
     /// The wheel odometry recorded during the episode, by stamp, each stamp
     /// once (a robot agent streams it; a twin in lockstep records one per
     /// step).
@@ -140,6 +166,17 @@ impl RecordedEpisode {
         if steps.first().map(|s| s.step.step) != Some(0) {
             return Err(unusable("no reset step (step 0)".into()));
         }
+        let [x, y, yaw] = info.requested_start;
+        let duration_s = data
+            .metadata()?
+            .get(offworld_recorder::episode_file::RESET_DURATION_NOTE)
+            .and_then(|d| d.parse::<f64>().ok())
+            .filter(|d| d.is_finite() && *d >= 0.0);
+        let reset = ResetRecord {
+            requested: Pose2D { x, y, yaw },
+            achieved: steps[0].pose,
+            duration_s,
+        };
         // The answer to a command is also streamed: the same stamp twice.
         odometry.sort_by_key(|o| o.at_ns);
         odometry.dedup_by_key(|o| o.at_ns);
@@ -147,6 +184,7 @@ impl RecordedEpisode {
             path: path.to_owned(),
             info,
             steps,
+            reset,
             odometry,
         })
     }

@@ -18,7 +18,7 @@ use offworld_runtime::msg::Pose2D;
 use offworld_sim_twin::camera::RgbdFrame;
 use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig, TwinProfile};
 
-use crate::recorded::{ColorImage, DepthImage, RecordedEpisode, RecordedStep};
+use crate::recorded::{ColorImage, DepthImage, RecordedEpisode, RecordedStep, ResetRecord};
 use crate::ParityError;
 
 /// The gap at one step (after its command).
@@ -68,6 +68,8 @@ pub struct EpisodeReplay {
     pub embodiment: String,
     /// The pose the episode started from (recorded; both twins start there).
     pub start: Pose2D,
+    /// How well its reset placed the robot.
+    pub reset: ResetRecord,
     /// The gap after each command.
     pub steps: Vec<StepGap>,
 }
@@ -246,6 +248,7 @@ pub fn replay_with(
         world: info.world.clone(),
         embodiment: info.embodiment.clone(),
         start,
+        reset: episode.reset,
         steps,
     })
 }

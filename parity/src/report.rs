@@ -190,13 +190,17 @@ pub fn markdown_with_figures(
     let _ = writeln!(
         out,
         "{} episodes, {} steps, replayed in the twin with the profile {profile_name} \
-         (linear gain {}, angular gain {}, latency {} s, camera height {:+} m, \
+         (linear gain {}, angular gain {}, latency {} s, settle time {}, camera height {:+} m, \
          pitch {:+}°, yaw {:+}°, depth noise {}, dropout {}).\n",
         summary.episodes,
         summary.steps,
         profile.motion.linear_gain,
         profile.motion.angular_gain,
         profile.motion.latency_s,
+        profile
+            .motion
+            .settle_time_s
+            .map_or_else(|| "the world robot's".to_owned(), |t| format!("{t} s")),
         profile.camera.height_offset_m,
         profile.camera.pitch_deg,
         profile.camera.yaw_deg,
@@ -267,6 +271,7 @@ pub fn markdown_with_figures(
             href(&f.link)
         );
     }
+    resets(&mut out, replays);
     let maps = figures.map(|f| f.episode_trajectories.as_slice());
     let _ = writeln!(out, "## Episodes\n");
     let _ = writeln!(
@@ -383,4 +388,57 @@ fn depth_section(out: &mut String, figures: &Figures) {
             href(&d.figure.link)
         );
     }
+}
+
+/// The resets' accuracy: where each episode was asked to start and where
+/// it started, and how long its reset took.
+fn resets(out: &mut String, replays: &[EpisodeReplay]) {
+    if replays.is_empty() {
+        return;
+    }
+    let position = Stats::of(replays.iter().map(|r| r.reset.position_error_m()));
+    let heading = Stats::of(replays.iter().map(|r| r.reset.yaw_error_rad()));
+    let duration = Stats::of(replays.iter().filter_map(|r| r.reset.duration_s));
+    let _ = writeln!(out, "## Resets\n");
+    let _ = writeln!(
+        out,
+        "How far each reset left the robot from the start pose it asked for \
+         (a twin teleports: near zero; a robot drives there).\n"
+    );
+    let _ = writeln!(out, "| error | mean | median | p95 | max | episodes |");
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
+    stats_row(out, "position, cm", &position, cm);
+    stats_row(out, "heading, °", &heading, deg);
+    stats_row(out, "duration, s", &duration, |x| num(x, 2));
+    let _ = writeln!(
+        out,
+        "\n| file | requested x, y, yaw | achieved x, y, yaw | position, cm | heading, ° | took, s |"
+    );
+    let _ = writeln!(out, "|---|---|---|---:|---:|---:|");
+    for r in replays {
+        let (q, a) = (r.reset.requested, r.reset.achieved);
+        // Headings as (−180°, 180°]: a requested 247° is the achieved −113°.
+        let wrap = |yaw: f64| {
+            std::f64::consts::PI - (std::f64::consts::PI - yaw).rem_euclid(std::f64::consts::TAU)
+        };
+        let _ = writeln!(
+            out,
+            "| {} | {:.3}, {:.3}, {:.1}° | {:.3}, {:.3}, {:.1}° | {} | {} | {} |",
+            r.path
+                .file_name()
+                .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+            q.x,
+            q.y,
+            wrap(q.yaw).to_degrees(),
+            a.x,
+            a.y,
+            wrap(a.yaw).to_degrees(),
+            cm(r.reset.position_error_m()),
+            deg(r.reset.yaw_error_rad()),
+            r.reset
+                .duration_s
+                .map_or_else(|| "–".to_owned(), |d| num(d, 2)),
+        );
+    }
+    let _ = writeln!(out);
 }

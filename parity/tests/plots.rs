@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 
 use common::{episodes, record, Recording, Scratch};
 use offworld_parity::plots::{self, Figures, WorstDepth, WORST_DEPTH_STEPS};
+use offworld_parity::recorded::ResetRecord;
 use offworld_parity::replay::{replay_with, EpisodeReplay, StepGap};
 use offworld_parity::report::markdown_with_figures;
 use offworld_runtime::msg::{Channels, Pose2D};
@@ -270,6 +271,11 @@ fn empty_episodes_and_nan_errors_are_drawn_without_panicking() {
         world: "monolith".into(),
         embodiment: "robot".into(),
         start,
+        reset: ResetRecord {
+            requested: start,
+            achieved: start,
+            duration_s: None,
+        },
         steps,
     };
     let nan_step = StepGap {

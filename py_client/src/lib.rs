@@ -473,8 +473,9 @@ where
 {
     let config = remote_session(connect)?;
     spawn_interruptibly(py, async move {
+        // An unreachable endpoint is an error naming it, not an empty deployment.
         let session = config
-            .open()
+            .open_reaching(offworld_runtime::session::REACH_WITHIN)
             .await
             .map_err(|e| WireError::new(offworld_runtime::ErrorCode::Unavailable, e.to_string()))?;
         let answer = work(session.clone()).await;

@@ -4,10 +4,10 @@ separate deployment process where a test needs one."""
 from __future__ import annotations
 
 import math
-
 import subprocess
 import sys
 import textwrap
+import time
 
 import gymnasium
 import numpy as np
@@ -15,6 +15,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import offworld_gym
+from conftest import _free_port
 from offworld_gym import errors
 from offworld_gym.envs.common.channels import Channels
 from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
@@ -79,6 +80,28 @@ def test_real_ids_without_deployment_fail_clearly(env_id, monkeypatch):
     monkeypatch.delenv("OFFWORLD_GYM_CONNECT", raising=False)
     with pytest.raises(errors.ConfigurationError):
         gymnasium.make(env_id)
+
+
+def test_an_unreachable_endpoint_is_an_error_naming_it_not_an_empty_deployment(monkeypatch):
+    """Nothing listens there: listing, opening an env and the CLI all say so
+    within seconds, naming the endpoint (and the CLI exits non-zero)."""
+    monkeypatch.delenv("OFFWORLD_GYM_CONNECT", raising=False)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    started = time.monotonic()
+    with pytest.raises(errors.Unavailable, match=f"nothing answered at {endpoint}"):
+        offworld_gym.list_envs(connect=endpoint)
+    with pytest.raises(errors.OffWorldGymError, match=f"nothing answered at {endpoint}"):
+        gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=endpoint)
+    cli = subprocess.run(
+        [sys.executable, "-m", "offworld_gym", "envs", "--connect", endpoint],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert cli.returncode == 1, cli
+    assert f"nothing answered at {endpoint}" in cli.stderr, cli.stderr
+    # Bounded (each waits a few seconds for the endpoint), not a hang.
+    assert time.monotonic() - started < 45
 
 
 def test_stable_baselines3_check_env_when_installed():

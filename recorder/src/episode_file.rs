@@ -86,6 +86,11 @@ const OFFERED_QOS: &str = "- history: 1\n  depth: 10\n  reliability: 1\n  durabi
 /// Name of the metadata record repeating [`EpisodeInfo`].
 pub const METADATA_NAME: &str = "offworld.episode";
 
+/// The metadata key of how long the episode's reset took, s (decimal):
+/// with the requested start (`EpisodeInfo::requested_start`) and the reset
+/// step's pose, the reset's accuracy.
+pub const RESET_DURATION_NOTE: &str = "reset_duration_s";
+
 /// How every episode file is written: the ROS 2 profile, our library
 /// name, chunks compressed with `compression` (zstd at its fastest level,
 /// without worker threads: a chunk may hold a single step).

@@ -248,6 +248,12 @@ impl EpisodeData {
         })
     }
 
+    /// The file's `offworld.episode` metadata record (env, experiment, seed,
+    /// … and the notes its recorder added), empty if it has none.
+    pub fn metadata(&self) -> Result<BTreeMap<String, String>, RecordError> {
+        metadata(&self.path, &self.buf)
+    }
+
     /// `message` (one of this file's) decoded from CDR; an error names the
     /// file and the topic.
     pub fn decode<T: DeserializeOwned>(&self, message: &RecordedMessage) -> Result<T, RecordError> {

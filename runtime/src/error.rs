@@ -179,6 +179,18 @@ pub enum ContractError {
     /// Zenoh refused an operation.
     #[error("zenoh: {0}")]
     Zenoh(String),
+    /// No router or peer answered at the endpoints a session was told to
+    /// connect to: an unreachable deployment, not an empty one.
+    #[error(
+        "nothing answered at {endpoints} within {waited_ms} ms: is the deployment running there? \
+         Check the endpoint (connect= / OFFWORLD_GYM_CONNECT / --connect) and the network"
+    )]
+    Unreachable {
+        /// The endpoints tried, comma-separated.
+        endpoints: String,
+        /// How long the session waited for one of them.
+        waited_ms: u64,
+    },
 }
 
 impl From<zenoh::Error> for ContractError {

@@ -3,6 +3,7 @@
 //! flags or defaults.
 
 use std::path::PathBuf;
+use std::time::Duration;
 
 use crate::error::ContractError;
 
@@ -195,7 +196,41 @@ impl SessionConfig {
             .await
             .map_err(ContractError::from)
     }
+
+    /// [`SessionConfig::open`] for a one-shot client (a listing, a booking,
+    /// opening an env): when it names endpoints to connect to, one of them
+    /// must answer (a router or a peer connected) within `within`, else
+    /// [`ContractError::Unreachable`] names them. A peer session otherwise
+    /// opens fine with nobody there, and an unreachable deployment would
+    /// look like an empty one.
+    pub async fn open_reaching(&self, within: Duration) -> Result<zenoh::Session, ContractError> {
+        let session = self.open().await?;
+        if self.connect.is_empty() {
+            return Ok(session);
+        }
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            let info = session.info();
+            if info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some()
+            {
+                return Ok(session);
+            }
+            if tokio::time::Instant::now() >= deadline {
+                let _ = session.close().await;
+                return Err(ContractError::Unreachable {
+                    endpoints: self.connect.join(", "),
+                    waited_ms: u64::try_from(within.as_millis()).unwrap_or(u64::MAX),
+                });
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
 }
+
+/// How long a one-shot client waits for one of its endpoints to answer
+/// ([`SessionConfig::open_reaching`]): a router on the other side of the
+/// world connects well within it.
+pub const REACH_WITHIN: Duration = Duration::from_secs(3);
 
 /// How long a publisher waits for room in a full queue before Zenoh drops
 /// the message, µs (Zenoh's default: 1000). Deployment files set the same.

@@ -10,7 +10,7 @@ use std::time::Duration;
 use offworld_parity::identify::{identify, IdentifyOptions};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_parity::replay::replay;
-use offworld_parity::report::Summary;
+use offworld_parity::report::{markdown, Summary};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::{
     Action, AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest, Seed,
@@ -62,20 +62,28 @@ fn within(name: &str, fitted: f64, truth: f64, tolerance: f64) {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn identification_recovers_the_emulated_hardware_and_closes_the_replay_gap() {
-    let scratch = Scratch(std::env::temp_dir().join(format!(
-        "offworld-parity-emulated-{}",
-        offworld_runtime::client::random_id()
-    )));
-    std::fs::create_dir_all(&scratch.0).expect("scratch");
-    let hardware_file = scratch.0.join("hardware.toml");
-    hardware().save(&hardware_file).expect("hardware profile");
+/// One emulated enclosure at a time: two would share the machine's two
+/// cores with each other's real-time loops.
+static ONE_ENCLOSURE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+/// Records `episodes` episodes of up to `STEPS` seeded random actions on
+/// the emulated enclosure whose robot behaves per `hardware` (none: the
+/// nominal twin), and reads them back.
+async fn record_on_emulated_hardware(
+    scratch: &Scratch,
+    hardware: Option<TwinProfile>,
+    episodes: u64,
+) -> Vec<RecordedEpisode> {
+    let _one = ONE_ENCLOSURE.lock().await;
     let runs = scratch.0.join("runs");
     let mut options = Options::new("MonolithContinuous").expect("options");
     options.record = Some(runs.clone());
-    options.hardware_profile = Some(hardware_file);
-    // A small camera: the tilted mount renders per pixel, in real time.
+    if let Some(hardware) = hardware {
+        let file = scratch.0.join("hardware.toml");
+        hardware.save(&file).expect("hardware profile");
+        options.hardware_profile = Some(file);
+    }
+    // A small camera: a tilted mount renders per pixel, in real time.
     options.hardware_camera = Some((64, 48));
     let deployment = EmulatedEnclosure::start(&options).expect("deployment");
     deployment
@@ -110,7 +118,7 @@ async fn identification_recovers_the_emulated_hardware_and_closes_the_replay_gap
     // Random actions, gentle enough to stay inside the enclosure for a few
     // steps: up to 0.21 m/s and 1.5 rad/s, held 1 s.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(24);
-    for episode in 0..EPISODES {
+    for episode in 0..episodes {
         let mut reset = None;
         for _ in 0..50 {
             match gym.reset(Seed::Fixed(100 + episode)).await {
@@ -134,20 +142,37 @@ async fn identification_recovers_the_emulated_hardware_and_closes_the_replay_gap
             }
         }
     }
+    // Every episode's file is finished once the close has answered.
     gym.close().await.expect("close");
     drop(session);
     drop(deployment);
 
     let files = offworld_recorder::read::episode_files(&runs).expect("recorded files");
-    let episodes: Vec<RecordedEpisode> = files
+    let recorded: Vec<RecordedEpisode> = files
         .iter()
         .map(|f| RecordedEpisode::read(f).expect("a recorded episode"))
         .collect();
-    assert_eq!(episodes.len() as u64, EPISODES, "{files:?}");
+    assert_eq!(recorded.len() as u64, episodes, "{files:?}");
     assert!(
-        episodes.iter().all(|e| e.info.embodiment == "robot"),
+        recorded.iter().all(|e| e.info.embodiment == "robot"),
         "recorded from the robot side"
     );
+    recorded
+}
+
+fn scratch(name: &str) -> Scratch {
+    let dir = std::env::temp_dir().join(format!(
+        "offworld-parity-{name}-{}",
+        offworld_runtime::client::random_id()
+    ));
+    std::fs::create_dir_all(&dir).expect("scratch");
+    Scratch(dir)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn identification_recovers_the_emulated_hardware_and_closes_the_replay_gap() {
+    let scratch = scratch("identify");
+    let episodes = record_on_emulated_hardware(&scratch, Some(hardware()), EPISODES).await;
 
     let nominal = TwinProfile::default();
     let mut log = Vec::new();
@@ -226,4 +251,34 @@ async fn identification_recovers_the_emulated_hardware_and_closes_the_replay_gap
         after <= 0.25 * before,
         "nominal {before} m, fitted {after} m"
     );
+}
+
+/// The self-check: the nominal twin replays the unperturbed emulator's
+/// episodes with near-zero error, and the report says how well each reset
+/// placed the robot.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_nominal_twin_replays_the_unperturbed_emulator_almost_exactly() {
+    let scratch = scratch("self-check");
+    let episodes = record_on_emulated_hardware(&scratch, None, 3).await;
+    let replays: Vec<_> = episodes
+        .iter()
+        .map(|e| replay(e, &TwinProfile::default()).expect("replay"))
+        .collect();
+    let summary = Summary::of(&replays);
+    eprintln!("{}", markdown(&replays, &TwinProfile::default(), "nominal"));
+    assert!(summary.steps >= 3, "{summary:?}");
+    assert!(
+        summary.one_step_position_m.mean < 0.005 && summary.one_step_yaw_rad.mean < 0.01,
+        "one-step error with the emulator's own parameters: {summary:?}"
+    );
+    for r in &replays {
+        // The agent drives each reset: within its tolerances (5 cm,
+        // 0.08 rad; twice that for the tracker's and the settling's share).
+        assert!(
+            r.reset.position_error_m() < 0.10 && r.reset.yaw_error_rad() < 0.16,
+            "{:?}",
+            r.reset
+        );
+        assert!(r.reset.duration_s.is_some_and(|d| d > 0.0), "{:?}", r.reset);
+    }
 }
