@@ -189,49 +189,41 @@ async fn identification_recovers_the_emulated_hardware_and_closes_the_replay_gap
     let timing = fitted.timing.expect("the odometry time series was fitted");
     assert!(timing.speed_error_after < 0.5 * timing.speed_error_before);
     let five_percent = |v: f32| f64::from(v.abs()) * 0.05;
-    within(
-        "linear gain",
-        f64::from(p.motion.linear_gain),
-        f64::from(truth.motion.linear_gain),
-        five_percent(truth.motion.linear_gain),
-    );
-    within(
-        "angular gain",
-        f64::from(p.motion.angular_gain),
-        f64::from(truth.motion.angular_gain),
-        five_percent(truth.motion.angular_gain),
-    );
-    let settle = truth.motion.settle_time_s.expect("settle");
-    within(
-        "settle time",
-        f64::from(p.motion.settle_time_s.expect("fitted settle")),
-        f64::from(settle),
-        five_percent(settle),
-    );
-    within(
-        "latency",
-        f64::from(p.motion.latency_s),
-        f64::from(truth.motion.latency_s),
-        five_percent(truth.motion.latency_s),
-    );
-    within(
-        "camera height",
-        f64::from(p.camera.height_offset_m),
-        f64::from(truth.camera.height_offset_m),
-        five_percent(truth.camera.height_offset_m),
-    );
-    within(
-        "camera pitch",
-        f64::from(p.camera.pitch_deg),
-        f64::from(truth.camera.pitch_deg),
-        0.5,
-    );
-    within(
-        "camera yaw",
-        f64::from(p.camera.yaw_deg),
-        f64::from(truth.camera.yaw_deg),
-        0.5,
-    );
+    let (m, c) = (&truth.motion, &truth.camera);
+    let settle = m.settle_time_s.expect("settle");
+    let fitted_settle = p.motion.settle_time_s.expect("fitted settle");
+    // (parameter, fitted, hardware, tolerance): 5 %, angles 0.5°.
+    for (name, fitted, hardware, tolerance) in [
+        (
+            "linear gain",
+            p.motion.linear_gain,
+            m.linear_gain,
+            five_percent(m.linear_gain),
+        ),
+        (
+            "angular gain",
+            p.motion.angular_gain,
+            m.angular_gain,
+            five_percent(m.angular_gain),
+        ),
+        ("settle time", fitted_settle, settle, five_percent(settle)),
+        (
+            "latency",
+            p.motion.latency_s,
+            m.latency_s,
+            five_percent(m.latency_s),
+        ),
+        (
+            "camera height",
+            p.camera.height_offset_m,
+            c.height_offset_m,
+            five_percent(c.height_offset_m),
+        ),
+        ("camera pitch", p.camera.pitch_deg, c.pitch_deg, 0.5),
+        ("camera yaw", p.camera.yaw_deg, c.yaw_deg, 0.5),
+    ] {
+        within(name, f64::from(fitted), f64::from(hardware), tolerance);
+    }
 
     // The replay gap: the fitted twin within a quarter of the nominal one's.
     let one_step = |profile: &TwinProfile| {

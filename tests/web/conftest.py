@@ -5,6 +5,7 @@ Debian chromium driven by Playwright."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -89,23 +90,15 @@ class BookingLab:
     token: str
 
 
-@pytest.fixture()
-def lab(tmp_path: Path):
-    """Yields the Zenoh endpoint of a two-env deployment and the URL of
-    `lab_web` serving it, once the page lists both envs."""
+@contextlib.contextmanager
+def running_lab(db: Path, envs: list[str], ready: str, is_ready):
+    """Runs `env_controller serve` on `db` with `envs` (serve arguments) and
+    `lab_web` in front of it; yields (Zenoh endpoint, page URL) once
+    `is_ready(listing)` holds for the page's `/api/envs` (named `ready`)."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     controller = subprocess.Popen(
-        [
-            str(binary("env_controller")),
-            "--db",
-            str(tmp_path / "gym.db"),
-            "serve",
-            *[arg for env in ENVS for arg in ("--env", f"{env}=MonolithDiscrete")],
-            "--embedded-twins",
-            "--listen",
-            endpoint,
-        ],
+        [str(binary("env_controller")), "--db", str(db), "serve", *envs, "--listen", endpoint],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
@@ -125,19 +118,28 @@ def lab(tmp_path: Path):
         )
         url = f"http://127.0.0.1:{http_port}"
 
-        def both_listed() -> bool:
+        def listed() -> bool:
             try:
-                listed = get_json(f"{url}/api/envs")
+                return is_ready(get_json(f"{url}/api/envs")["envs"])
             except (urllib.error.URLError, ConnectionError):
                 return False
-            return [e["id"] for e in listed["envs"] if e["task"]] == list(ENVS)
 
-        wait_until("lab_web lists both envs", both_listed, web)
-        yield Lab(endpoint=endpoint, url=url)
+        wait_until(ready, listed, web)
+        yield endpoint, url
     finally:
         if web is not None:
             stop(web)
         stop(controller)
+
+
+@pytest.fixture()
+def lab(tmp_path: Path):
+    """Yields the Zenoh endpoint of a two-env deployment and the URL of
+    `lab_web` serving it, once the page lists both envs."""
+    envs = [arg for env in ENVS for arg in ("--env", f"{env}=MonolithDiscrete")] + ["--embedded-twins"]
+    both = lambda listed: [e["id"] for e in listed if e["task"]] == list(ENVS)  # noqa: E731
+    with running_lab(tmp_path / "gym.db", envs, "lab_web lists both envs", both) as (endpoint, url):
+        yield Lab(endpoint=endpoint, url=url)
 
 
 @pytest.fixture()
@@ -152,42 +154,13 @@ def booking_lab(tmp_path: Path):
         capture_output=True,
         timeout=30,
     ).stdout.decode().strip().splitlines()[-1]
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    controller = subprocess.Popen(
-        [str(binary("env_controller")), "--db", str(db), "serve", "--env", f"{REAL_ENV}=MonolithDiscrete", "--listen", endpoint],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
-    web = None
-    try:
 
-        def listening() -> bool:
-            with socket.socket() as s:
-                return s.connect_ex(("127.0.0.1", port)) == 0
+    def controller_listed(listed) -> bool:
+        return any(e["id"] == REAL_ENV and "controller" in e["components"] for e in listed)
 
-        wait_until("env_controller listens", listening, controller)
-        http_port = free_port()
-        web = subprocess.Popen(
-            [str(binary("lab_web")), "--connect", endpoint, "--http", f"127.0.0.1:{http_port}"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
-        url = f"http://127.0.0.1:{http_port}"
-
-        def controller_listed() -> bool:
-            try:
-                listed = get_json(f"{url}/api/envs")
-            except (urllib.error.URLError, ConnectionError):
-                return False
-            return any(e["id"] == REAL_ENV and "controller" in e["components"] for e in listed["envs"])
-
-        wait_until("lab_web lists the real env's controller", controller_listed, web)
+    envs = ["--env", f"{REAL_ENV}=MonolithDiscrete"]
+    with running_lab(db, envs, "lab_web lists the real env's controller", controller_listed) as (_, url):
         yield BookingLab(url=url, token=token)
-    finally:
-        if web is not None:
-            stop(web)
-        stop(controller)
 
 
 @pytest.fixture()
