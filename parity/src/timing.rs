@@ -61,10 +61,8 @@ struct Timeline {
 #[derive(Debug, Clone)]
 pub struct TimingData {
     timelines: Vec<Timeline>,
-    /// The world robot's nominal acceleration limits and top speed.
-    max_linear_accel: f64,
-    max_angular_accel: f64,
-    max_linear_speed: f64,
+    /// The world's robot (its nominal acceleration limits and top speed).
+    robot: RobotSpec,
     /// Moving steps and samples in all.
     moving_steps: usize,
     samples: usize,
@@ -133,9 +131,7 @@ impl TimingData {
         }
         Some(Self {
             timelines,
-            max_linear_accel: f64::from(robot.max_linear_accel),
-            max_angular_accel: f64::from(robot.max_angular_accel),
-            max_linear_speed: f64::from(robot.max_linear_speed),
+            robot: robot.clone(),
             moving_steps,
             samples,
         })
@@ -151,27 +147,13 @@ impl TimingData {
         self.samples
     }
 
-    /// The acceleration limits of a settle time (none: the world robot's),
-    /// as the twin's servo computes them.
-    fn accel_limits(&self, settle_time_s: Option<f64>) -> (f64, f64) {
-        match settle_time_s {
-            None => (self.max_linear_accel, self.max_angular_accel),
-            Some(t) => {
-                let scale = self.max_linear_speed / self.max_linear_accel / t;
-                (
-                    self.max_linear_accel * scale,
-                    self.max_angular_accel * scale,
-                )
-            }
-        }
-    }
-
     /// Mean squared speed error (m²/s², yaw rate weighted) of the servo
     /// with `profile`'s latency and settle time against the odometry.
     pub fn cost(&self, profile: &TwinProfile) -> f64 {
         let latency = f64::from(profile.motion.latency_s);
-        let (linear_accel, angular_accel) =
-            self.accel_limits(profile.motion.settle_time_s.map(f64::from));
+        // The twin's own servo limits for this settle time.
+        let (linear_accel, angular_accel) = profile.motion.accel_limits(&self.robot);
+        let (linear_accel, angular_accel) = (f64::from(linear_accel), f64::from(angular_accel));
         let (mut sum, mut n) = (0.0, 0usize);
         for timeline in &self.timelines {
             let mut servo = Servo::default();
@@ -238,9 +220,9 @@ mod tests {
             moving_steps: commands.len(),
             samples: samples.len(),
             timelines: vec![Timeline { commands, samples }],
-            max_linear_accel: 1.5,
-            max_angular_accel: 12.0,
-            max_linear_speed: 0.7,
+            robot: offworld_runtime::world::WorldSpec::builtin("monolith")
+                .expect("world")
+                .robot,
         }
     }
 

@@ -147,17 +147,7 @@ impl RobotPhysics {
     /// The default profile is the nominal base, bit for bit.
     pub fn set_profile(&mut self, motion: MotionProfile) {
         self.motion = motion;
-        (self.linear_accel, self.angular_accel) = match motion.settle_time_s {
-            None => (self.spec.max_linear_accel, self.spec.max_angular_accel),
-            Some(t) => {
-                let nominal = self.spec.max_linear_speed / self.spec.max_linear_accel;
-                let scale = nominal / t;
-                (
-                    self.spec.max_linear_accel * scale,
-                    self.spec.max_angular_accel * scale,
-                )
-            }
-        };
+        (self.linear_accel, self.angular_accel) = motion.accel_limits(&self.spec);
         self.latency_steps = (motion.latency_s.max(0.0) / DT).round() as u64;
         while let Some((_, linear, angular)) = self.pending.pop_front() {
             self.servo.target_linear = linear;

@@ -50,6 +50,25 @@ pub struct MotionProfile {
     pub settle_time_s: Option<f32>,
 }
 
+impl MotionProfile {
+    /// The servo's acceleration limits (m/s², rad/s²) for `robot`: its own,
+    /// scaled by nominal settle time (`max_linear_speed / max_linear_accel`)
+    /// over this profile's, when it sets one.
+    pub fn accel_limits(&self, robot: &offworld_runtime::world::RobotSpec) -> (f32, f32) {
+        match self.settle_time_s {
+            None => (robot.max_linear_accel, robot.max_angular_accel),
+            Some(t) => {
+                let nominal = robot.max_linear_speed / robot.max_linear_accel;
+                let scale = nominal / t;
+                (
+                    robot.max_linear_accel * scale,
+                    robot.max_angular_accel * scale,
+                )
+            }
+        }
+    }
+}
+
 impl Default for MotionProfile {
     fn default() -> Self {
         Self {

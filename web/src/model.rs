@@ -4,7 +4,8 @@
 
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::msg::{
-    Booking, EStopState, EnvState, EnvStatus, LatchState, Leaderboard, ResetAccuracy, Time,
+    Booking, EStopState, EnvState, EnvStatus, LatchState, Leaderboard, LeaderboardEntry,
+    ResetAccuracy, Time,
 };
 use serde::Serialize;
 
@@ -196,18 +197,9 @@ pub struct LeaderboardView {
 pub struct LeaderboardRow {
     /// 1 for the best.
     pub rank: usize,
-    /// Experiment name.
-    pub experiment: String,
-    /// Owner's user name.
-    pub user: String,
-    /// `end2end`, …
-    pub learning_type: String,
-    /// Test episodes evaluated.
-    pub episodes: u64,
-    /// Fraction of episodes that reached the monolith.
-    pub success_rate: f64,
-    /// Mean episode return.
-    pub mean_return: f64,
+    /// The controller's entry, its fields side by side with `rank` in JSON.
+    #[serde(flatten)]
+    pub entry: LeaderboardEntry,
 }
 
 impl From<Leaderboard> for LeaderboardView {
@@ -218,15 +210,7 @@ impl From<Leaderboard> for LeaderboardView {
                 .entries
                 .into_iter()
                 .enumerate()
-                .map(|(i, e)| LeaderboardRow {
-                    rank: i + 1,
-                    experiment: e.experiment,
-                    user: e.user,
-                    learning_type: e.learning_type,
-                    episodes: e.episodes,
-                    success_rate: e.success_rate,
-                    mean_return: e.mean_return,
-                })
+                .map(|(i, entry)| LeaderboardRow { rank: i + 1, entry })
                 .collect(),
         }
     }

@@ -274,14 +274,15 @@ fn leaderboard_table(board: &LeaderboardView) -> Markup {
             }
             tbody {
                 @for row in &board.entries {
+                    @let entry = &row.entry;
                     tr {
                         td.num data-value=(row.rank) { (row.rank) }
-                        td data-value=(row.experiment) { (row.experiment) }
-                        td data-value=(row.user) { (row.user) }
-                        td data-value=(row.learning_type) { (row.learning_type) }
-                        td.num data-value=(row.episodes) { (row.episodes) }
-                        td.num data-value=(row.success_rate) { (format!("{:.0} %", row.success_rate * 100.0)) }
-                        td.num data-value=(row.mean_return) { (format!("{:.2}", row.mean_return)) }
+                        td data-value=(entry.experiment) { (entry.experiment) }
+                        td data-value=(entry.user) { (entry.user) }
+                        td data-value=(entry.learning_type) { (entry.learning_type) }
+                        td.num data-value=(entry.episodes) { (entry.episodes) }
+                        td.num data-value=(entry.success_rate) { (format!("{:.0} %", entry.success_rate * 100.0)) }
+                        td.num data-value=(entry.mean_return) { (format!("{:.2}", entry.mean_return)) }
                     }
                 }
             }

@@ -22,13 +22,15 @@ use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::msg::{Action, AlgorithmMode, ObsOptions, OpenRequest, Seed};
+use offworld_runtime::msg::{AlgorithmMode, ObsOptions, OpenRequest, Seed};
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::zenoh::Session;
 use offworld_web::{LabWeb, WebOptions};
 use serde_json::Value;
 
 /// Bound of every wait for something that must happen (never a speed).
+mod common;
+
 const EVENTUALLY: Duration = Duration::from_secs(20);
 
 const ALICE: &str = "alice-web-token-0001";
@@ -473,15 +475,7 @@ async fn run_episodes(session: &Session, token: &str, experiment: &str, episodes
             .reset(Seed::Fixed(u64::from(episode) + 1))
             .await
             .expect("reset");
-        let mut steps = 0u32;
-        loop {
-            let reply = client.step(Action::Discrete(0)).await.expect("step");
-            steps += 1;
-            if reply.terminated || reply.truncated {
-                break;
-            }
-            assert!(steps < 10_000, "the episode never ended");
-        }
+        common::play_to_end(&mut client).await;
     }
     client.close().await.expect("close");
 }

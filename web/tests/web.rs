@@ -20,13 +20,15 @@ use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::msg::{Action, AlgorithmMode, ObsOptions, OpenRequest, Seed};
+use offworld_runtime::msg::{AlgorithmMode, ObsOptions, OpenRequest, Seed};
 use offworld_runtime::session::{loopback_pair, SessionConfig};
 use offworld_runtime::zenoh::Session;
 use offworld_web::{DiscoveryConfig, LabWeb, Limits, WebOptions};
 use serde_json::{json, Value};
 
 /// Bound of every wait for something that must happen (never a speed).
+mod common;
+
 const EVENTUALLY: Duration = Duration::from_secs(20);
 
 type HttpClient = Client<HttpConnector, Empty<Bytes>>;
@@ -367,15 +369,7 @@ async fn the_leaderboard_ranks_test_runs_as_json_and_on_the_env_page() {
     )
     .await;
     client.reset(Seed::Fixed(3)).await.expect("reset");
-    let mut steps = 0u32;
-    loop {
-        let reply = client.step(Action::Discrete(0)).await.expect("step");
-        steps += 1;
-        if reply.terminated || reply.truncated {
-            break;
-        }
-        assert!(steps < 10_000, "the episode never ended");
-    }
+    common::play_to_end(&mut client).await;
     client.close().await.expect("close");
 
     let (status, _, body) = lab.get("/api/envs/sim/web-a/leaderboard").await;
