@@ -10,6 +10,13 @@
 //! Run: `cargo bench -p offworld-env-controller --bench record_cost`
 //! (`RECORD_COST_ROUNDS=N` for more rounds than the default 5: the cost is
 //! the median of each round's paired ratio, so more rounds narrow it).
+//!
+//! Wall clock on a shared 2-core VM swings by several points from one run
+//! to the next, so the cost is also counted in instructions, which do not
+//! (two runs agree within 0.1 %): `RECORD_COST_INSTRUCTIONS=1` runs the
+//! bench itself under callgrind, with and without recording, for
+//! [`FEW_STEPS`] and [`STEPS`] + [`FEW_STEPS`] steps: the difference of the
+//! two counts is 1,000 steps' work on every thread, without the setup.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -22,6 +29,8 @@ use offworld_runtime::msg::*;
 
 const DEFAULT_ROUNDS: usize = 5;
 const STEPS: usize = 1000;
+/// The shorter run of an instruction count (its setup is subtracted).
+const FEW_STEPS: usize = 200;
 
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -37,8 +46,9 @@ fn scratch(name: &str) -> PathBuf {
     dir
 }
 
-/// Steps/s of `STEPS` random-ish steps on a fresh embedded env.
+/// Steps/s of `steps` random-ish steps on a fresh embedded env.
 async fn steps_per_s(
+    steps: usize,
     (w, h): (u32, u32),
     channels: Channels,
     record: Option<&Path>,
@@ -73,7 +83,7 @@ async fn steps_per_s(
         .await
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     let start = Instant::now();
-    for i in 0..STEPS {
+    for i in 0..steps {
         let reply = client
             .step(Action::Discrete((i % 3) as i64))
             .await
@@ -85,7 +95,7 @@ async fn steps_per_s(
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
         }
     }
-    let rate = STEPS as f64 / start.elapsed().as_secs_f64();
+    let rate = steps as f64 / start.elapsed().as_secs_f64();
     client.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(rate)
 }
@@ -162,22 +172,99 @@ fn recorded_frames(dir: &Path) -> anyhow::Result<Vec<[Vec<u8>; 4]>> {
     Ok(frames)
 }
 
+/// The positive whole number in variable `name`, or `default`.
+fn count_from_env(name: &str, default: usize) -> anyhow::Result<usize> {
+    match std::env::var(name) {
+        Ok(n) => n
+            .parse::<usize>()
+            .ok()
+            .filter(|n| *n > 0)
+            .ok_or_else(|| anyhow::anyhow!("{name}={n}: a positive whole number")),
+        Err(_) => Ok(default),
+    }
+}
+
+/// One embedded env, with or without recording, for an instruction count.
+async fn only(mode: &str, steps: usize) -> anyhow::Result<()> {
+    let dir = scratch("only");
+    let record = match mode {
+        "with" => Some(dir.join("runs")),
+        "without" => None,
+        other => anyhow::bail!("RECORD_COST_ONLY={other}: `with` or `without`"),
+    };
+    let rate = steps_per_s(steps, (84, 84), Channels::DepthOnly, record.as_deref()).await?;
+    println!("{mode} recording: {steps} steps, {rate:.0} steps/s");
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+/// Instructions of this bench run under callgrind in `mode` for `steps`.
+fn spawn_callgrind(mode: &str, steps: usize) -> anyhow::Result<std::process::Child> {
+    let exe = std::env::current_exe()?;
+    std::process::Command::new("valgrind")
+        .args(["--tool=callgrind", "--callgrind-out-file=/dev/null"])
+        .arg(exe)
+        .env("RECORD_COST_ONLY", mode)
+        .env("RECORD_COST_STEPS", steps.to_string())
+        .env_remove("RECORD_COST_INSTRUCTIONS")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .map_err(|e| anyhow::anyhow!("cannot run valgrind (is it installed?): {e}"))
+}
+
+fn collected(child: std::process::Child) -> anyhow::Result<u64> {
+    let output = child.wait_with_output()?;
+    let log = String::from_utf8_lossy(&output.stderr);
+    log.lines()
+        .find_map(|line| {
+            line.split_once("Collected :")
+                .map(|(_, n)| n.trim().parse().ok())
+        })
+        .flatten()
+        .ok_or_else(|| anyhow::anyhow!("no instruction count in callgrind's output:\n{log}"))
+}
+
+/// The cost of recording in instructions per step, all threads counted.
+fn instructions() -> anyhow::Result<()> {
+    println!(
+        "instructions per embedded step, 84×84 depth, all threads (callgrind; {STEPS} steps = \
+         {} − {FEW_STEPS}):",
+        STEPS + FEW_STEPS
+    );
+    let mut per_step = Vec::new();
+    for mode in ["without", "with"] {
+        // Both lengths at once: callgrind runs a process on one core.
+        let short = spawn_callgrind(mode, FEW_STEPS)?;
+        let long = spawn_callgrind(mode, STEPS + FEW_STEPS)?;
+        let (short, long) = (collected(short)?, collected(long)?);
+        let instructions = long.saturating_sub(short) as f64 / STEPS as f64;
+        println!("  {mode:>7} recording: {instructions:.0}");
+        per_step.push(instructions);
+    }
+    println!(
+        "  cost: {:.1} % more instructions per step",
+        100.0 * (per_step[1] / per_step[0] - 1.0)
+    );
+    Ok(())
+}
+
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
-    let rounds =
-        match std::env::var("RECORD_COST_ROUNDS") {
-            Ok(n) => n.parse::<usize>().ok().filter(|n| *n > 0).ok_or_else(|| {
-                anyhow::anyhow!("RECORD_COST_ROUNDS={n}: a positive whole number")
-            })?,
-            Err(_) => DEFAULT_ROUNDS,
-        };
+    if let Ok(mode) = std::env::var("RECORD_COST_ONLY") {
+        return only(&mode, count_from_env("RECORD_COST_STEPS", STEPS)?).await;
+    }
+    if std::env::var_os("RECORD_COST_INSTRUCTIONS").is_some() {
+        return instructions();
+    }
+    let rounds = count_from_env("RECORD_COST_ROUNDS", DEFAULT_ROUNDS)?;
     let dir = scratch("rate");
     println!("embedded step rate, 84×84 depth, {STEPS} steps × {rounds} rounds (interleaved):");
     let (mut plain, mut recorded, mut costs) = (Vec::new(), Vec::new(), Vec::new());
     for round in 0..rounds {
-        let without = steps_per_s((84, 84), Channels::DepthOnly, None).await?;
+        let without = steps_per_s(STEPS, (84, 84), Channels::DepthOnly, None).await?;
         let into = dir.join(format!("round-{round}"));
-        let with = steps_per_s((84, 84), Channels::DepthOnly, Some(&into)).await?;
+        let with = steps_per_s(STEPS, (84, 84), Channels::DepthOnly, Some(&into)).await?;
         let _ = std::fs::remove_dir_all(&into);
         plain.push(without);
         recorded.push(with);
@@ -197,7 +284,7 @@ async fn main() -> anyhow::Result<()> {
 
     // Real frames: 320×240 RGBD as the twin renders them.
     let dir = scratch("frames");
-    steps_per_s((320, 240), Channels::Rgbd, Some(&dir.join("runs"))).await?;
+    steps_per_s(STEPS, (320, 240), Channels::Rgbd, Some(&dir.join("runs"))).await?;
     let frames = recorded_frames(&dir.join("runs"))?;
     let bytes: usize = frames.iter().flatten().map(Vec::len).sum();
     let mut per_step = writer_ms_per_step(&frames, &dir)?;

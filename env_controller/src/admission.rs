@@ -75,6 +75,19 @@ impl Default for RequestLimits {
 }
 
 impl RequestLimits {
+    /// The limits of a controller that serves only the process that
+    /// started it (`gymnasium.make` of a sim env, on a private session):
+    /// no rate a client can reach (a million requests a second), since a
+    /// limit would only cap the researcher's own training (a twin steps up
+    /// to ~3,800 times a second at 84×84); the queue and size limits stay.
+    pub fn in_process() -> Self {
+        Self {
+            client_rate_per_s: 1_000_000,
+            client_burst: 1_000_000,
+            ..Self::default()
+        }
+    }
+
     /// Checks the limits themselves (a site's configuration).
     pub fn check(&self) -> Result<(), ControllerError> {
         let bad = |why: String| Err(ControllerError::Config(why));
@@ -412,5 +425,22 @@ mod tests {
         let e = rates.check(UNTAGGED).expect_err("shared bucket");
         assert!(e.message.contains("without a client tag"), "{e}");
         assert_eq!(rates.tracked(), 3);
+    }
+
+    #[test]
+    fn an_in_process_controller_never_throttles_its_own_trainer() {
+        let limits = RequestLimits::in_process();
+        limits.check().expect("valid limits");
+        let rates = ClientRates::new(&limits);
+        // Ten times the default burst at once: a tight training loop.
+        for i in 0..10 * RequestLimits::default().client_burst {
+            rates
+                .check("trainer")
+                .unwrap_or_else(|e| panic!("request {i}: {e}"));
+        }
+        assert_eq!(
+            limits.max_request_bytes,
+            RequestLimits::default().max_request_bytes
+        );
     }
 }

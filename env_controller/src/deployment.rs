@@ -95,7 +95,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 &sims,
                 Store::in_memory()?,
                 EnvOptions::default(),
-                RequestLimits::default(),
+                RequestLimits::in_process(),
                 record.as_deref(),
             )
             .await?;
