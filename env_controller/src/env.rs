@@ -10,11 +10,11 @@ use offworld_recorder::{EnvRecorder, RecordTo, StepRecord};
 use offworld_runtime::codec::{self, Encoded};
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
-    AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec, EnvState,
-    EnvStatus, EpisodeEvent, EpisodeRecordEntry, ExperimentInfo, ExperimentRecord, Experiments,
-    ExperimentsRequest, Header, Leaderboard, MotionCommand, ObsOptions, OpenReply, OpenRequest,
-    Pose2D, RecordingFile, ResetAccuracy, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
-    Time, Twist, EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
+    AdminReply, AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec,
+    EnvState, EnvStatus, EpisodeEvent, EpisodeRecordEntry, ExperimentInfo, ExperimentRecord,
+    Experiments, ExperimentsRequest, Header, Leaderboard, MotionCommand, ObsOptions, OpenReply,
+    OpenRequest, Pose2D, RecordingFile, ResetAccuracy, ResetReply, ResetRequest, Seed, StepReply,
+    StepRequest, Time, Twist, EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
 };
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::zenoh::pubsub::Publisher;
@@ -149,9 +149,38 @@ impl Episode {
     }
 }
 
+/// An operator's maintenance: why, by whom, until when.
+#[derive(Debug, Clone)]
+struct Maintenance {
+    message: String,
+    by: String,
+    /// 0: not said.
+    back_unix_ms: i64,
+}
+
+impl Maintenance {
+    /// The refusal of a request while it lasts.
+    fn refusal(&self, env: &EnvId) -> WireError {
+        let back = if self.back_unix_ms > 0 {
+            format!(" (expected back at {})", format_unix_ms(self.back_unix_ms))
+        } else {
+            String::new()
+        };
+        WireError::unavailable(format!("{env} is in maintenance: {}{back}", self.message))
+    }
+}
+
+/// A lease an operator revoked: its holder's next request is told why.
+struct Revoked {
+    session_id: String,
+    reason: String,
+}
+
 struct State {
     lease: Option<Lease>,
-    maintenance: Option<String>,
+    maintenance: Option<Maintenance>,
+    /// The last revoked lease.
+    revoked: Option<Revoked>,
     episode: Option<Episode>,
     sampler: SpawnSampler,
     seq: u64,
@@ -165,9 +194,9 @@ struct State {
 /// lease lapsed) is read live.
 #[derive(Debug, Clone, Default)]
 struct Posted {
-    maintenance: Option<String>,
-    /// The lease's end: when it lapses, and in Unix ms.
-    lease: Option<(Instant, i64)>,
+    maintenance: Option<Maintenance>,
+    /// The lease: when it lapses, the same in Unix ms, its holder's name.
+    lease: Option<(Instant, i64, String)>,
     last_reset: ResetAccuracy,
 }
 
@@ -175,7 +204,10 @@ impl Posted {
     fn of(state: &State) -> Self {
         Self {
             maintenance: state.maintenance.clone(),
-            lease: state.lease.as_ref().map(|l| (l.expires, l.expires_unix_ms)),
+            lease: state
+                .lease
+                .as_ref()
+                .map(|l| (l.expires, l.expires_unix_ms, l.user.name.clone())),
             last_reset: state.last_reset,
         }
     }
@@ -275,6 +307,7 @@ impl EnvServer {
             state: AsyncMutex::new(State {
                 lease: None,
                 maintenance: None,
+                revoked: None,
                 episode: None,
                 sampler: SpawnSampler::new(options.seed),
                 seq: 0,
@@ -337,9 +370,11 @@ impl EnvServer {
     }
 
     fn state_from(&self, posted: &Posted) -> EnvState {
-        if let Some(message) = &posted.maintenance {
+        if let Some(maintenance) = &posted.maintenance {
             return EnvState::Maintenance {
-                message: message.clone(),
+                message: maintenance.message.clone(),
+                by: maintenance.by.clone(),
+                back_unix_ms: maintenance.back_unix_ms,
             };
         }
         if !self.link.online() {
@@ -347,9 +382,12 @@ impl EnvServer {
                 reason: "no robot or sim twin is serving this env".into(),
             };
         }
-        match posted.lease {
-            Some((expires, until_unix_ms)) if expires > Instant::now() => {
-                EnvState::Leased { until_unix_ms }
+        match &posted.lease {
+            Some((expires, until_unix_ms, holder)) if *expires > Instant::now() => {
+                EnvState::Leased {
+                    until_unix_ms: *until_unix_ms,
+                    holder: holder.clone(),
+                }
             }
             _ => EnvState::Free,
         }
@@ -424,16 +462,25 @@ impl EnvServer {
             Some(l) if l.session_id == session_id && l.expires > now && !l.disconnected => {
                 l.expires = now + self.options.lease_idle;
                 l.expires_unix_ms = unix_ms_in(self.options.lease_idle);
-                let end = (l.expires, l.expires_unix_ms);
-                self.posted.send_modify(|p| p.lease = Some(end));
+                let (expires, until) = (l.expires, l.expires_unix_ms);
+                self.posted.send_modify(|p| {
+                    if let Some(posted) = p.lease.as_mut() {
+                        (posted.0, posted.1) = (expires, until);
+                    }
+                });
                 Ok(l)
             }
             Some(l) if l.session_id == session_id => Err(WireError::unauthorized(
                 "your lease expired; open the env again to continue",
             )),
-            _ => Err(WireError::unauthorized(
-                "this session does not hold the env's lease",
-            )),
+            _ => match &state.revoked {
+                Some(revoked) if revoked.session_id == session_id => {
+                    Err(WireError::unauthorized(revoked.reason.clone()))
+                }
+                _ => Err(WireError::unauthorized(
+                    "this session does not hold the env's lease",
+                )),
+            },
         }
     }
 
@@ -450,11 +497,8 @@ impl EnvServer {
         validate_experiment_name(&name)?;
         let user = self.authenticate(&req.token)?;
         let mut state = self.state.lock().await;
-        if let Some(message) = &state.maintenance {
-            return Err(WireError::unavailable(format!(
-                "{} is in maintenance: {message}",
-                self.env
-            )));
+        if let Some(maintenance) = &state.maintenance {
+            return Err(maintenance.refusal(&self.env));
         }
         if !self.link.online() {
             return Err(WireError::unavailable(format!(
@@ -547,8 +591,8 @@ impl EnvServer {
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
         self.holder(&mut state, &req.session_id)?;
-        if let Some(message) = &state.maintenance {
-            return Err(WireError::unavailable(format!("in maintenance: {message}")));
+        if let Some(maintenance) = &state.maintenance {
+            return Err(maintenance.refusal(&self.env));
         }
         if let Err(refused) = self.estops.refuse_motion() {
             self.abort_episode(&mut state, &refused.message).await;
@@ -682,8 +726,8 @@ impl EnvServer {
         let lease = self.holder(&mut state, &req.session_id)?;
         let obs = lease.obs;
         let experiment = (lease.experiment.name.clone(), lease.experiment.id);
-        if let Some(message) = &state.maintenance {
-            return Err(WireError::unavailable(format!("in maintenance: {message}")));
+        if let Some(maintenance) = &state.maintenance {
+            return Err(maintenance.refusal(&self.env));
         }
         if let Err(refused) = self.estops.refuse_motion() {
             // Whatever stopped the robot may have moved it: the episode
@@ -776,28 +820,76 @@ impl EnvServer {
         })
     }
 
-    /// `admin`: operators put the env into or out of maintenance.
-    pub async fn admin(&self, req: AdminRequest) -> Result<EnvStatus, WireError> {
-        let token = match &req {
-            AdminRequest::SetMaintenance { token, .. }
-            | AdminRequest::ClearMaintenance { token } => token,
+    /// `admin`: who a token is (anyone's); operators put the env into or
+    /// out of maintenance and revoke its lease.
+    pub async fn admin(&self, req: AdminRequest) -> Result<AdminReply, WireError> {
+        let user = self
+            .store(|s| s.authenticate(req.token()))?
+            .filter(|u| u.name != ANONYMOUS)
+            .ok_or_else(|| WireError::unauthorized("unknown access token"))?;
+        let reply = |status| AdminReply {
+            user: user.name.clone(),
+            operator: user.is_operator(),
+            status,
         };
-        let user = self.store(|s| s.authenticate(token))?;
-        if !user.as_ref().is_some_and(User::is_operator) {
-            return Err(WireError::unauthorized("operator token required"));
+        if let AdminRequest::Identify { .. } = req {
+            return Ok(reply(self.status()));
+        }
+        if !user.is_operator() {
+            return Err(WireError::unauthorized(format!(
+                "{} is not an operator: only operators change an env's service",
+                user.name
+            )));
         }
         let mut state = self.state.lock().await;
         match req {
-            AdminRequest::SetMaintenance { message, .. } => {
-                tracing::warn!(env = %self.env, %message, "maintenance on");
+            AdminRequest::SetMaintenance {
+                message,
+                back_unix_ms,
+                ..
+            } => {
+                validate_operator_text("maintenance message", &message)?;
+                tracing::warn!(env = %self.env, %message, by = %user.name, "maintenance on");
                 self.link.stop().await;
                 self.abort_episode(&mut state, "maintenance").await;
-                state.maintenance = Some(message);
+                state.maintenance = Some(Maintenance {
+                    message,
+                    by: user.name.clone(),
+                    back_unix_ms: back_unix_ms.max(0),
+                });
             }
-            AdminRequest::ClearMaintenance { .. } => state.maintenance = None,
+            AdminRequest::ClearMaintenance { .. } => {
+                tracing::warn!(env = %self.env, by = %user.name, "maintenance off");
+                state.maintenance = None;
+            }
+            AdminRequest::RevokeLease { reason, .. } => {
+                validate_operator_text("reason", &reason)?;
+                if state.lease.is_none() {
+                    return Err(WireError::not_found(format!(
+                        "{} has no lease to revoke",
+                        self.env
+                    )));
+                }
+                self.link.stop().await;
+                // Recorded while the lease (its experiment) is still known.
+                self.abort_episode(&mut state, "lease revoked").await;
+                state.episode = None;
+                let Some(lease) = state.lease.take() else {
+                    return Err(WireError::internal("lease vanished"));
+                };
+                tracing::warn!(env = %self.env, holder = %lease.user.name, by = %user.name, %reason, "lease revoked");
+                state.revoked = Some(Revoked {
+                    session_id: lease.session_id,
+                    reason: format!(
+                        "your lease on {} was revoked by the operator {}: {reason}",
+                        self.env, user.name
+                    ),
+                });
+            }
+            AdminRequest::Identify { .. } => {}
         }
         self.publish_status(&mut state).await;
-        Ok(self.status_of(&state))
+        Ok(reply(self.status_of(&state)))
     }
 
     /// Ends the lease of `session_id` when its booked slot is over or
@@ -1219,6 +1311,25 @@ fn experiment_info(e: &ExperimentRecord) -> ExperimentInfo {
         episodes: e.episodes,
         steps: e.steps,
     }
+}
+
+/// Longest operator message (maintenance, revocation reason), characters.
+pub const MAX_OPERATOR_TEXT: usize = 500;
+
+/// An operator's `what`: 1 to [`MAX_OPERATOR_TEXT`] characters, no control
+/// characters (it is shown on pages and in logs).
+fn validate_operator_text(what: &str, text: &str) -> Result<(), WireError> {
+    let bad = |why: String| Err(WireError::bad_request(why));
+    if text.trim().is_empty() {
+        return bad(format!("the {what} must say something"));
+    }
+    if text.chars().take(MAX_OPERATOR_TEXT + 1).count() > MAX_OPERATOR_TEXT {
+        return bad(format!("the {what} is over {MAX_OPERATOR_TEXT} characters"));
+    }
+    if text.chars().any(char::is_control) {
+        return bad(format!("the {what} holds a control character"));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -33,14 +33,6 @@ pub enum ControllerError {
     /// Episodes cannot be recorded where asked (checked at start).
     #[error("{0}")]
     Record(#[from] offworld_recorder::RecordError),
-    /// An e-stop some present robot or twin did not acknowledge in time.
-    #[error("{message}")]
-    Unacknowledged {
-        /// What to tell the operator.
-        message: String,
-        /// Who did acknowledge, and who not.
-        report: crate::operator::PressReport,
-    },
 }
 
 impl From<ControllerError> for WireError {
@@ -52,7 +44,6 @@ impl From<ControllerError> for WireError {
             ControllerError::Config(m) => WireError::bad_request(m),
             ControllerError::Busy(m) => WireError::busy(m),
             ControllerError::Unauthorized(m) => WireError::unauthorized(m),
-            ControllerError::Unacknowledged { message, .. } => WireError::unavailable(message),
             // Store and Zenoh details stay in the server log.
             ControllerError::Store(m) => {
                 tracing::error!("store failure: {m}");

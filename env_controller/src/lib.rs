@@ -17,7 +17,6 @@
 //!   queue), decided without waiting.
 //! - [`server`]: many envs served over Zenoh.
 //! - [`embedded`]: twins + controller in one process.
-//! - [`operator`]: the operator's e-stops.
 
 pub mod admission;
 pub mod deployment;
@@ -28,7 +27,6 @@ mod error;
 pub mod estops;
 pub mod link;
 pub mod observation;
-pub mod operator;
 pub mod server;
 pub mod store;
 pub mod task;

@@ -16,11 +16,9 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::link::LinkSeals;
-use offworld_env_controller::operator::{press_estop, EStopScope};
 use offworld_env_controller::store::BookingRules;
-use offworld_env_controller::{
-    Controller, ControllerError, EnvOptions, RequestLimits, Store, Task,
-};
+use offworld_env_controller::{Controller, EnvOptions, RequestLimits, Store, Task};
+use offworld_runtime::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::seal::{SealArgs, Sealer};
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
@@ -292,7 +290,7 @@ async fn main() -> anyhow::Result<()> {
             let verb = if release { "released" } else { "engaged" };
             let report = match &pressed {
                 Ok(report) => report,
-                Err(ControllerError::Unacknowledged { report, .. }) => report,
+                Err(PressError::Unacknowledged { report, .. }) => report,
                 Err(_) => return Ok(pressed.map(drop)?),
             };
             println!("e-stop {verb} on {}", scope.key());

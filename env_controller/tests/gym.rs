@@ -424,27 +424,56 @@ async fn leases_busy_disconnect_and_maintenance() {
     assert_eq!(r.info.episode_id, 1, "episode ids continue");
     alice.close().await.expect("close");
 
-    // Maintenance: only operators; users are told why.
+    // Who a token is: any user may ask; nothing changes.
+    let who: AdminReply = wire::request(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &AdminRequest::Identify { token: BOB.into() },
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("identify");
+    assert_eq!((who.user.as_str(), who.operator), ("bob", false));
+    assert_eq!(who.status.state, EnvState::Free);
+    let unknown = wire::request::<_, AdminReply>(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &AdminRequest::Identify {
+            token: "no-such-token".into(),
+        },
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| e.into_wire().code)
+    .err();
+    assert_eq!(unknown, Some(ErrorCode::Unauthorized));
+
+    // Maintenance: only operators; users are told why and until when.
     let set = AdminRequest::SetMaintenance {
         token: BOB.into(),
         message: "new wheels".into(),
+        back_unix_ms: 0,
     };
-    let r: Result<EnvStatus, _> = wire::request(
+    let r: Result<AdminReply, _> = wire::request(
         &bob_session,
         &d.env.key(Topic::Admin),
         &set,
         Duration::from_secs(5),
     )
     .await;
-    assert_eq!(
-        r.map_err(|e| e.into_wire().code).err(),
-        Some(ErrorCode::Unauthorized)
+    let refused = r.map_err(|e| e.into_wire()).expect_err("not an operator");
+    assert_eq!(refused.code, ErrorCode::Unauthorized);
+    assert!(
+        refused.message.contains("bob is not an operator"),
+        "{refused}"
     );
+    let back = 4_102_444_800_000; // 2100-01-01
     let set = AdminRequest::SetMaintenance {
         token: OPERATOR.into(),
         message: "new wheels".into(),
+        back_unix_ms: back,
     };
-    let status: EnvStatus = wire::request(
+    let reply: AdminReply = wire::request(
         &bob_session,
         &d.env.key(Topic::Admin),
         &set,
@@ -452,10 +481,13 @@ async fn leases_busy_disconnect_and_maintenance() {
     )
     .await
     .expect("admin");
+    assert_eq!((reply.user.as_str(), reply.operator), ("ops", true));
     assert_eq!(
-        status.state,
+        reply.status.state,
         EnvState::Maintenance {
-            message: "new wheels".into()
+            message: "new wheels".into(),
+            by: "ops".into(),
+            back_unix_ms: back,
         }
     );
     let refused = open(&bob_session, &d.env, BOB, "m")
@@ -463,25 +495,111 @@ async fn leases_busy_disconnect_and_maintenance() {
         .err()
         .expect("maintenance");
     assert_eq!(refused.code, ErrorCode::Unavailable);
-    assert!(refused.message.contains("new wheels"));
+    assert!(refused.message.contains("new wheels"), "{refused}");
+    assert!(
+        refused.message.contains("expected back at 2100-01-01"),
+        "{refused}"
+    );
     let clear = AdminRequest::ClearMaintenance {
         token: OPERATOR.into(),
     };
-    let status: EnvStatus = wire::request(
+    let status = wire::request::<_, AdminReply>(
         &bob_session,
         &d.env.key(Topic::Admin),
         &clear,
         Duration::from_secs(5),
     )
     .await
-    .expect("admin");
+    .expect("admin")
+    .status;
     assert_eq!(status.state, EnvState::Free);
-    open(&bob_session, &d.env, BOB, "m")
+
+    // A revoked lease: the holder is named on the status while it holds
+    // the env, its episode is recorded as aborted, its next request is
+    // told who revoked it and why, and the env is free for others.
+    let mut bob = open(&bob_session, &d.env, BOB, "revoked")
         .await
-        .expect("bob gets the env")
-        .close()
+        .expect("bob gets the env");
+    bob.reset(Seed::Fixed(3)).await.expect("reset");
+    bob.step(Action::Discrete(2)).await.expect("step");
+    let revoke = |token: &str| AdminRequest::RevokeLease {
+        token: token.into(),
+        reason: "the enclosure is needed for a demo".into(),
+    };
+    let status = wire::request::<_, EnvStatus>(
+        &bob_session,
+        &d.env.key(Topic::Status),
+        &(),
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("status");
+    assert!(
+        matches!(&status.state, EnvState::Leased { holder, .. } if holder == "bob"),
+        "{status:?}"
+    );
+    let by_user = wire::request::<_, AdminReply>(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &revoke(BOB),
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| e.into_wire().code)
+    .err();
+    assert_eq!(by_user, Some(ErrorCode::Unauthorized));
+    let reply: AdminReply = wire::request(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &revoke(OPERATOR),
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("revoke");
+    assert_eq!(reply.status.state, EnvState::Free);
+    let told = bob
+        .step(Action::Discrete(2))
         .await
-        .expect("close");
+        .expect_err("the lease is gone");
+    assert_eq!(told.code, ErrorCode::Unauthorized);
+    assert_eq!(
+        told.message,
+        format!(
+            "your lease on {} was revoked by the operator ops: the enclosure is needed for a demo",
+            d.env
+        )
+    );
+    let nothing = wire::request::<_, AdminReply>(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &revoke(OPERATOR),
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| e.into_wire().code)
+    .err();
+    assert_eq!(nothing, Some(ErrorCode::NotFound));
+    let mut alice = open(&bob_session, &d.env, ALICE, "after")
+        .await
+        .expect("alice gets the env");
+    alice.close().await.expect("close");
+    let mut reopened = EnvClient::open(
+        &bob_session,
+        &d.env,
+        open_request(BOB, "revoked", true, AlgorithmMode::Train),
+        ClientTimeouts::default(),
+    )
+    .await
+    .expect("bob resumes");
+    assert_eq!(
+        (
+            reopened.opened().experiment.episodes,
+            reopened.opened().experiment.steps
+        ),
+        (1, 1),
+        "the revoked episode was recorded (aborted)"
+    );
+    reopened.close().await.expect("close");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -721,7 +839,7 @@ async fn bookings_reserve_slots_and_end_leases_with_them() {
 /// lets a new episode start.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_sim_env_under_an_estop_refuses_motion_and_shows_it() {
-    use offworld_env_controller::operator::{press_estop, EStopScope};
+    use offworld_runtime::operator::{press_estop, EStopScope};
     let dir = ScratchDir::new();
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;

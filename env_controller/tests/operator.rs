@@ -7,9 +7,8 @@
 
 use std::time::Duration;
 
-use offworld_env_controller::operator::{press_estop, EStopScope};
-use offworld_env_controller::ControllerError;
 use offworld_runtime::keys::{Component, EnvId, Topic};
+use offworld_runtime::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
 use offworld_runtime::zenoh::Session;
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
@@ -146,7 +145,7 @@ async fn a_silent_component_fails_the_press_and_an_unheard_press_is_an_error() {
     .await
     .expect_err("the frozen agent did not acknowledge");
     match error {
-        ControllerError::Unacknowledged { message, report } => {
+        PressError::Unacknowledged { message, report } => {
             assert_eq!(
                 report.silent,
                 [("real/estop-frozen".to_owned(), "robot_agent".to_owned())]
@@ -178,7 +177,7 @@ async fn a_silent_component_fails_the_press_and_an_unheard_press_is_an_error() {
     .await
     .expect_err("nobody heard it");
     match error {
-        ControllerError::NotFound(message) => {
+        PressError::NotFound(message) => {
             assert!(message.contains(&nobody.key(Topic::EStop)), "{message}")
         }
         other => panic!("expected NotFound, got {other:?}"),

@@ -300,7 +300,9 @@ fn status_text(state: &EnvState) -> String {
     match state {
         EnvState::Free => "status: free".into(),
         EnvState::Leased { .. } => "status: leased".into(),
-        EnvState::Maintenance { message } => format!("status: maintenance ({message})"),
+        EnvState::Maintenance { message, by, .. } => {
+            format!("status: maintenance by {by} ({message})")
+        }
         EnvState::Offline { reason } => format!("status: offline ({reason})"),
     }
 }

@@ -160,8 +160,8 @@ pub fn listing<'py>(
     dict.set_item("task", &listing.task)?;
     let (state, until, message) = match &listing.state {
         EnvState::Free => ("free", None, ""),
-        EnvState::Leased { until_unix_ms } => ("leased", Some(*until_unix_ms), ""),
-        EnvState::Maintenance { message } => ("maintenance", None, message.as_str()),
+        EnvState::Leased { until_unix_ms, .. } => ("leased", Some(*until_unix_ms), ""),
+        EnvState::Maintenance { message, .. } => ("maintenance", None, message.as_str()),
         EnvState::Offline { reason } => ("offline", None, reason.as_str()),
     };
     dict.set_item("state", state)?;

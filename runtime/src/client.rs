@@ -279,6 +279,17 @@ pub async fn book(
     ask(session, env, Topic::Book, request, timeout).await
 }
 
+/// Asks an env's controller who a token is, or (operators) changes the
+/// env's service: maintenance, lease revocation.
+pub async fn admin(
+    session: &Session,
+    env: &EnvId,
+    request: &crate::msg::AdminRequest,
+    timeout: Duration,
+) -> Result<crate::msg::AdminReply, WireError> {
+    ask(session, env, Topic::Admin, request, timeout).await
+}
+
 /// Lists an env's experiments or shows one with its episodes.
 pub async fn experiments(
     session: &Session,

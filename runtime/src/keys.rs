@@ -205,7 +205,7 @@ pub enum Topic {
     Step,
     /// Queryable on the controller: [`crate::msg::CloseRequest`] → [`crate::msg::CloseReply`].
     Close,
-    /// Queryable on the controller: [`crate::msg::AdminRequest`] → [`crate::msg::EnvStatus`].
+    /// Queryable on the controller: [`crate::msg::AdminRequest`] → [`crate::msg::AdminReply`].
     Admin,
     /// Queryable on the controller: () → [`crate::msg::Leaderboard`].
     Leaderboard,

@@ -24,6 +24,7 @@ mod error;
 pub mod estop;
 pub mod keys;
 pub mod msg;
+pub mod operator;
 pub mod pool;
 pub mod priority;
 pub mod ros2;

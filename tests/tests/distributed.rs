@@ -11,8 +11,8 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use offworld_env_controller::operator::{press_estop, EStopScope};
-use offworld_env_controller::ControllerError;
+use offworld_runtime::operator::{press_estop, EStopScope, PressError};
+
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
@@ -414,7 +414,7 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     )
     .await
     {
-        Err(ControllerError::Unacknowledged { report, .. }) => {
+        Err(PressError::Unacknowledged { report, .. }) => {
             assert_eq!(report.silent, [(env.to_string(), "sim_twin".to_owned())]);
         }
         other => panic!("an ACL-dropped press must fail, got {other:?}"),

@@ -18,11 +18,11 @@
 use std::collections::BTreeSet;
 use std::time::Duration;
 
-use offworld_env_controller::operator::{press_estop, EStopScope, PressReport};
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Realm, Topic};
 use offworld_runtime::msg::{EStopState, Seed};
+use offworld_runtime::operator::{press_estop, EStopScope, PressReport};
 use offworld_runtime::zenoh::query::{ConsolidationMode, QueryTarget};
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig};

@@ -12,7 +12,9 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use governor::clock::{Clock, DefaultClock};
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::msg::{Booking, BookingRequest, EpisodeRecordEntry, ExperimentsRequest};
+use offworld_runtime::msg::{
+    AdminReply, AdminRequest, Booking, BookingRequest, EpisodeRecordEntry, ExperimentsRequest,
+};
 use offworld_runtime::ErrorCode;
 use serde::Serialize;
 
@@ -38,7 +40,7 @@ const SIGNIN_COOKIE_AGE_S: u64 = 3600;
 fn reader(session: Option<&Session>) -> Reader<'_> {
     session.map_or(Reader::ANONYMOUS, |s| Reader {
         csrf: Some(&s.csrf),
-        user: s.user.as_deref(),
+        user: Some(&s.user),
     })
 }
 
@@ -173,9 +175,9 @@ pub async fn signin(State(state): State<AppState>, request: Request) -> Response
             format!("Sign-in refused: access tokens have at most {MAX_TOKEN_LEN} characters."),
         );
     }
-    match check_token(&state, &token).await {
-        Ok(()) => {
-            let session = state.sessions.create(token);
+    match identify(&state, &token).await {
+        Ok(who) => {
+            let session = state.sessions.create(token, who.user, who.operator);
             let mut response = see_other("/account");
             let headers = response.headers_mut();
             headers.append(
@@ -197,9 +199,8 @@ pub async fn signin(State(state): State<AppState>, request: Request) -> Response
     }
 }
 
-/// Asks a controller (real envs' first) whether `token` is a user's: the
-/// experiments listing authenticates it and changes nothing.
-async fn check_token(state: &AppState, token: &str) -> Result<(), HttpError> {
+/// Asks a controller (real envs' first) whose `token` is.
+async fn identify(state: &AppState, token: &str) -> Result<AdminReply, HttpError> {
     let snapshot = state.discovery.snapshot();
     let mut candidates: Vec<&EnvView> = snapshot
         .envs
@@ -214,11 +215,11 @@ async fn check_token(state: &AppState, token: &str) -> Result<(), HttpError> {
         let Ok(id) = parse_env(&env.realm, &env.name) else {
             continue;
         };
-        let request = ExperimentsRequest::List {
+        let request = AdminRequest::Identify {
             token: token.to_owned(),
         };
-        match state.discovery.experiments(&id, &request).await {
-            Ok(_) => return Ok(()),
+        match state.discovery.admin(&id, &request).await {
+            Ok(who) => return Ok(who),
             Err(e) if e.code == ErrorCode::Unauthorized => {
                 return Err(HttpError::unauthorized(format!(
                     "Sign-in refused by the controller of {id}: {}",
@@ -443,7 +444,6 @@ pub async fn make_booking(
                     "the controller answered the booking without its slot",
                 ));
             };
-            state.sessions.learn_user(&session.id, &slot.user);
             Ok(see_other(&format!(
                 "/envs/{realm}/{name}/bookings?made={}",
                 slot.id

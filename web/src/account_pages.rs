@@ -242,9 +242,7 @@ fn slot_table(env: &EnvView, slots: &[Booking], reader: Reader<'_>) -> Markup {
                         td { (slot.user) @if yours { " " span.badge.yours { "yours" } } }
                         @if let Some(csrf) = reader.csrf {
                             td {
-                                // Without a known name every slot gets the
-                                // button: the controller refuses others'.
-                                @if yours || reader.user.is_none() {
+                                @if yours {
                                     form.inline method="post"
                                         action=(env_href(env, &format!("/bookings/{}/cancel", slot.id))) {
                                         input type="hidden" name="csrf" value=(csrf);

@@ -18,7 +18,8 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use offworld_runtime::client::{self, EnvListing};
 use offworld_runtime::keys::{self, EnvId, Topic};
 use offworld_runtime::msg::{
-    BookingRequest, Bookings, EnvStatus, Experiments, ExperimentsRequest, Leaderboard, MotionFault,
+    AdminReply, AdminRequest, BookingRequest, Bookings, EnvStatus, Experiments, ExperimentsRequest,
+    Leaderboard, MotionFault,
 };
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{codec, WireError};
@@ -213,6 +214,22 @@ impl Discovery {
     /// the token and the rules), bounded by the query timeout.
     pub async fn book(&self, env: &EnvId, request: &BookingRequest) -> Result<Bookings, WireError> {
         client::book(
+            &self.inner.session,
+            env,
+            request,
+            self.inner.config.query_timeout,
+        )
+        .await
+    }
+
+    /// Asks `env`'s controller who a token is, or changes the env's
+    /// service (operators), bounded by the query timeout.
+    pub async fn admin(
+        &self,
+        env: &EnvId,
+        request: &AdminRequest,
+    ) -> Result<AdminReply, WireError> {
+        client::admin(
             &self.inner.session,
             env,
             request,

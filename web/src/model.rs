@@ -105,8 +105,8 @@ pub struct EnvView {
 /// A lease.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LeaseView {
-    /// Who holds it: null until the controller's status says (it carries
-    /// only the expiry today).
+    /// Who holds it (the user's name); null until the controller's
+    /// status says.
     pub holder: Option<String>,
     /// When it lapses if left idle, Unix ms (each request renews it).
     pub until_unix_ms: i64,
@@ -117,6 +117,10 @@ pub struct LeaseView {
 pub struct MaintenanceView {
     /// The operator's message.
     pub message: String,
+    /// The operator's user name.
+    pub by: String,
+    /// When the operator expects the env back, Unix ms (null: not said).
+    pub back_unix_ms: Option<i64>,
 }
 
 /// Why an env is offline.
@@ -301,15 +305,24 @@ impl EnvView {
         self.offline = None;
         match state {
             EnvState::Free => {}
-            EnvState::Leased { until_unix_ms } => {
+            EnvState::Leased {
+                until_unix_ms,
+                holder,
+            } => {
                 self.lease = Some(LeaseView {
-                    holder: None,
+                    holder: Some(holder.clone()),
                     until_unix_ms: *until_unix_ms,
                 })
             }
-            EnvState::Maintenance { message } => {
+            EnvState::Maintenance {
+                message,
+                by,
+                back_unix_ms,
+            } => {
                 self.maintenance = Some(MaintenanceView {
                     message: message.clone(),
+                    by: by.clone(),
+                    back_unix_ms: (*back_unix_ms > 0).then_some(*back_unix_ms),
                 })
             }
             EnvState::Offline { reason } => {
@@ -371,10 +384,19 @@ mod tests {
     #[test]
     fn e_stops_outrank_leases_and_offline_outranks_e_stops() {
         let mut view = EnvView::new(&env());
-        let mut leased = status(EnvState::Leased { until_unix_ms: 42 });
+        let mut leased = status(EnvState::Leased {
+            until_unix_ms: 42,
+            holder: "alice".into(),
+        });
         view.apply_status(&leased);
         assert_eq!(view.state, StateKind::Leased);
-        assert_eq!(view.lease.as_ref().map(|l| l.until_unix_ms), Some(42));
+        assert_eq!(
+            view.lease,
+            Some(LeaseView {
+                holder: Some("alice".into()),
+                until_unix_ms: 42
+            })
+        );
         leased.estop.site.engaged = true;
         leased.estop.site.changed = Time {
             sec: 2,

@@ -229,7 +229,9 @@ fn state_detail(env: &EnvView) -> Markup {
                 }
             }
             @if let Some(m) = &env.maintenance {
-                div { "maintenance: " (m.message) }
+                div { "maintenance: " (m.message) " (" (m.by)
+                    @if let Some(back) = m.back_unix_ms { ", back at " (time(back, "clock")) }
+                    ")" }
             }
             @if let Some(lease) = &env.lease {
                 div {

@@ -40,9 +40,10 @@ pub struct Session {
     pub token: String,
     /// This session's CSRF token (every form's hidden `csrf` field).
     pub csrf: String,
-    /// The user's name once a controller has said it (a booking made
-    /// here names its holder); no request tells it otherwise.
-    pub user: Option<String>,
+    /// The user's name, as the controller that checked the token said.
+    pub user: String,
+    /// Whether the user is an operator (the console is theirs).
+    pub operator: bool,
     last_used: Instant,
 }
 
@@ -50,6 +51,7 @@ impl std::fmt::Debug for Session {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Session")
             .field("user", &self.user)
+            .field("operator", &self.operator)
             .finish_non_exhaustive()
     }
 }
@@ -84,14 +86,16 @@ impl Sessions {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
-    /// Opens a session for `token` (already checked with a controller).
-    pub fn create(&self, token: String) -> Session {
+    /// Opens a session for `token`, which a controller said is `user`'s
+    /// (an `operator` or not).
+    pub fn create(&self, token: String, user: String, operator: bool) -> Session {
         let now = Instant::now();
         let session = Session {
             id: random_token(),
             token,
             csrf: random_token(),
-            user: None,
+            user,
+            operator,
             last_used: now,
         };
         let mut table = self.table();
@@ -122,13 +126,6 @@ impl Sessions {
         }
         session.last_used = now;
         Some(session.clone())
-    }
-
-    /// Remembers the user name a controller gave for `id`'s token.
-    pub fn learn_user(&self, id: &str, user: &str) {
-        if let Some(session) = self.table().get_mut(id) {
-            session.user = Some(user.to_owned());
-        }
     }
 
     /// Signs `id` out.
@@ -304,9 +301,9 @@ mod tests {
     #[test]
     fn sessions_are_bounded_and_lapse() {
         let sessions = Sessions::new(2, Duration::from_secs(60));
-        let a = sessions.create("token-a".into());
-        let _b = sessions.create("token-b".into());
-        let _c = sessions.create("token-c".into());
+        let a = sessions.create("token-a".into(), "user-a".into(), false);
+        let _b = sessions.create("token-b".into(), "user-b".into(), false);
+        let _c = sessions.create("token-c".into(), "user-c".into(), false);
         assert_eq!(sessions.len(), 2);
         let mut headers = HeaderMap::new();
         let cookie = format!("{SESSION_COOKIE}={}", a.id);
@@ -316,7 +313,7 @@ mod tests {
         );
         assert!(sessions.from_headers(&headers).is_none(), "a was evicted");
         let lapsing = Sessions::new(2, Duration::ZERO);
-        let d = lapsing.create("token-d".into());
+        let d = lapsing.create("token-d".into(), "user-d".into(), false);
         let cookie = format!("{SESSION_COOKIE}={}", d.id);
         headers.insert(
             header::COOKIE,

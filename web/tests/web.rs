@@ -340,7 +340,8 @@ async fn the_event_stream_delivers_a_lease_and_its_release() {
             .as_array()
             .and_then(|e| e.iter().find(|e| e["id"] == "sim/web-a"));
         env.is_some_and(|e| {
-            e["state"] == "leased" && e["lease"] == json!({"holder": null, "until_unix_ms": until})
+            e["state"] == "leased"
+                && e["lease"] == json!({"holder": "anonymous", "until_unix_ms": until})
         }) && state_of(s, "sim/web-b") == "free"
     })
     .await;

@@ -661,6 +661,7 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                 env_id: "real/enclosure-a".into(),
                 state: EnvState::Leased {
                     until_unix_ms: 1_700_000_999_000,
+                    holder: "ada".into(),
                 },
                 estop: estop_sample(),
                 last_reset: ResetAccuracy::default(),
@@ -672,6 +673,8 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
                 env_id: "sim/monolith-0".into(),
                 state: EnvState::Maintenance {
                     message: "wheel swap".into(),
+                    by: "ops".into(),
+                    back_unix_ms: 1_700_000_999_000,
                 },
                 estop: EStopState::default(),
                 last_reset: ResetAccuracy::default(),
@@ -682,9 +685,23 @@ pub fn cdr_gym_seeds() -> Vec<Vec<u8>> {
             &AdminRequest::SetMaintenance {
                 token: "op".into(),
                 message: "wheel swap".into(),
+                back_unix_ms: 0,
             },
         ),
         seed(10, &AdminRequest::ClearMaintenance { token: "op".into() }),
+        seed(
+            10,
+            &AdminRequest::RevokeLease {
+                token: "op".into(),
+                reason: "demo".into(),
+            },
+        ),
+        seed(
+            10,
+            &AdminRequest::Identify {
+                token: "ada".into(),
+            },
+        ),
         seed(
             11,
             &Leaderboard {

@@ -399,11 +399,18 @@ pub enum EnvState {
     Leased {
         /// Lease expiry if idle, Unix ms.
         until_unix_ms: i64,
+        /// Who holds it: the user's name (`anonymous` where anonymous
+        /// sessions are allowed).
+        holder: String,
     },
     /// An operator took the env out of service.
     Maintenance {
         /// Operator's message.
         message: String,
+        /// The operator's user name.
+        by: String,
+        /// When the operator expects it back, Unix ms; 0: not said.
+        back_unix_ms: i64,
     },
     /// The robot, tracker or twin is not answering.
     Offline {
@@ -470,21 +477,62 @@ impl ResetAccuracy {
     }
 }
 
-/// Operator commands.
+/// Operator commands, and who a token is (answered with an
+/// [`AdminReply`]).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub enum AdminRequest {
-    /// Take the env out of service.
+    /// Take the env out of service (its lease and episode end).
     SetMaintenance {
         /// Operator token.
         token: String,
         /// Shown to users.
         message: String,
+        /// When the env is expected back, Unix ms; 0: not said.
+        back_unix_ms: i64,
     },
     /// Put it back in service.
     ClearMaintenance {
         /// Operator token.
         token: String,
     },
+    /// End the current lease: the robot stops, the episode is recorded as
+    /// aborted, and the holder's next request learns why.
+    RevokeLease {
+        /// Operator token.
+        token: String,
+        /// Told to the holder.
+        reason: String,
+    },
+    /// Who `token` is (any user's token; changes nothing): how a service
+    /// acting for users (the lab's web page) learns a user's name and role.
+    Identify {
+        /// The user's token.
+        token: String,
+    },
+}
+
+impl AdminRequest {
+    /// The token the request carries.
+    pub fn token(&self) -> &str {
+        match self {
+            Self::SetMaintenance { token, .. }
+            | Self::ClearMaintenance { token }
+            | Self::RevokeLease { token, .. }
+            | Self::Identify { token } => token,
+        }
+    }
+}
+
+/// The answer to an [`AdminRequest`]: who asked, and the env's status
+/// after the request.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AdminReply {
+    /// The token's user name.
+    pub user: String,
+    /// Whether that user is an operator.
+    pub operator: bool,
+    /// The env's status after the request.
+    pub status: EnvStatus,
 }
 
 /// One ranked experiment (test mode only).

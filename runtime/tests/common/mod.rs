@@ -293,6 +293,7 @@ pub fn env_status() -> EnvStatus {
         env_id: "real/enclosure-a".into(),
         state: EnvState::Leased {
             until_unix_ms: 1_700_000_999_000,
+            holder: "ada".into(),
         },
         estop: estop_state(),
         last_reset: ResetAccuracy::measure(
@@ -419,6 +420,8 @@ macro_rules! for_each_sample {
                 env_id: "real/a".into(),
                 state: EnvState::Maintenance {
                     message: "wheels".into(),
+                    by: "ops".into(),
+                    back_unix_ms: 1_700_000_999_000,
                 },
                 estop: EStopState::default(),
                 last_reset: ResetAccuracy::default(),
@@ -429,6 +432,22 @@ macro_rules! for_each_sample {
             AdminRequest::SetMaintenance {
                 token: "op".into(),
                 message: "m".into(),
+                back_unix_ms: 0,
+            },
+        );
+        $f(
+            "AdminRequest revoke",
+            AdminRequest::RevokeLease {
+                token: "op".into(),
+                reason: "demo".into(),
+            },
+        );
+        $f(
+            "AdminReply",
+            AdminReply {
+                user: "ops".into(),
+                operator: true,
+                status: env_status(),
             },
         );
         $f("WireError", wire_error());

@@ -13,19 +13,48 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use offworld_runtime::codec;
-use offworld_runtime::keys::{
-    all_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
-};
-use offworld_runtime::msg::{EStop, EStopAck, EStopState};
-use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::bytes::Encoding;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use rand::Rng;
 use tokio::sync::mpsc;
+use zenoh::bytes::Encoding;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
-use crate::error::ControllerError;
+use crate::codec;
+use crate::keys::{
+    all_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
+};
+use crate::msg::{EStop, EStopAck, EStopState};
+use crate::wire::{self, Delivery};
+use crate::WireError;
+
+/// Why a press did not reach every robot it should have.
+#[derive(Debug, thiserror::Error)]
+pub enum PressError {
+    /// No robot agent or twin declares itself under the scope.
+    #[error("{0}")]
+    NotFound(String),
+    /// Zenoh refused the subscription, the query or the publication.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    /// Some present robot or twin did not acknowledge in time.
+    #[error("{message}")]
+    Unacknowledged {
+        /// What to tell the operator.
+        message: String,
+        /// Who did acknowledge, and who not.
+        report: PressReport,
+    },
+}
+
+impl From<PressError> for WireError {
+    fn from(e: PressError) -> Self {
+        match e {
+            PressError::NotFound(m) => WireError::not_found(m),
+            PressError::Zenoh(m) => WireError::internal(format!("zenoh: {m}")),
+            PressError::Unacknowledged { message, .. } => WireError::unavailable(message),
+        }
+    }
+}
 
 /// Which e-stop.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -100,8 +129,8 @@ pub async fn press_estop(
     reason: &str,
     presence: Duration,
     ack_within: Duration,
-) -> Result<PressReport, ControllerError> {
-    let zerr = |e: String| ControllerError::Zenoh(e);
+) -> Result<PressReport, PressError> {
+    let zerr = |e: String| PressError::Zenoh(e);
     let key = scope.key();
     let deadline = tokio::time::Instant::now() + presence;
     let expected = loop {
@@ -110,7 +139,7 @@ pub async fn press_estop(
             break found;
         }
         if tokio::time::Instant::now() >= deadline {
-            return Err(ControllerError::NotFound(format!(
+            return Err(PressError::NotFound(format!(
                 "no robot or twin listens on {key} (waited {:.1} s): the e-stop reached nobody",
                 presence.as_secs_f64()
             )));
@@ -172,7 +201,7 @@ pub async fn press_estop(
             .iter()
             .map(|(env, component)| format!("{component} of {env}"))
             .collect();
-        Err(ControllerError::Unacknowledged {
+        Err(PressError::Unacknowledged {
             message: format!(
                 "the e-stop on {key} was not acknowledged within {} ms by {} (dropped by the \
                  router's access control, a cut link, or a frozen component): check them in person",
@@ -189,14 +218,14 @@ async fn obeyers(
     session: &Session,
     scope: &EStopScope,
     deadline: tokio::time::Instant,
-) -> Result<Vec<Obeyer>, ControllerError> {
+) -> Result<Vec<Obeyer>, PressError> {
     let left = deadline.saturating_duration_since(tokio::time::Instant::now());
     let replies = session
         .liveliness()
         .get(scope.obeyed_by())
         .timeout(left.max(Duration::from_millis(100)))
         .await
-        .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+        .map_err(|e| PressError::Zenoh(e.to_string()))?;
     let obeying = [Component::RobotAgent, Component::SimTwin];
     let mut found = Vec::new();
     while let Ok(reply) = replies.recv_async().await {
