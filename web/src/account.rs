@@ -37,14 +37,15 @@ const MAX_EPISODE_PAGES: u64 = 4;
 /// How long the sign-in form's CSRF cookie lives, s.
 const SIGNIN_COOKIE_AGE_S: u64 = 3600;
 
-fn reader(session: Option<&Session>) -> Reader<'_> {
+pub(crate) fn reader(session: Option<&Session>) -> Reader<'_> {
     session.map_or(Reader::ANONYMOUS, |s| Reader {
         csrf: Some(&s.csrf),
         user: Some(&s.user),
+        operator: s.operator,
     })
 }
 
-fn see_other(location: &str) -> Response {
+pub(crate) fn see_other(location: &str) -> Response {
     let mut response = StatusCode::SEE_OTHER.into_response();
     if let Ok(value) = HeaderValue::from_str(location) {
         response.headers_mut().insert(header::LOCATION, value);
@@ -52,12 +53,16 @@ fn see_other(location: &str) -> Response {
     response
 }
 
-fn html_with(status: StatusCode, markup: maud::Markup) -> Response {
+pub(crate) fn html_with(status: StatusCode, markup: maud::Markup) -> Response {
     (status, Html(markup.into_string())).into_response()
 }
 
 /// The known env `path` names (404 otherwise).
-fn known_env(state: &AppState, realm: &str, name: &str) -> Result<(EnvId, EnvView), HttpError> {
+pub(crate) fn known_env(
+    state: &AppState,
+    realm: &str,
+    name: &str,
+) -> Result<(EnvId, EnvView), HttpError> {
     let id = parse_env(realm, name)?;
     let snapshot = state.discovery.snapshot();
     let view = snapshot.env(&id).cloned().ok_or_else(|| unknown_env(&id))?;
@@ -73,7 +78,9 @@ fn env_path(
 
 /// The checks every POST passes before anything else: same origin, a
 /// form of bounded size.
-async fn post_form(request: Request) -> Result<(HeaderMap, Vec<(String, String)>), HttpError> {
+pub(crate) async fn post_form(
+    request: Request,
+) -> Result<(HeaderMap, Vec<(String, String)>), HttpError> {
     let (parts, body) = request.into_parts();
     check_same_origin(&parts.headers)
         .map_err(|why| HttpError::forbidden(format!("refused: {why}")))?;
@@ -84,7 +91,7 @@ async fn post_form(request: Request) -> Result<(HeaderMap, Vec<(String, String)>
 }
 
 /// The session a POST acts for: signed in, with its CSRF token.
-fn acting_session(
+pub(crate) fn acting_session(
     state: &AppState,
     headers: &HeaderMap,
     form: &[(String, String)],
@@ -200,7 +207,7 @@ pub async fn signin(State(state): State<AppState>, request: Request) -> Response
 }
 
 /// Asks a controller (real envs' first) whose `token` is.
-async fn identify(state: &AppState, token: &str) -> Result<AdminReply, HttpError> {
+pub(crate) async fn identify(state: &AppState, token: &str) -> Result<AdminReply, HttpError> {
     let snapshot = state.discovery.snapshot();
     let mut candidates: Vec<&EnvView> = snapshot
         .envs

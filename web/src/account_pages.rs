@@ -19,7 +19,7 @@ pub enum Notice {
     Refused(String),
 }
 
-fn notice(n: Option<&Notice>) -> Markup {
+pub(crate) fn notice(n: Option<&Notice>) -> Markup {
     html! {
         @match n {
             Some(Notice::Done(m)) => div #notice .banner.ok role="status" { (m) },
@@ -40,6 +40,8 @@ pub struct Reader<'a> {
     pub csrf: Option<&'a str>,
     /// The user's name, once known.
     pub user: Option<&'a str>,
+    /// The user is an operator.
+    pub operator: bool,
 }
 
 impl Reader<'_> {
@@ -47,6 +49,7 @@ impl Reader<'_> {
     pub const ANONYMOUS: Reader<'static> = Reader {
         csrf: None,
         user: None,
+        operator: false,
     };
 }
 
@@ -85,6 +88,7 @@ pub fn account_page(snapshot: &Snapshot, reader: Reader<'_>, n: Option<&Notice>)
                 "You are signed in"
                 @if let Some(user) = reader.user { " as " strong { (user) } }
                 "."
+                @if reader.operator { " " a #console-link href="/console" { "Operator console" } }
             }
             @if envs.is_empty() {
                 p.empty { "No env is known yet." }

@@ -21,6 +21,7 @@ use offworld_runtime::msg::{
     AdminReply, AdminRequest, BookingRequest, Bookings, EnvStatus, Experiments, ExperimentsRequest,
     Leaderboard, MotionFault,
 };
+use offworld_runtime::operator::{press_estop, EStopScope, PressError, PressReport};
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{codec, WireError};
 use tokio::sync::{watch, Notify};
@@ -94,6 +95,12 @@ impl Table {
 pub struct Discovery {
     inner: Arc<Inner>,
 }
+
+/// How long a press from the console waits for a robot or twin to be
+/// present under its scope (a page request has 10 s in all).
+pub const ESTOP_PRESENCE: Duration = Duration::from_secs(2);
+/// How long it waits for each one's acknowledgement (the CLI's: 1 s).
+pub const ESTOP_ACK_WITHIN: Duration = Duration::from_secs(2);
 
 struct Inner {
     session: Session,
@@ -222,20 +229,63 @@ impl Discovery {
         .await
     }
 
+    /// Presses (`engaged`) or releases the e-stop of `scope` for an
+    /// operator, as `env_controller estop` does: waits at most
+    /// [`ESTOP_PRESENCE`] for a robot or twin to obey it and
+    /// [`ESTOP_ACK_WITHIN`] for each to acknowledge.
+    pub async fn press_estop(
+        &self,
+        scope: &EStopScope,
+        engaged: bool,
+        reason: &str,
+    ) -> Result<PressReport, PressError> {
+        press_estop(
+            &self.inner.session,
+            scope,
+            engaged,
+            reason,
+            ESTOP_PRESENCE,
+            ESTOP_ACK_WITHIN,
+        )
+        .await
+    }
+
     /// Asks `env`'s controller who a token is, or changes the env's
     /// service (operators), bounded by the query timeout.
+    /// The status in the reply is shown at once (the same the controller
+    /// publishes, which may arrive later).
     pub async fn admin(
         &self,
         env: &EnvId,
         request: &AdminRequest,
     ) -> Result<AdminReply, WireError> {
-        client::admin(
+        let reply = client::admin(
             &self.inner.session,
             env,
             request,
             self.inner.config.query_timeout,
         )
+        .await?;
+        self.inner.status_received(env.clone(), &reply.status);
+        Ok(reply)
+    }
+
+    /// Waits (at most `within`) for a snapshot where `settled` holds;
+    /// returns whether one did.
+    pub async fn settled(&self, within: Duration, settled: impl Fn(&Snapshot) -> bool) -> bool {
+        let mut snapshots = self.inner.snapshot.subscribe();
+        tokio::time::timeout(within, async {
+            loop {
+                if settled(&snapshots.borrow_and_update()) {
+                    return true;
+                }
+                if snapshots.changed().await.is_err() {
+                    return false;
+                }
+            }
+        })
         .await
+        .unwrap_or(false)
     }
 
     /// Lists the caller's experiments on `env` or shows one, bounded by

@@ -2,9 +2,13 @@
 //! deployment (real and sim), each env's leaderboard, and the same as JSON
 //! for scripts; for users signed in with their gym access token, each
 //! env's bookings (book, cancel) and their experiments with learning
-//! curves. It joins the deployment as one more Zenoh client; the only
-//! changes it asks for are a signed-in user's bookings, with their token,
-//! checked by the controller as the CLI's are.
+//! curves; for operators, a console (e-stops, maintenance, leases). It
+//! joins the deployment as one more Zenoh client; the changes it asks for
+//! are a signed-in user's bookings and an operator's maintenance and
+//! revocations, each with the user's token, checked by the controller as
+//! the CLI's are, and an operator's e-stops, pressed as the CLI presses
+//! them (the deployment's access control decides whether this service's
+//! Zenoh identity may).
 //!
 //! - [`discovery`]: the Zenoh side (listing, `status` and `fault`
 //!   subscriptions), kept as a live [`model::Snapshot`];
@@ -12,6 +16,7 @@
 //! - [`api`]: JSON handlers; [`pages`]: HTML; [`events`]: server-sent events;
 //! - [`account`], [`account_pages`], [`chart`]: sign-in, bookings,
 //!   experiments and their learning curves; [`session`]: sessions, CSRF;
+//! - [`console`], [`console_pages`]: the operator console;
 //! - [`server`]: routes, limits, security headers, the accept loop;
 //! - [`error`]: HTTP errors.
 
@@ -19,6 +24,8 @@ pub mod account;
 pub mod account_pages;
 pub mod api;
 pub mod chart;
+pub mod console;
+pub mod console_pages;
 pub mod discovery;
 pub mod error;
 pub mod events;

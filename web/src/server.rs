@@ -38,7 +38,7 @@ use tower::ServiceBuilder;
 use crate::discovery::Discovery;
 use crate::error::{Format, HttpError};
 use crate::session::Sessions;
-use crate::{account, api, events, pages, WebOptions};
+use crate::{account, api, console, events, pages, WebOptions};
 
 /// The service's limits (see the module documentation).
 #[derive(Debug, Clone, Copy)]
@@ -150,6 +150,10 @@ pub fn router(discovery: Discovery, options: &WebOptions) -> Router {
         .route("/account/signin", post(account::signin))
         .route("/account/signout", post(account::signout))
         .route("/bookings", get(account::bookings_index))
+        .route("/console", get(console::console))
+        .route("/console/estop", post(console::estop))
+        .route("/console/maintenance", post(console::maintenance))
+        .route("/console/lease", post(console::revoke_lease))
         .route(
             "/envs/{realm}/{name}/bookings",
             get(account::bookings_page).post(account::make_booking),

@@ -5,7 +5,10 @@
 //! Checks sign-in (a bad token refused, clearly), bookings made through
 //! the page and listed, an overlap refused with the controller's message,
 //! CSRF and origin refusals (403), cancel only by the holder, sign-out,
-//! and the experiments pages (episode count, learning curve, recordings).
+//! the experiments pages (episode count, learning curve, recordings), and
+//! the operator console (operators only: an e-stop acknowledged by the
+//! twin, a release only with its confirmation, maintenance with its
+//! expected return, a revoked lease whose holder is told why).
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -35,6 +38,7 @@ const EVENTUALLY: Duration = Duration::from_secs(20);
 
 const ALICE: &str = "alice-web-token-0001";
 const BOB: &str = "bob-web-token-00002";
+const OPS: &str = "ops-web-token-000003";
 
 const SIM: &str = "sim/acct-a";
 const REAL: &str = "real/acct-bench";
@@ -74,6 +78,7 @@ impl Lab {
             .add_user_with_token("alice", ALICE, false)
             .expect("alice");
         store.add_user_with_token("bob", BOB, false).expect("bob");
+        store.add_user_with_token("ops", OPS, true).expect("ops");
         let records = ScratchDir::new();
         let sim = SimEnv {
             env: EnvId::sim("acct-a").expect("env id"),
@@ -542,4 +547,221 @@ async fn the_experiments_pages_show_the_users_experiment_its_episodes_and_curve(
     // Malformed ids are 404s that never reach the deployment.
     let (status, _, _) = alice.get(&format!("{list_path}/x1")).await;
     assert_eq!(status, StatusCode::NOT_FOUND);
+}
+
+/// The `/api/envs` entry of `id`.
+async fn env_json(browser: &mut Browser, id: &str) -> Value {
+    let (_, _, body) = browser.get("/api/envs").await;
+    let snapshot: Value = serde_json::from_str(&body).expect("JSON");
+    snapshot["envs"]
+        .as_array()
+        .and_then(|envs| envs.iter().find(|e| e["id"] == id).cloned())
+        .unwrap_or(Value::Null)
+}
+
+/// Waits (bounded) until `id`'s `/api/envs` entry satisfies `check`.
+async fn until_env(browser: &mut Browser, id: &str, what: &str, check: impl Fn(&Value) -> bool) {
+    let deadline = tokio::time::Instant::now() + EVENTUALLY;
+    loop {
+        let env = env_json(browser, id).await;
+        if check(&env) {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{what}: not within {EVENTUALLY:?}; last: {env:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_operator_console_is_for_operators_and_its_actions_reach_the_deployment() {
+    let lab = Lab::start().await;
+    let mut anonymous = lab.browser();
+    let (status, _, page) = anonymous.get("/console").await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED, "{page}");
+    assert!(page.contains("The operator console needs you to"), "{page}");
+
+    // A user who is not an operator: no console, no console action.
+    let mut alice = lab.browser();
+    let (status, _, _) = alice.sign_in(ALICE).await;
+    assert_eq!(status, StatusCode::SEE_OTHER);
+    let (_, _, account) = alice.get("/account").await;
+    assert!(!account.contains("console-link"), "{account}");
+    let (status, _, page) = alice.get("/console").await;
+    assert_eq!(status, StatusCode::FORBIDDEN, "{page}");
+    assert!(
+        page.contains("The operator console is for operators: alice is not one."),
+        "{page}"
+    );
+    let csrf = csrf_of(&account);
+    let (status, _, page) = alice
+        .post(
+            "/console/estop",
+            &format!("csrf={csrf}&scope=site&action=engage&reason=mine"),
+        )
+        .await;
+    assert_eq!(status, StatusCode::FORBIDDEN, "{page}");
+    assert_eq!(env_json(&mut alice, SIM).await["estop"]["engaged"], false);
+
+    // The operator.
+    let mut ops = lab.browser();
+    let (status, _, _) = ops.sign_in(OPS).await;
+    assert_eq!(status, StatusCode::SEE_OTHER);
+    let (_, _, account) = ops.get("/account").await;
+    assert!(account.contains("id=\"console-link\""), "{account}");
+    let (status, _, page) = ops.get("/console").await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert!(
+        page.contains("Signed in as <strong id=\"operator\">ops</strong>"),
+        "{page}"
+    );
+    assert!(page.contains(&format!("data-env=\"{SIM}\"")), "{page}");
+    let csrf = csrf_of(&page);
+
+    // An e-stop needs a reason; then the twin acknowledges it.
+    let estop = |action: &str, extra: &str| {
+        format!(
+            "csrf={csrf}&scope=env&env={}&action={action}{extra}",
+            encode(SIM)
+        )
+    };
+    let (status, _, page) = ops
+        .post("/console/estop", &estop("engage", "&reason="))
+        .await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{page}");
+    assert!(page.contains("Not engaged: say the reason"), "{page}");
+    let (status, _, page) = ops
+        .post(
+            "/console/estop",
+            &estop("engage", "&reason=person+in+the+enclosure"),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert!(
+        page.contains(&format!(
+            "E-stop engaged on {SIM}: acknowledged by sim_twin of {SIM}."
+        )),
+        "{page}"
+    );
+    assert!(
+        page.contains(&format!("data-env=\"{SIM}\" data-component=\"sim_twin\"")),
+        "{page}"
+    );
+    until_env(&mut ops, SIM, "the e-stop on the page", |env| {
+        env["state"] == "estopped"
+            && env["estop"]["env"]["reason"] == "person in the enclosure (ops via the web console)"
+    })
+    .await;
+    // A release without its confirmation is refused; with it, done.
+    let (status, _, page) = ops
+        .post("/console/estop", &estop("release", "&reason=all+clear"))
+        .await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{page}");
+    assert!(page.contains("Not released: tick the box"), "{page}");
+    assert_eq!(env_json(&mut ops, SIM).await["state"], "estopped");
+    let (status, _, page) = ops
+        .post(
+            "/console/estop",
+            &estop("release", "&reason=all+clear&confirm=yes"),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert!(
+        page.contains(&format!("E-stop released on {SIM}")),
+        "{page}"
+    );
+    until_env(&mut ops, SIM, "the release on the page", |env| {
+        env["state"] == "free"
+    })
+    .await;
+
+    // Maintenance with an expected return, shown to everyone; then ended.
+    let before = now_ms();
+    let (status, _, page) = ops
+        .post(
+            "/console/maintenance",
+            &format!(
+                "csrf={csrf}&env={}&action=start&message=wheel+swap&back_minutes=30",
+                encode(SIM)
+            ),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert!(page.contains(&format!("{SIM} is in maintenance")), "{page}");
+    let env = env_json(&mut anonymous, SIM).await;
+    assert_eq!(env["state"], "maintenance", "{env:#}");
+    assert_eq!(env["maintenance"]["message"], "wheel swap");
+    assert_eq!(env["maintenance"]["by"], "ops");
+    let back = env["maintenance"]["back_unix_ms"].as_i64().expect("back");
+    assert!(
+        (before + 30 * 60_000..=now_ms() + 30 * 60_000).contains(&back),
+        "{back}"
+    );
+    let (status, _, page) = ops
+        .post(
+            "/console/maintenance",
+            &format!(
+                "csrf={csrf}&env={}&action=start&message=x&back_minutes=soon",
+                encode(SIM)
+            ),
+        )
+        .await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{page}");
+    assert!(page.contains("whole number of minutes"), "{page}");
+    let (status, _, page) = ops
+        .post(
+            "/console/maintenance",
+            &format!("csrf={csrf}&env={}&action=end", encode(SIM)),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert_eq!(env_json(&mut anonymous, SIM).await["state"], "free");
+
+    // A revoked lease: its holder is told who and why.
+    let request = OpenRequest {
+        token: ALICE.to_owned(),
+        experiment_name: "revoked".to_owned(),
+        ..OpenRequest::anonymous(ObsOptions {
+            height: 6,
+            width: 8,
+            ..ObsOptions::default()
+        })
+    };
+    let mut client = EnvClient::open_when_ready(
+        &lab.deployment,
+        &EnvId::sim("acct-a").expect("env id"),
+        request,
+        ClientTimeouts::default(),
+        EVENTUALLY,
+    )
+    .await
+    .expect("open");
+    client.reset(Seed::Fixed(1)).await.expect("reset");
+    until_env(&mut ops, SIM, "alice's lease on the page", |env| {
+        env["lease"]["holder"] == "alice"
+    })
+    .await;
+    let revoke = format!("csrf={csrf}&env={}&reason=demo+time", encode(SIM));
+    let (status, _, page) = ops.post("/console/lease", &revoke).await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert!(
+        page.contains(&format!("The lease on {SIM} (alice's) was revoked")),
+        "{page}"
+    );
+    let told = client
+        .reset(Seed::Fixed(2))
+        .await
+        .expect_err("the lease is gone");
+    assert_eq!(
+        told.message,
+        format!("your lease on {SIM} was revoked by the operator ops: demo time")
+    );
+    let (status, _, page) = ops.post("/console/lease", &revoke).await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{page}");
+    assert!(
+        page.contains(&format!("Not revoked: {SIM} has no lease to revoke")),
+        "{page}"
+    );
 }
