@@ -187,6 +187,9 @@ pub struct EmulatedEnclosure {
     pub env: EnvId,
     /// An access token of a registered user.
     pub token: String,
+    /// An access token of a registered operator (maintenance, leases, the
+    /// web page's console).
+    pub operator_token: String,
     /// Scratch directory (database, calibration).
     pub dir: PathBuf,
     /// The tracker stream proxy, when requested.
@@ -227,7 +230,8 @@ impl EmulatedEnclosure {
             None
         };
         let db = dir.join("gym.db");
-        let token = register_user(&db.to_string_lossy(), "researcher")?;
+        let token = register_user(&db.to_string_lossy(), "researcher", false)?;
+        let operator_token = register_user(&db.to_string_lossy(), "operator", true)?;
         std::fs::write(
             dir.join("tracker_calibration.toml"),
             emulator_calibration_toml(),
@@ -264,6 +268,7 @@ impl EmulatedEnclosure {
             hardware_endpoint: loopback_endpoint()?,
             env: options.env.clone(),
             token,
+            operator_token,
             dir,
             tracker_proxy: None,
             robot_link,
@@ -566,9 +571,13 @@ pub fn emulator_calibration_toml() -> String {
     )
 }
 
-fn register_user(db: &str, name: &str) -> std::io::Result<String> {
+fn register_user(db: &str, name: &str, operator: bool) -> std::io::Result<String> {
+    let mut args = vec!["--db", db, "users", "add", name];
+    if operator {
+        args.push("--operator");
+    }
     let out = Command::new(binary_dir().join("env_controller"))
-        .args(["--db", db, "users", "add", name])
+        .args(args)
         .env("RUST_LOG", "warn")
         .output()?;
     if !out.status.success() {

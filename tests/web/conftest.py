@@ -1,17 +1,22 @@
 """Fixtures of the web page's end-to-end tests: a deployment with two sim
 envs (`env_controller serve --embedded-twins`) and `lab_web` in front of
-it, each a separate process on free loopback ports, and a headless
-Debian chromium driven by Playwright."""
+it, each a separate process on free loopback ports; the emulated enclosure
+(`emulated_enclosure`: controller, robot agent, tracker agent and the
+emulated hardware as processes) with `lab_web` in front of it; and a
+headless Debian chromium driven by Playwright."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import queue
 import random
 import shutil
+import signal
 import socket
 import subprocess
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -24,6 +29,8 @@ ENVS = ("sim/web-a", "sim/web-b")
 # The bookable env of the booking test: a real env whose controller answers
 # bookings without a robot.
 REAL_ENV = "real/web-bench"
+# The env the emulated enclosure serves.
+ENCLOSURE_ENV = "real/monolith-0"
 
 
 def free_port() -> int:
@@ -91,6 +98,33 @@ class BookingLab:
 
 
 @contextlib.contextmanager
+def web_in_front_of(endpoint: str, ready: str, is_ready, owner: subprocess.Popen):
+    """Runs `lab_web` connected to `endpoint`; yields its URL once
+    `is_ready(listing)` holds for its `/api/envs` (named `ready`)."""
+    http_port = free_port()
+    web = subprocess.Popen(
+        [str(binary("lab_web")), "--connect", endpoint, "--http", f"127.0.0.1:{http_port}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        url = f"http://127.0.0.1:{http_port}"
+
+        def listed() -> bool:
+            if owner.poll() is not None:
+                raise RuntimeError(f"{ready}: the deployment exited ({owner.returncode})")
+            try:
+                return is_ready(get_json(f"{url}/api/envs")["envs"])
+            except (urllib.error.URLError, ConnectionError):
+                return False
+
+        wait_until(ready, listed, web)
+        yield url
+    finally:
+        stop(web)
+
+
+@contextlib.contextmanager
 def running_lab(db: Path, envs: list[str], ready: str, is_ready):
     """Runs `env_controller serve` on `db` with `envs` (serve arguments) and
     `lab_web` in front of it; yields (Zenoh endpoint, page URL) once
@@ -102,7 +136,6 @@ def running_lab(db: Path, envs: list[str], ready: str, is_ready):
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    web = None
     try:
 
         def listening() -> bool:
@@ -110,25 +143,9 @@ def running_lab(db: Path, envs: list[str], ready: str, is_ready):
                 return s.connect_ex(("127.0.0.1", port)) == 0
 
         wait_until("env_controller listens", listening, controller)
-        http_port = free_port()
-        web = subprocess.Popen(
-            [str(binary("lab_web")), "--connect", endpoint, "--http", f"127.0.0.1:{http_port}"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
-        url = f"http://127.0.0.1:{http_port}"
-
-        def listed() -> bool:
-            try:
-                return is_ready(get_json(f"{url}/api/envs")["envs"])
-            except (urllib.error.URLError, ConnectionError):
-                return False
-
-        wait_until(ready, listed, web)
-        yield endpoint, url
+        with web_in_front_of(endpoint, ready, is_ready, controller) as url:
+            yield endpoint, url
     finally:
-        if web is not None:
-            stop(web)
         stop(controller)
 
 
@@ -178,3 +195,61 @@ def browser():
             yield browser
         finally:
             browser.close()
+
+
+@dataclass
+class EnclosureLab:
+    url: str
+    researcher_token: str
+    operator_token: str
+
+
+@pytest.fixture()
+def enclosure_lab():
+    """Yields `lab_web` in front of the emulated enclosure (`ENCLOSURE_ENV`:
+    the real stack's processes driving emulated hardware), with the tokens of
+    its researcher and its operator, once the page lists the env's robot agent."""
+    launcher = subprocess.Popen(
+        [str(binary("emulated_enclosure")), "--task", "MonolithDiscrete"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lines: queue.Queue[str] = queue.Queue()
+    # Drained all along: a full pipe would block the launcher's logging.
+    threading.Thread(target=lambda: [lines.put(line) for line in launcher.stderr], daemon=True).start()
+    said: dict[str, str] = {}
+    try:
+        deadline = time.monotonic() + 120
+        wanted = ("OFFWORLD_GYM_CONNECT", "OFFWORLD_GYM_ACCESS_TOKEN", "OFFWORLD_OPERATOR_TOKEN")
+        while not all(key in said for key in wanted):
+            if launcher.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"emulated_enclosure did not come up ({launcher.returncode}): {said}")
+            try:
+                line = lines.get(timeout=0.5).strip()
+            except queue.Empty:
+                continue
+            key, _, value = line.partition("=")
+            if key in wanted:
+                said[key] = value
+
+        def robot_listed(listed) -> bool:
+            return any(e["id"] == ENCLOSURE_ENV and "robot_agent" in e["components"] for e in listed)
+
+        with web_in_front_of(
+            said["OFFWORLD_GYM_CONNECT"], "lab_web lists the enclosure's robot agent", robot_listed, launcher
+        ) as url:
+            yield EnclosureLab(
+                url=url,
+                researcher_token=said["OFFWORLD_GYM_ACCESS_TOKEN"],
+                operator_token=said["OFFWORLD_OPERATOR_TOKEN"],
+            )
+    finally:
+        # Ctrl-C: the launcher stops every process of the deployment.
+        launcher.send_signal(signal.SIGINT)
+        try:
+            launcher.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            launcher.kill()
+            launcher.wait(timeout=10)
+

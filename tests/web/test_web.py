@@ -2,10 +2,15 @@
 both sim envs shown free, a lease taken from Python shown within 1 s
 without a reload, free again once closed; the env page; a 404 page;
 signing in with an access token, booking a slot on a real env, seeing it
-listed, and an overlapping slot refused with the controller's reason.
+listed, and an overlapping slot refused with the controller's reason;
+against the emulated enclosure, the operator console refused to a
+researcher, and an operator's e-stop acknowledged by the robot agent,
+shown on the availability page, and released with its confirmation.
 
 `OFFWORLD_WEB_SCREENSHOT=docs/img/web-envs.png` also saves the
-availability page, with one env leased, for the docs."""
+availability page, with one env leased, for the docs;
+`OFFWORLD_WEB_CONSOLE_SCREENSHOT=docs/img/web-console.png` the console
+with the enclosure's e-stop engaged."""
 
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ import urllib.request
 import gymnasium
 import offworld_gym  # noqa: F401  (registers the envs)
 import pytest
-from conftest import ENVS, REAL_ENV
+from conftest import ENCLOSURE_ENV, ENVS, REAL_ENV
 
 from playwright.sync_api import expect
 
@@ -151,3 +156,78 @@ def test_a_signed_in_user_books_a_slot_and_an_overlap_is_refused(booking_lab, br
     if screenshot:
         page.screenshot(path=screenshot, full_page=True)
     page.close()
+
+
+def sign_in(page, url: str, token: str) -> None:
+    page.goto(f"{url}/account")
+    page.fill("#token", token)
+    page.click("button[type=submit]")
+    expect(page.locator("#signed-in")).to_contain_text("You are signed in")
+
+
+def test_an_operator_e_stops_the_emulated_robot_from_the_console(enclosure_lab, browser):
+    # A researcher signed in: no console link, and the console refuses them.
+    researcher = browser.new_page()
+    researcher.set_default_timeout(EVENTUALLY_MS)
+    sign_in(researcher, enclosure_lab.url, enclosure_lab.researcher_token)
+    expect(researcher.locator("#signed-in")).to_contain_text("as researcher")
+    expect(researcher.locator("#console-link")).to_have_count(0)
+    response = researcher.goto(f"{enclosure_lab.url}/console")
+    assert response is not None and response.status == 403
+    expect(researcher.locator("#refused")).to_have_text(
+        "The operator console is for operators: researcher is not one."
+    )
+    researcher.close()
+
+    # Someone watching the availability page while the operator acts.
+    watcher = browser.new_page()
+    watcher.set_default_timeout(EVENTUALLY_MS)
+    watcher.goto(enclosure_lab.url)
+    expect(row(watcher, ENCLOSURE_ENV)).to_have_attribute("data-state", "free")
+    expect(watcher.locator("#live")).to_have_attribute("data-state", "live")
+
+    ops = browser.new_page(viewport={"width": 1200, "height": 800})
+    ops.set_default_timeout(EVENTUALLY_MS)
+    sign_in(ops, enclosure_lab.url, enclosure_lab.operator_token)
+    ops.click("#console-link")
+    expect(ops.locator("h1")).to_have_text("Operator console")
+    expect(ops.locator("#operator")).to_have_text("operator")
+    enclosure = ops.locator(f'tr[data-env="{ENCLOSURE_ENV}"]')
+    engage = enclosure.locator('form[data-action="engage"]')
+    engage.locator('input[name="reason"]').fill("person in the enclosure")
+    engage.locator("button").click()
+    # The robot agent stopped the base, latched, and said so.
+    expect(ops.locator("#notice")).to_contain_text(
+        f"E-stop engaged on {ENCLOSURE_ENV}: acknowledged by robot_agent of {ENCLOSURE_ENV}"
+    )
+    expect(ops.locator(f'#acks li[data-component="robot_agent"][data-env="{ENCLOSURE_ENV}"]')).to_contain_text(
+        "e-stops now engaged there: env"
+    )
+    expect(enclosure).to_have_attribute("data-state", "estopped")
+    expect(enclosure.locator('[data-field="estop"]')).to_contain_text(
+        "person in the enclosure (operator via the web console)"
+    )
+    # The watcher's page shows it without a reload.
+    expect(row(watcher, ENCLOSURE_ENV)).to_have_attribute("data-state", "estopped")
+    expect(row(watcher, ENCLOSURE_ENV).locator('[data-field="state-detail"]')).to_contain_text(
+        "person in the enclosure"
+    )
+    screenshot = os.environ.get("OFFWORLD_WEB_CONSOLE_SCREENSHOT")
+    if screenshot:
+        ops.screenshot(path=screenshot, full_page=True)
+
+    # The release asks for its confirmation: the browser will not send the
+    # form without the box ticked, and the server would refuse it.
+    release = enclosure.locator('form[data-action="release"]')
+    release.locator('input[name="reason"]').fill("checked: all clear")
+    release.locator("button").click()
+    expect(ops.locator("#notice")).to_contain_text(f"E-stop engaged on {ENCLOSURE_ENV}")
+    release.locator('input[name="confirm"]').check()
+    release.locator("button").click()
+    expect(ops.locator("#notice")).to_contain_text(
+        f"E-stop released on {ENCLOSURE_ENV}: acknowledged by robot_agent of {ENCLOSURE_ENV}"
+    )
+    expect(row(watcher, ENCLOSURE_ENV)).to_have_attribute("data-state", "free")
+    ops.close()
+    watcher.close()
+

@@ -7,8 +7,10 @@
 //! emulated_enclosure --task MonolithDiscrete              # serve until Ctrl-C
 //! emulated_enclosure -- python3 py_client/examples/random_agent.py --env OffWorldMonolithDiscreteReal-v0
 //! ```
-//! A command after `--` runs with `OFFWORLD_GYM_CONNECT` and
-//! `OFFWORLD_GYM_ACCESS_TOKEN` set; the deployment stops when it exits.
+//! A command after `--` runs with `OFFWORLD_GYM_CONNECT`,
+//! `OFFWORLD_GYM_ACCESS_TOKEN` (a researcher's) and
+//! `OFFWORLD_OPERATOR_TOKEN` (an operator's) set; the deployment stops
+//! when it exits.
 
 use std::process::Command;
 
@@ -46,6 +48,7 @@ async fn main() -> anyhow::Result<()> {
     );
     eprintln!("  OFFWORLD_GYM_CONNECT={}", deployment.endpoint);
     eprintln!("  OFFWORLD_GYM_ACCESS_TOKEN={}", deployment.token);
+    eprintln!("  OFFWORLD_OPERATOR_TOKEN={}", deployment.operator_token);
     let Some((program, rest)) = args.command.split_first() else {
         eprintln!("Ctrl-C to stop");
         offworld_runtime::shutdown::signalled().await?;
@@ -55,6 +58,7 @@ async fn main() -> anyhow::Result<()> {
         .args(rest)
         .env("OFFWORLD_GYM_CONNECT", &deployment.endpoint)
         .env("OFFWORLD_GYM_ACCESS_TOKEN", &deployment.token)
+        .env("OFFWORLD_OPERATOR_TOKEN", &deployment.operator_token)
         .status()
         .with_context(|| format!("running {program}"))?;
     drop(deployment);
