@@ -9,7 +9,7 @@
 # Usage: deploy/certs/generate.sh OUT_DIR [ROUTER_SAN]
 #   ROUTER_SAN: subjectAltName of the router certificate
 #   (default: DNS:localhost plus 127.0.0.1-127.0.0.9).
-# Writes OUT_DIR/{ca,router,env_controller,sim_controller,robot_agent,tracker_agent,sim_twin,operator}.{pem,key},
+# Writes OUT_DIR/{ca,router,env_controller,sim_controller,robot_agent,tracker_agent,sim_twin,operator,lab_web}.{pem,key},
 # and the site's seal keys (runtime/src/seal.rs), kept if present:
 #   OUT_DIR/command.seal  for env_controller (real site) and robot_agent (--command-key)
 #   OUT_DIR/tracker.seal  for tracker_agent, env_controller and robot_agent (--tracker-key)
@@ -38,7 +38,7 @@ issue() {
 }
 
 issue router "$router_san" serverAuth,clientAuth
-for role in env_controller sim_controller robot_agent tracker_agent sim_twin operator; do
+for role in env_controller sim_controller robot_agent tracker_agent sim_twin operator lab_web; do
     issue "$role" "DNS:$role" clientAuth
 done
 rm -f ca.srl

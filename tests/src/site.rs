@@ -37,6 +37,8 @@ pub enum Role {
     TrackerAgent,
     /// An operator: e-stops, admin, watching everything.
     Operator,
+    /// The lab's web page: read-only queries, spectator keys, e-stops.
+    LabWeb,
 }
 
 impl Role {
@@ -50,6 +52,7 @@ impl Role {
             Role::RobotAgent => "robot_agent",
             Role::TrackerAgent => "tracker_agent",
             Role::Operator => "operator",
+            Role::LabWeb => "lab_web",
         }
     }
 
@@ -58,7 +61,7 @@ impl Role {
         self != Role::Trainer
     }
 
-    const ALL: [Role; 7] = [
+    const ALL: [Role; 8] = [
         Role::Trainer,
         Role::Controller,
         Role::SimController,
@@ -66,6 +69,7 @@ impl Role {
         Role::RobotAgent,
         Role::TrackerAgent,
         Role::Operator,
+        Role::LabWeb,
     ];
 }
 

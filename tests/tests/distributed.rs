@@ -464,6 +464,111 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     Ok(())
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -> anyhow::Result<()>
+{
+    let _one = ONE_SITE.lock().await;
+    let site = SimSite::start("web")?;
+    let env = site.env.clone();
+    let trainer = site.session(Role::Trainer).await;
+    let mut gym = open(&trainer, &env, "watched", false).await;
+    let web = site.session(Role::LabWeb).await;
+    let (status, _status_sub) = Seen::watch(&web, &env.key(Topic::Status)).await;
+    let (stolen, _stolen_sub) = Seen::watch(&web, &format!("{}/pose", env.prefix())).await;
+    let (frames, _frames_sub) = Seen::watch(&web, &env.key(Topic::Obs)).await;
+
+    // What its pages read: the listing with the lease's holder, a
+    // leaderboard, the bookings, and `admin` (a user's token, checked by
+    // the controller: a stranger's is refused there, not at the router).
+    let listed = offworld_runtime::client::discover(&web, Duration::from_secs(5))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let listing = listed
+        .iter()
+        .find(|l| l.env == env)
+        .unwrap_or_else(|| panic!("{env} listed: {listed:?}"));
+    assert_eq!(listing.task, "MonolithDiscrete");
+    assert!(
+        matches!(&listing.state, EnvState::Leased { holder, .. } if holder == "anonymous"),
+        "{listing:?}"
+    );
+    let timeout = Duration::from_secs(5);
+    offworld_runtime::client::leaderboard(&web, &env, timeout)
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    offworld_runtime::client::book(
+        &web,
+        &env,
+        &BookingRequest::List { from_unix_ms: 0 },
+        timeout,
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!(e))?;
+    let stranger = AdminRequest::Identify {
+        token: "not-a-user".into(),
+    };
+    let refused = offworld_runtime::client::admin(&web, &env, &stranger, timeout)
+        .await
+        .expect_err("a stranger's token");
+    assert_eq!(refused.code, ErrorCode::Unauthorized, "{refused}");
+
+    // Its console presses an e-stop: the twin acknowledges through the
+    // router, and the controller's status (which the page shows) says so.
+    let report = press_estop(
+        &web,
+        &EStopScope::Env(env.clone()),
+        true,
+        "from the web console",
+        Duration::from_secs(10),
+        Duration::from_secs(5),
+    )
+    .await?;
+    assert_eq!(report.acknowledged.len(), 1, "{report:?}");
+    assert_eq!(report.acknowledged[0].component, "sim_twin");
+    let refused = gym
+        .step(Action::Discrete(FORWARD))
+        .await
+        .expect_err("no step under an e-stop");
+    assert_eq!(refused.code, ErrorCode::InvalidState, "{refused}");
+    press_estop(
+        &web,
+        &EStopScope::Env(env.clone()),
+        false,
+        "clear",
+        Duration::from_secs(10),
+        Duration::from_secs(5),
+    )
+    .await?;
+    gym.reset(Seed::Fixed(4))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    gym.step(Action::Discrete(FORWARD))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    settle().await;
+    assert!(status.count("status", None) >= 2, "status reaches the page");
+    assert!(
+        frames.count("obs", None) >= 1,
+        "camera frames reach its thumbnails"
+    );
+    // It never reads localisation…
+    assert_eq!(stolen.count("pose", None), 0, "the web page read poses");
+    // …and never drives: the router drops its `open`.
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    let driving = EnvClient::open(
+        &web,
+        &env,
+        request("from-the-web", false),
+        ClientTimeouts {
+            control: Duration::from_secs(3),
+            ..ClientTimeouts::default()
+        },
+    )
+    .await;
+    assert!(driving.is_err(), "the web page opened a gym session");
+    Ok(())
+}
+
 /// Steps FORWARD and returns the command's seq as the spy saw it; on
 /// failure, says what the spy saw of that command.
 async fn step(gym: &mut EnvClient, spy: &Seen) -> u64 {

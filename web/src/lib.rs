@@ -17,6 +17,8 @@
 //! - [`account`], [`account_pages`], [`chart`]: sign-in, bookings,
 //!   experiments and their learning curves; [`session`]: sessions, CSRF;
 //! - [`console`], [`console_pages`]: the operator console;
+//! - [`thumbnails`]: each env's camera and overhead view, pulled at a
+//!   low rate;
 //! - [`server`]: routes, limits, security headers, the accept loop;
 //! - [`error`]: HTTP errors.
 
@@ -33,6 +35,7 @@ pub mod model;
 pub mod pages;
 pub mod server;
 pub mod session;
+pub mod thumbnails;
 
 use std::net::SocketAddr;
 
@@ -45,7 +48,7 @@ pub use discovery::{Discovery, DiscoveryConfig};
 pub use server::Limits;
 
 /// How the service runs.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct WebOptions {
     /// Query deadlines and sweep interval.
     pub discovery: DiscoveryConfig,
@@ -54,6 +57,14 @@ pub struct WebOptions {
     /// Mark cookies `Secure`: the service is reached through TLS (a
     /// reverse proxy); browsers then send them over HTTPS only.
     pub secure_cookies: bool,
+    /// Every page and the JSON need a signed-in user (a site that does
+    /// not show its state to the public); only sign-in, the stylesheet,
+    /// the script and `/healthz` stay open.
+    pub members_only: bool,
+    /// A URL the rerun viewer opens to watch the deployment live (a
+    /// monitor's `--serve` stream, e.g. `rerun+http://lab:9876/proxy`),
+    /// linked from each env's page.
+    pub rerun_url: Option<String>,
 }
 
 /// Why the service could not start.
@@ -98,10 +109,11 @@ impl LabWeb {
             addr: listen,
             source,
         })?;
-        let discovery = Discovery::start(session, options.discovery)
+        let discovery = Discovery::start(session.clone(), options.discovery)
             .await
             .map_err(StartError::Zenoh)?;
-        let app = server::router(discovery.clone(), &options);
+        let thumbnails = thumbnails::Thumbnails::new(session.clone());
+        let app = server::router(discovery.clone(), thumbnails, &options);
         let (stop, stopped) = oneshot::channel::<()>();
         let task = tokio::spawn(server::serve(listener, app, options.limits, async {
             let _ = stopped.await;

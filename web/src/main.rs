@@ -62,6 +62,15 @@ struct Args {
     /// TLS reverse proxy).
     #[arg(long, env = "OFFWORLD_WEB_SECURE_COOKIES")]
     secure_cookies: bool,
+    /// Show the lab's state to signed-in users only (any gym user's
+    /// token): every page and the JSON answer 401 to others.
+    #[arg(long, env = "OFFWORLD_WEB_MEMBERS_ONLY")]
+    members_only: bool,
+    /// Where the rerun viewer watches the deployment live (a monitor's
+    /// `--serve` stream, e.g. `rerun+http://lab.example:9876/proxy`):
+    /// linked from each env's page.
+    #[arg(long, value_name = "URL", env = "OFFWORLD_WEB_RERUN_URL")]
+    rerun_url: Option<String>,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -86,6 +95,8 @@ async fn main() -> anyhow::Result<()> {
             ..Limits::default()
         },
         secure_cookies: args.secure_cookies,
+        members_only: args.members_only,
+        rerun_url: args.rerun_url.clone(),
     };
     let session = args.common.clone().client_config().open().await?;
     let web = LabWeb::start(session.clone(), args.http_listen, options).await?;

@@ -67,6 +67,7 @@ pub fn env_page(
     snapshot: &Snapshot,
     env: &EnvView,
     leaderboard: Result<&LeaderboardView, &str>,
+    rerun_url: Option<&str>,
 ) -> Markup {
     layout(
         &env.id,
@@ -83,6 +84,7 @@ pub fn env_page(
                 " · "
                 a href={ "/envs/" (env.realm) "/" (env.name) "/experiments" } { "Your experiments" }
             }
+            (live_view(env, rerun_url))
             h2 #leaderboard { "Leaderboard" }
             p.lead { "Test-mode experiments on this env, best first. Click a column to sort." }
             @match leaderboard {
@@ -96,6 +98,34 @@ pub fn env_page(
             }
         },
     )
+}
+
+/// The env's camera and overhead thumbnails (refreshed by the script every
+/// few seconds; without it, on reload) and the rerun link.
+fn live_view(env: &EnvView, rerun_url: Option<&str>) -> Markup {
+    let base = format!("/envs/{}/{}", env.realm, env.name);
+    html! {
+        h2 #live-view { "Live view" }
+        p.lead {
+            "What the robot's camera and the overhead camera last showed, a frame every few seconds. "
+            "An env that is not stepping publishes no camera frames."
+        }
+        div.thumbnails {
+            @for (view, caption) in [("camera", "Robot camera"), ("overhead", "Overhead")] {
+                figure.thumbnail {
+                    img data-thumbnail=(view) src={ (base) "/" (view) ".png" }
+                        alt={ "No recent " (caption.to_lowercase()) " frame" };
+                    figcaption { (caption) }
+                }
+            }
+        }
+        @if let Some(url) = rerun_url {
+            p #rerun {
+                "Every stream, live, in the rerun viewer: "
+                a href=(url) { "open in rerun" } " or " code { "rerun " (url) }
+            }
+        }
+    }
 }
 
 /// A page for an HTTP error.

@@ -22,7 +22,7 @@ use std::time::Duration;
 use axum::error_handling::HandleErrorLayer;
 use axum::extract::rejection::PathRejection;
 use axum::extract::{Path, Request, State};
-use axum::http::{header, HeaderValue, Uri};
+use axum::http::{header, HeaderValue, StatusCode, Uri};
 use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
@@ -38,6 +38,7 @@ use tower::ServiceBuilder;
 use crate::discovery::Discovery;
 use crate::error::{Format, HttpError};
 use crate::session::Sessions;
+use crate::thumbnails::{ThumbnailError, Thumbnails, View};
 use crate::{account, api, console, events, pages, WebOptions};
 
 /// The service's limits (see the module documentation).
@@ -87,6 +88,10 @@ impl Default for Limits {
 pub struct AppState {
     /// The live availability.
     pub discovery: Discovery,
+    /// Each env's camera and overhead thumbnails.
+    pub thumbnails: Thumbnails,
+    /// Where the rerun viewer opens the live stream (a monitor's), if set.
+    pub rerun_url: Option<String>,
     /// Places for open event streams.
     pub event_streams: Arc<Semaphore>,
     /// Signed-in users.
@@ -99,6 +104,7 @@ pub struct AppState {
     pub session_idle_s: u64,
     rates: Arc<DefaultKeyedRateLimiter<IpAddr>>,
     request_timeout: Duration,
+    members_only: bool,
 }
 
 /// The peer address of a request's connection (set by [`serve`]).
@@ -106,10 +112,12 @@ pub struct AppState {
 pub struct PeerAddr(pub SocketAddr);
 
 /// The application: every route behind its limits and headers.
-pub fn router(discovery: Discovery, options: &WebOptions) -> Router {
+pub fn router(discovery: Discovery, thumbnails: Thumbnails, options: &WebOptions) -> Router {
     let limits = &options.limits;
     let state = AppState {
         discovery,
+        thumbnails,
+        rerun_url: options.rerun_url.clone(),
         event_streams: Arc::new(Semaphore::new(limits.max_event_streams)),
         sessions: Arc::new(Sessions::new(limits.max_sessions, limits.session_idle)),
         signins: Arc::new(RateLimiter::keyed(
@@ -122,6 +130,7 @@ pub fn router(discovery: Discovery, options: &WebOptions) -> Router {
             Quota::per_second(limits.rate_per_client).allow_burst(limits.burst_per_client),
         )),
         request_timeout: limits.request_timeout,
+        members_only: options.members_only,
     };
     forget_idle_clients(&state.rates);
     forget_idle_clients(&state.signins);
@@ -134,6 +143,8 @@ pub fn router(discovery: Discovery, options: &WebOptions) -> Router {
     Router::new()
         .route("/", get(availability_page))
         .route("/envs/{realm}/{name}", get(env_page))
+        .route("/envs/{realm}/{name}/camera.png", get(camera_thumbnail))
+        .route("/envs/{realm}/{name}/overhead.png", get(overhead_thumbnail))
         .route("/events", get(events::html))
         .route("/api/envs", get(api::envs))
         .route("/api/envs/{realm}/{name}", get(api::env))
@@ -175,6 +186,7 @@ pub fn router(discovery: Discovery, options: &WebOptions) -> Router {
         .route("/healthz", get(|| async { "ok" }))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
+        .layer(middleware::from_fn_with_state(state.clone(), members_only))
         .layer(middleware::from_fn_with_state(state.clone(), deadline))
         .layer(shed)
         .layer(middleware::from_fn_with_state(state.clone(), rate_limit))
@@ -198,7 +210,51 @@ async fn env_page(
     // The env's state is shown whatever the leaderboard query gives.
     let board = api::fetch_leaderboard(&state, &id).await;
     let board = board.as_ref().map_err(|e| e.message.as_str());
-    Ok(Html(pages::env_page(&snapshot, env, board).into_string()))
+    Ok(Html(
+        pages::env_page(&snapshot, env, board, state.rerun_url.as_deref()).into_string(),
+    ))
+}
+
+async fn camera_thumbnail(
+    state: State<AppState>,
+    path: Result<Path<(String, String)>, PathRejection>,
+) -> Result<Response, HttpError> {
+    thumbnail(state, path, View::Camera).await
+}
+
+async fn overhead_thumbnail(
+    state: State<AppState>,
+    path: Result<Path<(String, String)>, PathRejection>,
+) -> Result<Response, HttpError> {
+    thumbnail(state, path, View::Overhead).await
+}
+
+/// A known env's thumbnail as `image/png` (404 with the reason when none).
+async fn thumbnail(
+    State(state): State<AppState>,
+    path: Result<Path<(String, String)>, PathRejection>,
+    view: View,
+) -> Result<Response, HttpError> {
+    let id = api::env_from_path(path)?;
+    let snapshot = state.discovery.snapshot();
+    if snapshot.env(&id).is_none() {
+        return Err(api::unknown_env(&id));
+    }
+    state.thumbnails.retain(|env| snapshot.env(env).is_some());
+    match state.thumbnails.get(&id, view).await {
+        Ok(thumbnail) => Ok((
+            [
+                (header::CONTENT_TYPE, "image/png"),
+                (header::CACHE_CONTROL, "no-store"),
+            ],
+            thumbnail.png.as_ref().clone(),
+        )
+            .into_response()),
+        Err(e @ (ThumbnailError::NoFrame(..) | ThumbnailError::Unusable(_))) => {
+            Err(HttpError::not_found(format!("{id}: {e}")))
+        }
+        Err(e) => Err(HttpError::unavailable(format!("{id}: {e}"))),
+    }
 }
 
 async fn style() -> Response {
@@ -244,6 +300,35 @@ async fn rate_limit(State(state): State<AppState>, request: Request, next: Next)
             .into_response();
     }
     next.run(request).await
+}
+
+/// What a members-only site still shows to everyone: how to sign in.
+const OPEN_TO_ALL: [&str; 6] = [
+    "/account",
+    "/account/signin",
+    "/account/signout",
+    "/static/style.css",
+    "/static/app.js",
+    "/healthz",
+];
+
+/// With [`WebOptions::members_only`], everything else needs a session.
+async fn members_only(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let path = request.uri().path();
+    if !state.members_only
+        || OPEN_TO_ALL.contains(&path)
+        || state.sessions.from_headers(request.headers()).is_some()
+    {
+        return next.run(request).await;
+    }
+    let format = Format::for_path(path);
+    if format == Format::Html {
+        let page = crate::account_pages::signin_needed("This lab's pages");
+        return (StatusCode::UNAUTHORIZED, Html(page.into_string())).into_response();
+    }
+    HttpError::unauthorized("this lab shows its state to signed-in users only: sign in at /account")
+        .as_format(format)
+        .into_response()
 }
 
 async fn deadline(State(state): State<AppState>, request: Request, next: Next) -> Response {

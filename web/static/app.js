@@ -116,7 +116,23 @@
     });
   };
 
+  // Thumbnails: a fresh frame every few seconds (the server pulls at most
+  // one per env every 2 s, whatever the number of viewers).
+  const refreshThumbnails = () => {
+    const images = document.querySelectorAll("img[data-thumbnail]");
+    if (!images.length) return;
+    setInterval(() => {
+      if (document.hidden) return;
+      for (const img of images) {
+        const url = new URL(img.src, window.location.href);
+        url.searchParams.set("t", String(Date.now()));
+        img.src = url.pathname + url.search;
+      }
+    }, 3000);
+  };
+
   document.addEventListener("DOMContentLoaded", () => {
+    refreshThumbnails();
     document.querySelectorAll("form[data-slot-form]").forEach(slotForm);
     formatTimes(document);
     document.querySelectorAll("table.sortable").forEach(sortable);

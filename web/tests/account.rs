@@ -72,6 +72,10 @@ struct Lab {
 
 impl Lab {
     async fn start() -> Self {
+        Self::start_with(WebOptions::default()).await
+    }
+
+    async fn start_with(options: WebOptions) -> Self {
         let (deployment, web_side) = loopback_pair().await.expect("sessions");
         let store = Store::in_memory().expect("store");
         store
@@ -108,7 +112,7 @@ impl Lab {
             .await
             .expect("real env");
         let listen: SocketAddr = "127.0.0.1:0".parse().expect("address");
-        let web = LabWeb::start(web_side, listen, WebOptions::default())
+        let web = LabWeb::start(web_side, listen, options)
             .await
             .expect("web service");
         let lab = Self {
@@ -125,6 +129,15 @@ impl Lab {
     async fn until_listed(&self) {
         let deadline = tokio::time::Instant::now() + EVENTUALLY;
         let mut browser = self.browser();
+        // A members-only site lists nothing to strangers.
+        while browser.sign_in(ALICE).await.0 != StatusCode::SEE_OTHER {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "signing in: not within {EVENTUALLY:?}"
+            );
+            // Sign-in attempts are rate-limited (bursts of 10).
+            tokio::time::sleep(Duration::from_millis(300)).await;
+        }
         loop {
             let (_, _, body) = browser.get("/api/envs").await;
             let snapshot: Value = serde_json::from_str(&body).expect("JSON");
@@ -764,4 +777,47 @@ async fn the_operator_console_is_for_operators_and_its_actions_reach_the_deploym
         page.contains(&format!("Not revoked: {SIM} has no lease to revoke")),
         "{page}"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_members_only_lab_shows_its_state_to_signed_in_users_only() {
+    let lab = Lab::start_with(WebOptions {
+        members_only: true,
+        ..WebOptions::default()
+    })
+    .await;
+    let mut stranger = lab.browser();
+    for path in ["/", "/envs/sim/acct-a", "/bookings", "/events", "/console"] {
+        let (status, _, page) = stranger.get(path).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{path}: {page}");
+        assert!(
+            page.contains("This lab's pages needs you to"),
+            "{path}: {page}"
+        );
+        assert!(!page.contains(SIM), "{path} shows nothing of the lab");
+    }
+    for path in [
+        "/api/envs",
+        "/api/envs/sim/acct-a/leaderboard",
+        "/api/events",
+    ] {
+        let (status, _, body) = stranger.get(path).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{path}: {body}");
+        let error: Value = serde_json::from_str(&body).expect("JSON");
+        assert_eq!(error["error"]["kind"], "unauthorized", "{body}");
+    }
+    for path in [
+        "/account",
+        "/static/style.css",
+        "/static/app.js",
+        "/healthz",
+    ] {
+        assert_eq!(stranger.get(path).await.0, StatusCode::OK, "{path}");
+    }
+    let mut alice = lab.browser();
+    assert_eq!(alice.sign_in(ALICE).await.0, StatusCode::SEE_OTHER);
+    let (status, _, page) = alice.get("/").await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert!(page.contains(SIM), "{page}");
+    assert_eq!(alice.get("/api/envs").await.0, StatusCode::OK);
 }

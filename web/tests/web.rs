@@ -518,3 +518,99 @@ async fn event_streams_over_the_limit_are_refused_not_queued() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
+
+/// GET `path`: status, content type, body bytes.
+async fn get_bytes(lab: &Lab, path: &str) -> (StatusCode, String, Vec<u8>) {
+    let response = send(&lab.http, Method::GET, &lab.url(path)).await;
+    let (parts, body) = response.into_parts();
+    let body = tokio::time::timeout(EVENTUALLY, body.collect())
+        .await
+        .expect("the body within the bound")
+        .expect("body")
+        .to_bytes();
+    let content_type = parts
+        .headers
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_owned();
+    (parts.status, content_type, body.to_vec())
+}
+
+/// The size of a PNG, decoded with the `png` crate.
+fn png_size(bytes: &[u8]) -> (u32, u32) {
+    let reader = png::Decoder::new(std::io::Cursor::new(bytes))
+        .read_info()
+        .expect("a PNG");
+    let info = reader.info();
+    (info.width, info.height)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thumbnails_show_a_stepping_envs_views_and_say_why_an_idle_one_has_none() {
+    let rerun = "rerun+http://127.0.0.1:9876/proxy";
+    let lab = Lab::start(WebOptions {
+        rerun_url: Some(rerun.into()),
+        ..WebOptions::default()
+    })
+    .await;
+    let (status, _, page) = lab.get("/envs/sim/web-a").await;
+    assert_eq!(status, StatusCode::OK);
+    assert!(
+        page.contains(r#"<img data-thumbnail="camera" src="/envs/sim/web-a/camera.png""#),
+        "{page}"
+    );
+    assert!(
+        page.contains(r#"src="/envs/sim/web-a/overhead.png""#),
+        "{page}"
+    );
+    assert!(
+        page.contains(&format!(r#"<a href="{rerun}">open in rerun</a>"#)),
+        "{page}"
+    );
+
+    // An idle env publishes no camera frame: a 404 that says so.
+    let (status, _, body) = lab.get("/envs/sim/web-b/camera.png").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    assert!(
+        body.contains("sim/web-b: no camera frame from this env in the last 1.5 s"),
+        "{body}"
+    );
+    let (status, _, _) = lab.get("/envs/sim/nowhere/camera.png").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+
+    // A stepping env: its camera (8×6 frames, kept whole) and its overhead view.
+    let mut client = open(&lab.deployment, &env_ids()[0], AlgorithmMode::Train, "").await;
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stepping = {
+        let stop = stop.clone();
+        tokio::spawn(async move {
+            client.reset(Seed::Fixed(1)).await.expect("reset");
+            // Bounded: until told to stop, at most 20,000 steps.
+            for _ in 0..20_000 {
+                if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    break;
+                }
+                let reply = client
+                    .step(offworld_runtime::msg::Action::Discrete(1))
+                    .await
+                    .expect("step");
+                if reply.terminated || reply.truncated {
+                    client.reset(Seed::Continue).await.expect("reset");
+                }
+            }
+            client.close().await.expect("close");
+        })
+    };
+    let (status, content_type, png) = get_bytes(&lab, "/envs/sim/web-a/camera.png").await;
+    assert_eq!(status, StatusCode::OK, "{}", String::from_utf8_lossy(&png));
+    assert_eq!(content_type, "image/png");
+    assert_eq!(png_size(&png), (8, 6));
+    let (status, content_type, png) = get_bytes(&lab, "/envs/sim/web-a/overhead.png").await;
+    assert_eq!(status, StatusCode::OK, "{}", String::from_utf8_lossy(&png));
+    assert_eq!(content_type, "image/png");
+    let (width, height) = png_size(&png);
+    assert!(width <= 240 && width > 0 && height > 0, "{width}×{height}");
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    stepping.await.expect("the stepping task");
+}
