@@ -10,12 +10,14 @@ shown on the availability page, and released with its confirmation.
 `OFFWORLD_WEB_SCREENSHOT=docs/img/web-envs.png` also saves the
 availability page, with one env leased, for the docs;
 `OFFWORLD_WEB_CONSOLE_SCREENSHOT=docs/img/web-console.png` the console
-with the enclosure's e-stop engaged."""
+with the enclosure's e-stop engaged; `OFFWORLD_WEB_ENV_SCREENSHOT=
+docs/img/web-env.png` an env's page with its live view while it steps."""
 
 from __future__ import annotations
 
 import os
 import struct
+import threading
 import urllib.error
 import urllib.request
 
@@ -86,6 +88,50 @@ def test_the_env_page_shows_its_state_and_an_empty_leaderboard(lab, browser):
     expect(page.locator("#live")).to_have_attribute("data-state", "live", timeout=EVENTUALLY_MS)
     expect(page.locator("tr[data-env]")).to_have_count(1)
     page.close()
+
+
+def test_the_live_view_shows_a_stepping_envs_camera_and_overhead(lab, browser, tmp_path):
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=lab.endpoint, env_id=ENVS[0], resolution=(84, 84))
+    stop = threading.Event()
+
+    def keep_stepping() -> None:
+        env.reset(seed=3)
+        for step in range(20_000):  # bounded; stopped long before
+            if stop.is_set():
+                return
+            _, _, terminated, truncated, _ = env.step(step % 3)
+            if terminated or truncated:
+                env.reset()
+
+    stepper = threading.Thread(target=keep_stepping)
+    stepper.start()
+    try:
+        page = browser.new_page(viewport={"width": 1200, "height": 760})
+        page.set_default_timeout(EVENTUALLY_MS)
+        page.goto(f"{lab.url}/envs/{ENVS[0]}")
+        expect(page.locator("#live-view")).to_have_text("Live view")
+        for view in ("camera", "overhead"):
+            # A decoded image (the alt text has no natural width).
+            page.wait_for_function(
+                f"document.querySelector('img[data-thumbnail={view}]').naturalWidth > 0", timeout=EVENTUALLY_MS
+            )
+        width = page.evaluate("document.querySelector('img[data-thumbnail=camera]').naturalWidth")
+        assert width == 84, width
+        # The script keeps them fresh: a new request every few seconds.
+        first = page.evaluate("document.querySelector('img[data-thumbnail=camera]').src")
+        page.wait_for_function(
+            f"document.querySelector('img[data-thumbnail=camera]').src !== {first!r}", timeout=EVENTUALLY_MS
+        )
+        screenshot = os.environ.get("OFFWORLD_WEB_ENV_SCREENSHOT") or str(tmp_path / "web-env.png")
+        page.wait_for_function(
+            "document.querySelector('img[data-thumbnail=camera]').naturalWidth > 0", timeout=EVENTUALLY_MS
+        )
+        page.screenshot(path=screenshot, full_page=True)
+        page.close()
+    finally:
+        stop.set()
+        stepper.join(timeout=30)
+        env.close()
 
 
 @pytest.mark.parametrize(

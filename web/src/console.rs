@@ -244,79 +244,103 @@ fn back_from(form: &[(String, String)], now_unix_ms: i64) -> Result<i64, String>
     }
 }
 
-/// `POST /console/maintenance`: starts (`action=start`, with a message and
-/// an optional expected return in minutes) or ends an env's maintenance.
-pub async fn maintenance(State(state): State<AppState>, request: Request) -> Response {
-    let (session, form) = match operator_form(&state, request).await {
-        Ok(posted) => posted,
-        Err(page) => return page,
-    };
-    let refused =
-        |status, why: String| render(&state, &session, status, Notice::Refused(why), None);
-    let env = match form_env(&state, &form) {
-        Ok(env) => env,
-        Err(why) => return refused(StatusCode::NOT_FOUND, format!("Not changed: {why}.")),
-    };
-    let token = session.token.clone();
-    let request = match field(&form, "action") {
-        Some("start") => {
-            let message = match said(&form, "message", "what is being done") {
-                Ok(message) => message.to_owned(),
-                Err(why) => {
-                    return refused(StatusCode::BAD_REQUEST, format!("Not changed: {why}."))
-                }
-            };
-            match back_from(&form, now_unix_ms()) {
-                Ok(back_unix_ms) => AdminRequest::SetMaintenance {
-                    token,
-                    message,
-                    back_unix_ms,
-                },
-                Err(why) => {
-                    return refused(StatusCode::BAD_REQUEST, format!("Not changed: {why}."))
-                }
-            }
-        }
-        Some("end") => AdminRequest::ClearMaintenance { token },
-        _ => {
-            return refused(
-                StatusCode::BAD_REQUEST,
-                "Not changed: the action is start or end.".into(),
-            )
-        }
-    };
-    let starting = matches!(request, AdminRequest::SetMaintenance { .. });
-    match state.discovery.admin(&env, &request).await {
-        Ok(_) => {
-            let told = if starting {
-                format!("{env} is in maintenance: its lease and episode ended, new sessions are refused.")
-            } else {
-                format!("{env} is back in service.")
-            };
-            render(&state, &session, StatusCode::OK, Notice::Done(told), None)
-        }
+/// An operator's form about one env.
+struct EnvForm {
+    session: Session,
+    form: Vec<(String, String)>,
+    env: EnvId,
+}
+
+/// [`operator_form`], naming a known env (else the console says
+/// `not_done` and why).
+async fn env_form(state: &AppState, request: Request, not_done: &str) -> Result<EnvForm, Response> {
+    let (session, form) = operator_form(state, request).await?;
+    match form_env(state, &form) {
+        Ok(env) => Ok(EnvForm { session, form, env }),
+        Err(why) => Err(render(
+            state,
+            &session,
+            StatusCode::NOT_FOUND,
+            Notice::Refused(format!("{not_done}: {why}.")),
+            None,
+        )),
+    }
+}
+
+/// Sends an operator's `request` to `env`'s controller: the console says
+/// `done`, or `not_done` and the controller's refusal.
+async fn ask_controller(
+    state: &AppState,
+    session: &Session,
+    env: &EnvId,
+    request: &AdminRequest,
+    not_done: &str,
+    done: String,
+) -> Response {
+    match state.discovery.admin(env, request).await {
+        Ok(_) => render(state, session, StatusCode::OK, Notice::Done(done), None),
         Err(e) => {
-            let e = HttpError::from_controller("Not changed", &e);
-            refused(e.status, e.message)
+            let e = HttpError::from_controller(not_done, &e);
+            render(state, session, e.status, Notice::Refused(e.message), None)
         }
     }
 }
 
-/// `POST /console/lease`: revokes an env's lease, telling its holder why.
-pub async fn revoke_lease(State(state): State<AppState>, request: Request) -> Response {
-    let (session, form) = match operator_form(&state, request).await {
+/// `POST /console/maintenance`: starts (`action=start`, with a message and
+/// an optional expected return in minutes) or ends an env's maintenance.
+pub async fn maintenance(State(state): State<AppState>, request: Request) -> Response {
+    const NOT_DONE: &str = "Not changed";
+    let EnvForm { session, form, env } = match env_form(&state, request, NOT_DONE).await {
         Ok(posted) => posted,
         Err(page) => return page,
     };
-    let refused =
-        |status, why: String| render(&state, &session, status, Notice::Refused(why), None);
-    let env = match form_env(&state, &form) {
-        Ok(env) => env,
-        Err(why) => return refused(StatusCode::NOT_FOUND, format!("Not revoked: {why}.")),
+    let refused = |why: String| {
+        let notice = Notice::Refused(format!("{NOT_DONE}: {why}."));
+        render(&state, &session, StatusCode::BAD_REQUEST, notice, None)
+    };
+    let token = session.token.clone();
+    let (request, done) = match field(&form, "action") {
+        Some("start") => {
+            let message = match said(&form, "message", "what is being done") {
+                Ok(message) => message.to_owned(),
+                Err(why) => return refused(why),
+            };
+            let back_unix_ms = match back_from(&form, now_unix_ms()) {
+                Ok(back) => back,
+                Err(why) => return refused(why),
+            };
+            let request = AdminRequest::SetMaintenance {
+                token,
+                message,
+                back_unix_ms,
+            };
+            let done = format!(
+                "{env} is in maintenance: its lease and episode ended, new sessions are refused."
+            );
+            (request, done)
+        }
+        Some("end") => (
+            AdminRequest::ClearMaintenance { token },
+            format!("{env} is back in service."),
+        ),
+        _ => return refused("the action is start or end".into()),
+    };
+    ask_controller(&state, &session, &env, &request, NOT_DONE, done).await
+}
+
+/// `POST /console/lease`: revokes an env's lease, telling its holder why.
+pub async fn revoke_lease(State(state): State<AppState>, request: Request) -> Response {
+    const NOT_DONE: &str = "Not revoked";
+    let EnvForm { session, form, env } = match env_form(&state, request, NOT_DONE).await {
+        Ok(posted) => posted,
+        Err(page) => return page,
     };
     let reason = match said(&form, "reason", "the reason (its holder is told)") {
         Ok(reason) => reason.to_owned(),
-        Err(why) => return refused(StatusCode::BAD_REQUEST, format!("Not revoked: {why}.")),
+        Err(why) => {
+            let notice = Notice::Refused(format!("{NOT_DONE}: {why}."));
+            return render(&state, &session, StatusCode::BAD_REQUEST, notice, None);
+        }
     };
     let holder = state
         .discovery
@@ -324,21 +348,13 @@ pub async fn revoke_lease(State(state): State<AppState>, request: Request) -> Re
         .env(&env)
         .and_then(|e| e.lease.as_ref())
         .and_then(|l| l.holder.clone());
+    let whose = holder.map_or(String::new(), |h| format!(" ({h}'s)"));
     let request = AdminRequest::RevokeLease {
         token: session.token.clone(),
         reason,
     };
-    match state.discovery.admin(&env, &request).await {
-        Ok(_) => {
-            let whose = holder.map_or(String::new(), |h| format!(" ({h}'s)"));
-            let told = format!("The lease on {env}{whose} was revoked: its holder is told why.");
-            render(&state, &session, StatusCode::OK, Notice::Done(told), None)
-        }
-        Err(e) => {
-            let e = HttpError::from_controller("Not revoked", &e);
-            refused(e.status, e.message)
-        }
-    }
+    let done = format!("The lease on {env}{whose} was revoked: its holder is told why.");
+    ask_controller(&state, &session, &env, &request, NOT_DONE, done).await
 }
 
 #[cfg(test)]

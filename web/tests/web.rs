@@ -122,6 +122,19 @@ async fn request(
     method: Method,
     url: &str,
 ) -> (StatusCode, hyper::HeaderMap, String) {
+    let (status, headers, body) = request_bytes(client, method, url).await;
+    (
+        status,
+        headers,
+        String::from_utf8(body).expect("UTF-8 body"),
+    )
+}
+
+async fn request_bytes(
+    client: &HttpClient,
+    method: Method,
+    url: &str,
+) -> (StatusCode, hyper::HeaderMap, Vec<u8>) {
     let response = send(client, method, url).await;
     let (parts, body) = response.into_parts();
     let body = tokio::time::timeout(EVENTUALLY, body.collect())
@@ -129,11 +142,7 @@ async fn request(
         .expect("the body within the bound")
         .expect("body")
         .to_bytes();
-    (
-        parts.status,
-        parts.headers,
-        String::from_utf8(body.to_vec()).expect("UTF-8 body"),
-    )
+    (parts.status, parts.headers, body.to_vec())
 }
 
 async fn send(client: &HttpClient, method: Method, url: &str) -> Response<Incoming> {
@@ -521,20 +530,13 @@ async fn event_streams_over_the_limit_are_refused_not_queued() {
 
 /// GET `path`: status, content type, body bytes.
 async fn get_bytes(lab: &Lab, path: &str) -> (StatusCode, String, Vec<u8>) {
-    let response = send(&lab.http, Method::GET, &lab.url(path)).await;
-    let (parts, body) = response.into_parts();
-    let body = tokio::time::timeout(EVENTUALLY, body.collect())
-        .await
-        .expect("the body within the bound")
-        .expect("body")
-        .to_bytes();
-    let content_type = parts
-        .headers
+    let (status, headers, body) = request_bytes(&lab.http, Method::GET, &lab.url(path)).await;
+    let content_type = headers
         .get("content-type")
         .and_then(|v| v.to_str().ok())
         .unwrap_or("")
         .to_owned();
-    (parts.status, content_type, body.to_vec())
+    (status, content_type, body)
 }
 
 /// The size of a PNG, decoded with the `png` crate.
