@@ -553,7 +553,8 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     );
     // It never reads localisation…
     assert_eq!(stolen.count("pose", None), 0, "the web page read poses");
-    // …and never drives: the router drops its `open`.
+    // …and never drives: the router drops its `open` (the trainer's
+    // opened the same env above).
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     let driving = EnvClient::open(
         &web,
@@ -565,7 +566,9 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         },
     )
     .await;
-    assert!(driving.is_err(), "the web page opened a gym session");
+    let refused = driving.err().expect("the web page opened a gym session");
+    // To this identity the gym's driving queries do not exist.
+    assert_eq!(refused.code, ErrorCode::NotFound, "{refused}");
     Ok(())
 }
 

@@ -91,7 +91,7 @@ def test_the_env_page_shows_its_state_and_an_empty_leaderboard(lab, browser):
 
 
 def test_the_live_view_shows_a_stepping_envs_camera_and_overhead(lab, browser, tmp_path):
-    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=lab.endpoint, env_id=ENVS[0], resolution=(84, 84))
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=lab.endpoint, env_id=ENVS[0], resolution=(32, 32))
     stop = threading.Event()
 
     def keep_stepping() -> None:
@@ -110,22 +110,23 @@ def test_the_live_view_shows_a_stepping_envs_camera_and_overhead(lab, browser, t
         page.set_default_timeout(EVENTUALLY_MS)
         page.goto(f"{lab.url}/envs/{ENVS[0]}")
         expect(page.locator("#live-view")).to_have_text("Live view")
+        # Functions, not expression strings: the page's CSP forbids eval.
+        loaded = "(view) => document.querySelector(`img[data-thumbnail=${view}]`).naturalWidth > 0"
         for view in ("camera", "overhead"):
             # A decoded image (the alt text has no natural width).
-            page.wait_for_function(
-                f"document.querySelector('img[data-thumbnail={view}]').naturalWidth > 0", timeout=EVENTUALLY_MS
-            )
-        width = page.evaluate("document.querySelector('img[data-thumbnail=camera]').naturalWidth")
-        assert width == 84, width
+            page.wait_for_function(loaded, arg=view, timeout=EVENTUALLY_MS)
+        # The camera's frame (the twin's 320×240) at most 240 px wide.
+        width = page.evaluate("() => document.querySelector('img[data-thumbnail=camera]').naturalWidth")
+        assert width == 160, width
         # The script keeps them fresh: a new request every few seconds.
-        first = page.evaluate("document.querySelector('img[data-thumbnail=camera]').src")
+        first = page.evaluate("() => document.querySelector('img[data-thumbnail=camera]').src")
         page.wait_for_function(
-            f"document.querySelector('img[data-thumbnail=camera]').src !== {first!r}", timeout=EVENTUALLY_MS
+            "(first) => document.querySelector('img[data-thumbnail=camera]').src !== first",
+            arg=first,
+            timeout=EVENTUALLY_MS,
         )
+        page.wait_for_function(loaded, arg="camera", timeout=EVENTUALLY_MS)
         screenshot = os.environ.get("OFFWORLD_WEB_ENV_SCREENSHOT") or str(tmp_path / "web-env.png")
-        page.wait_for_function(
-            "document.querySelector('img[data-thumbnail=camera]').naturalWidth > 0", timeout=EVENTUALLY_MS
-        )
         page.screenshot(path=screenshot, full_page=True)
         page.close()
     finally:
