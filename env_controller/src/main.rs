@@ -3,6 +3,7 @@
 //! ```text
 //! env_controller serve --env sim/monolith-0=MonolithDiscrete [--embedded-twins [--twin-profile FILE]]
 //! env_controller users add alice [--operator]
+//! env_controller users list | revoke alice | rotate alice
 //! env_controller experiments list
 //! env_controller leaderboard --env sim/monolith-0
 //! env_controller estop --env real/monolith-0 --reason "person in the enclosure" [--release]
@@ -16,7 +17,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::link::LinkSeals;
-use offworld_env_controller::store::BookingRules;
+use offworld_env_controller::store::{self, BookingRules};
 use offworld_env_controller::{Controller, EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::seal::{SealArgs, Sealer};
@@ -138,9 +139,23 @@ enum UsersCommand {
     Add {
         /// User name.
         name: String,
-        /// May put envs into maintenance.
+        /// May put envs into maintenance, revoke leases and use the web
+        /// page's operator console.
         #[arg(long)]
         operator: bool,
+    },
+    /// List the registered users (never their tokens).
+    List,
+    /// Revoke a user's token: it no longer opens, books or administers
+    /// (their experiments stay; `rotate` issues a new one).
+    Revoke {
+        /// User name.
+        name: String,
+    },
+    /// Issue a user a new token (printed once); the old one stops working.
+    Rotate {
+        /// User name.
+        name: String,
     },
 }
 
@@ -148,6 +163,54 @@ enum UsersCommand {
 enum ExperimentsCommand {
     /// List experiments, newest first.
     List,
+}
+
+/// `users …`: the record-keeping of who may use the gym.
+fn users(db: &std::path::Path, command: UsersCommand) -> anyhow::Result<()> {
+    match command {
+        UsersCommand::Add { name, operator } => {
+            let token = Store::open(db)?.add_user(&name, operator)?;
+            println!("{token}");
+        }
+        UsersCommand::List => {
+            let users = Store::open_existing(db)?.users()?;
+            if users.is_empty() {
+                println!("no users yet: env_controller users add NAME");
+                return Ok(());
+            }
+            println!(
+                "{:<24} {:<9} {:<20} {:<20} {:>11}  token",
+                "name", "role", "registered", "token issued", "experiments"
+            );
+            for user in users {
+                let token = match user.revoked_ms {
+                    Some(at) => format!("revoked {}", store::format_unix_ms(at)),
+                    None => "active".to_owned(),
+                };
+                println!(
+                    "{:<24} {:<9} {:<20} {:<20} {:>11}  {token}",
+                    user.name,
+                    user.role,
+                    store::format_unix_ms(user.created_ms),
+                    store::format_unix_ms(user.token_issued_ms),
+                    user.experiments
+                );
+            }
+        }
+        UsersCommand::Revoke { name } => {
+            Store::open_existing(db)?.revoke_user(&name)?;
+            println!(
+                "{name}'s token is revoked: it no longer opens, books or administers \
+                 (a lease taken before runs until it ends; revoke it from the web console)"
+            );
+        }
+        UsersCommand::Rotate { name } => {
+            let token = Store::open_existing(db)?.rotate_token(&name)?;
+            println!("{token}");
+            eprintln!("{name}'s new token (shown once); the old one no longer works");
+        }
+    }
+    Ok(())
 }
 
 /// What `serve` runs.
@@ -308,16 +371,11 @@ async fn main() -> anyhow::Result<()> {
             }
             pressed?;
         }
-        Command::Users {
-            command: UsersCommand::Add { name, operator },
-        } => {
-            let token = Store::open(&args.db)?.add_user(&name, operator)?;
-            println!("{token}");
-        }
+        Command::Users { command } => users(&args.db, command)?,
         Command::Experiments {
             command: ExperimentsCommand::List,
         } => {
-            let store = Store::open(&args.db)?;
+            let store = Store::open_existing(&args.db)?;
             println!(
                 "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
                 "id", "user", "env", "experiment", "type", "mode", "episodes", "steps"
@@ -337,7 +395,7 @@ async fn main() -> anyhow::Result<()> {
             }
         }
         Command::Leaderboard { env } => {
-            let store = Store::open(&args.db)?;
+            let store = Store::open_existing(&args.db)?;
             println!("leaderboard of {env} (test-mode experiments)");
             println!(
                 "{:<4} {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",

@@ -31,6 +31,23 @@ pub struct User {
     pub role: String,
 }
 
+/// A registered user as `users list` shows them (never their token).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UserRecord {
+    /// Name.
+    pub name: String,
+    /// `user` or `operator`.
+    pub role: String,
+    /// When registered, Unix ms.
+    pub created_ms: i64,
+    /// When the current token was issued, Unix ms.
+    pub token_issued_ms: i64,
+    /// When the token was revoked (it no longer works), Unix ms.
+    pub revoked_ms: Option<i64>,
+    /// Experiments they own.
+    pub experiments: i64,
+}
+
 impl User {
     /// Operators may put envs into maintenance.
     pub fn is_operator(&self) -> bool {
@@ -123,6 +140,12 @@ const MIGRATIONS: &[M<'static>] = &[
     // 2: how long each reset took, µs (a twin's takes well under a ms;
     // NULL for the episodes before).
     M::up("ALTER TABLE episodes ADD COLUMN reset_us INTEGER;"),
+    // 3: revoked tokens (NULL: the token works) and when a user's token was
+    // last issued (rotation).
+    M::up(
+        "ALTER TABLE users ADD COLUMN revoked_ms INTEGER;
+         ALTER TABLE users ADD COLUMN token_issued_ms INTEGER;",
+    ),
 ];
 
 /// The schema version this build writes.
@@ -200,6 +223,14 @@ fn db(e: rusqlite::Error) -> ControllerError {
     ControllerError::Store(e.to_string())
 }
 
+/// A new access token: 128 random bits as 32 hex digits.
+fn new_token() -> String {
+    let mut rng = rand::rng();
+    (0..32)
+        .map(|_| format!("{:x}", rng.random_range(0..16u8)))
+        .collect()
+}
+
 /// Wall clock, Unix ms.
 pub fn now_ms() -> i64 {
     std::time::SystemTime::now()
@@ -224,6 +255,19 @@ impl Store {
                 .map_err(|e| ControllerError::Store(format!("{}: {e}", dir.display())))?;
         }
         Self::init(Connection::open(path).map_err(db)?)
+    }
+
+    /// Opens a database file that exists (the record-keeping commands: a
+    /// mistyped `--db` must not look like an empty site).
+    pub fn open_existing(path: &Path) -> Result<Self, ControllerError> {
+        if !path.is_file() {
+            return Err(ControllerError::NotFound(format!(
+                "no database at {} (env_controller --db PATH or OFFWORLD_DB; `serve` and \
+                 `users add` create one)",
+                path.display()
+            )));
+        }
+        Self::open(path)
     }
 
     /// A private in-memory database (embedded sims that keep no records).
@@ -261,14 +305,83 @@ impl Store {
 
     /// Registers a user and returns their token (shown once, stored hashed).
     pub fn add_user(&self, name: &str, operator: bool) -> Result<String, ControllerError> {
-        let token: String = {
-            let mut rng = rand::rng();
-            (0..32)
-                .map(|_| format!("{:x}", rng.random_range(0..16u8)))
-                .collect()
-        };
+        let token = new_token();
         self.add_user_with_token(name, &token, operator)?;
         Ok(token)
+    }
+
+    /// Every registered user (not the anonymous one), by name.
+    pub fn users(&self) -> Result<Vec<UserRecord>, ControllerError> {
+        let mut statement = self
+            .conn
+            .prepare(
+                "SELECT u.name, u.role, u.created_ms, COALESCE(u.token_issued_ms, u.created_ms),
+                        u.revoked_ms, (SELECT COUNT(*) FROM experiments e WHERE e.user_id = u.id)
+                 FROM users u WHERE u.name != ?1 ORDER BY u.name",
+            )
+            .map_err(db)?;
+        let rows = statement
+            .query_map(params![ANONYMOUS], |r| {
+                Ok(UserRecord {
+                    name: r.get(0)?,
+                    role: r.get(1)?,
+                    created_ms: r.get(2)?,
+                    token_issued_ms: r.get(3)?,
+                    revoked_ms: r.get(4)?,
+                    experiments: r.get(5)?,
+                })
+            })
+            .map_err(db)?;
+        rows.collect::<Result<_, _>>().map_err(db)
+    }
+
+    /// Revokes `name`'s token: it no longer opens a session, books or
+    /// administers (their records stay). A lease taken before runs until it
+    /// ends; an operator revokes it from the web console.
+    pub fn revoke_user(&self, name: &str) -> Result<(), ControllerError> {
+        self.user_named(name)?;
+        self.conn
+            .execute(
+                "UPDATE users SET revoked_ms = COALESCE(revoked_ms, ?2) WHERE name = ?1",
+                params![name, now_ms()],
+            )
+            .map_err(db)?;
+        Ok(())
+    }
+
+    /// Issues `name` a new token (returned, shown once) in place of the old
+    /// one, which stops working; a revoked user is reinstated with it.
+    pub fn rotate_token(&self, name: &str) -> Result<String, ControllerError> {
+        self.user_named(name)?;
+        let token = new_token();
+        self.conn
+            .execute(
+                "UPDATE users SET token_sha256 = ?2, token_issued_ms = ?3, revoked_ms = NULL
+                 WHERE name = ?1",
+                params![name, hash_token(&token), now_ms()],
+            )
+            .map_err(db)?;
+        Ok(token)
+    }
+
+    /// Checks that a registered user `name` exists.
+    fn user_named(&self, name: &str) -> Result<(), ControllerError> {
+        validate_user_name(name)?;
+        let known: bool = self
+            .conn
+            .query_row(
+                "SELECT EXISTS (SELECT 1 FROM users WHERE name = ?1 AND name != ?2)",
+                params![name, ANONYMOUS],
+                |r| r.get(0),
+            )
+            .map_err(db)?;
+        if known {
+            Ok(())
+        } else {
+            Err(ControllerError::NotFound(format!(
+                "no user named {name} (env_controller users list shows them)"
+            )))
+        }
     }
 
     /// Registers a user with a given token (deployment scripts, tests).
@@ -285,13 +398,35 @@ impl Store {
             )));
         }
         let role = if operator { "operator" } else { "user" };
-        self.conn
-            .execute(
-                "INSERT INTO users (name, token_sha256, role, created_ms) VALUES (?1, ?2, ?3, ?4)",
-                params![name, hash_token(token), role, now_ms()],
-            )
-            .map_err(db)?;
-        Ok(())
+        let now = now_ms();
+        let inserted = self.conn.execute(
+            "INSERT INTO users (name, token_sha256, role, created_ms, token_issued_ms)
+             VALUES (?1, ?2, ?3, ?4, ?4)",
+            params![name, hash_token(token), role, now],
+        );
+        match inserted {
+            Ok(_) => Ok(()),
+            Err(rusqlite::Error::SqliteFailure(e, _))
+                if e.code == rusqlite::ErrorCode::ConstraintViolation =>
+            {
+                let taken: bool = self
+                    .conn
+                    .query_row(
+                        "SELECT EXISTS (SELECT 1 FROM users WHERE name = ?1)",
+                        params![name],
+                        |r| r.get(0),
+                    )
+                    .map_err(db)?;
+                Err(ControllerError::Conflict(if taken {
+                    format!(
+                        "a user named {name} exists already (env_controller users list;                          users rotate {name} issues a new token)"
+                    )
+                } else {
+                    "that token is another user's: choose another".into()
+                }))
+            }
+            Err(e) => Err(db(e)),
+        }
     }
 
     /// The user holding `token`, if any. A token longer than any issued
@@ -302,7 +437,7 @@ impl Store {
         }
         self.conn
             .query_row(
-                "SELECT id, name, role FROM users WHERE token_sha256 = ?1",
+                "SELECT id, name, role FROM users WHERE token_sha256 = ?1 AND revoked_ms IS NULL",
                 params![hash_token(token)],
                 |r| {
                     Ok(User {
