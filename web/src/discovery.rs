@@ -19,14 +19,14 @@ use offworld_runtime::client::{self, EnvListing};
 use offworld_runtime::keys::{self, EnvId, Topic};
 use offworld_runtime::msg::{
     AdminReply, AdminRequest, BookingRequest, Bookings, EnvStatus, Experiments, ExperimentsRequest,
-    Leaderboard, MotionFault,
+    Leaderboard, MotionFault, TrackingStatus,
 };
 use offworld_runtime::operator::{press_estop, EStopScope, PressError, PressReport};
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{codec, WireError};
 use tokio::sync::{watch, Notify};
 
-use crate::model::{DeploymentView, EnvView, FaultView, Snapshot};
+use crate::model::{DeploymentView, EnvView, FaultView, Snapshot, TrackingView};
 
 /// How discovery talks to the deployment.
 #[derive(Debug, Clone, Copy)]
@@ -158,6 +158,21 @@ impl Discovery {
             .await
             .map_err(zenoh_error)?;
         let weak = Arc::downgrade(&inner);
+        let tracking = session
+            .declare_subscriber(keys::topic_on_all_envs(Topic::Tracking))
+            .callback(move |sample| {
+                let Some(inner) = weak.upgrade() else { return };
+                let Ok(env) = EnvId::from_key(sample.key_expr().as_str()) else {
+                    return;
+                };
+                match codec::decode_payload::<TrackingStatus>(sample.payload()) {
+                    Ok(status) => inner.tracking_received(env, status),
+                    Err(e) => tracing::debug!(%env, "undecodable tracking status: {e}"),
+                }
+            })
+            .await
+            .map_err(zenoh_error)?;
+        let weak = Arc::downgrade(&inner);
         let alive = session
             .liveliness()
             .declare_subscriber(keys::all_alive_selector())
@@ -174,7 +189,7 @@ impl Discovery {
         let mut stop = inner.stopped.subscribe();
         tokio::spawn(async move {
             // Keeps the subscriptions declared while the loop runs.
-            let _subscriptions = (status, fault, alive);
+            let _subscriptions = (status, fault, tracking, alive);
             loop {
                 let Some(inner) = weak.upgrade() else { return };
                 inner.sweep().await;
@@ -351,6 +366,22 @@ impl Inner {
         let now = now_unix_ms();
         tracked.view.last_fault = Some(FaultView {
             reason,
+            unix_ms: now,
+        });
+        tracked.view.last_seen_unix_ms = Some(now);
+        self.publish(&table);
+    }
+
+    fn tracking_received(&self, env: EnvId, status: TrackingStatus) {
+        let mut table = self.table();
+        let Some(tracked) = table.entry(&env) else {
+            return;
+        };
+        let now = now_unix_ms();
+        tracked.view.tracking = Some(TrackingView {
+            ok: status.tracking,
+            last_pose_age_s: status.last_pose_age_s,
+            reason: status.reason,
             unix_ms: now,
         });
         tracked.view.last_seen_unix_ms = Some(now);

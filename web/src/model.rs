@@ -100,6 +100,9 @@ pub struct EnvView {
     pub last_reset: Option<ResetView>,
     /// The last command its robot or twin refused or could not answer.
     pub last_fault: Option<FaultView>,
+    /// The tracker's last word on localisation (real envs; null until it
+    /// publishes one).
+    pub tracking: Option<TrackingView>,
 }
 
 /// A lease.
@@ -182,6 +185,19 @@ pub struct ResetView {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultView {
     /// Why the command was not answered.
+    pub reason: String,
+    /// When this service received it, Unix ms.
+    pub unix_ms: i64,
+}
+
+/// Whether the robot is localised (a change of the tracker's status).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrackingView {
+    /// Poses arrive and are accepted: episodes can be scored.
+    pub ok: bool,
+    /// Age of the last accepted pose when it was said, s.
+    pub last_pose_age_s: f64,
+    /// The tracker's reason (empty when ok).
     pub reason: String,
     /// When this service received it, Unix ms.
     pub unix_ms: i64,
@@ -284,6 +300,7 @@ impl EnvView {
             last_seen_unix_ms: None,
             last_reset: None,
             last_fault: None,
+            tracking: None,
         };
         view.set_offline("not heard from yet");
         view

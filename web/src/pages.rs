@@ -258,6 +258,10 @@ fn state_detail(env: &EnvView) -> Markup {
                     }
                 }
             }
+            @if let Some(t) = env.tracking.as_ref().filter(|t| !t.ok) {
+                div.tracking-lost data-field="tracking" { "tracking lost"
+                    @if !t.reason.is_empty() { ": " (t.reason) } }
+            }
             @if let Some(m) = &env.maintenance {
                 div { "maintenance: " (m.message) " (" (m.by)
                     @if let Some(back) = m.back_unix_ms { ", back at " (time(back, "clock")) }

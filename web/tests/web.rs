@@ -196,6 +196,7 @@ fn free_sim_env(name: &str) -> Value {
         "last_seen_unix_ms": null,
         "last_reset": null,
         "last_fault": null,
+        "tracking": null,
     })
 }
 
@@ -615,4 +616,49 @@ async fn thumbnails_show_a_stepping_envs_views_and_say_why_an_idle_one_has_none(
     assert!(width <= 240 && width > 0 && height > 0, "{width}×{height}");
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     stepping.await.expect("the stepping task");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_trackers_word_on_localisation_is_shown() {
+    let lab = Lab::start(WebOptions::default()).await;
+    // As a tracker agent publishes it, on the env's `tracking` key.
+    let lost = offworld_runtime::msg::TrackingStatus {
+        tracking: false,
+        last_pose_age_s: 1.5,
+        reason: "no lighthouse pose for 1.5 s".into(),
+    };
+    let key = env_ids()[0].key(offworld_runtime::Topic::Tracking);
+    offworld_runtime::wire::put(&lab.deployment, &key, &lost)
+        .await
+        .expect("put");
+    let snapshot = lab
+        .until_envs("tracking lost on web-a", |envs| {
+            envs.iter()
+                .any(|e| e["id"] == "sim/web-a" && e["tracking"]["ok"] == false)
+        })
+        .await;
+    let env = &snapshot["envs"][0];
+    assert_eq!(env["tracking"]["reason"], "no lighthouse pose for 1.5 s");
+    assert_eq!(env["tracking"]["last_pose_age_s"], 1.5);
+    assert_eq!(snapshot["envs"][1]["tracking"], Value::Null);
+    let (_, _, page) = lab.get("/").await;
+    assert!(
+        page.contains("tracking lost: no lighthouse pose for 1.5 s"),
+        "{page}"
+    );
+    let back = offworld_runtime::msg::TrackingStatus {
+        tracking: true,
+        last_pose_age_s: 0.01,
+        reason: String::new(),
+    };
+    offworld_runtime::wire::put(&lab.deployment, &key, &back)
+        .await
+        .expect("put");
+    lab.until_envs("tracking back on web-a", |envs| {
+        envs.iter()
+            .any(|e| e["id"] == "sim/web-a" && e["tracking"]["ok"] == true)
+    })
+    .await;
+    let (_, _, page) = lab.get("/").await;
+    assert!(!page.contains("tracking lost"), "{page}");
 }
