@@ -89,6 +89,8 @@ def get_json(url: str):
 class Lab:
     endpoint: str
     url: str
+    # A registered user's access token (`env_controller users add alice`).
+    token: str
 
 
 @dataclass
@@ -151,12 +153,30 @@ def running_lab(db: Path, envs: list[str], ready: str, is_ready):
 
 @pytest.fixture()
 def lab(tmp_path: Path):
-    """Yields the Zenoh endpoint of a two-env deployment and the URL of
-    `lab_web` serving it, once the page lists both envs."""
+    """Yields the Zenoh endpoint of a two-env deployment, the URL of
+    `lab_web` serving it, once the page lists both envs, and the token of
+    its user alice."""
+    db = tmp_path / "gym.db"
+    token = add_user(db, "alice")
     envs = [arg for env in ENVS for arg in ("--env", f"{env}=MonolithDiscrete")] + ["--embedded-twins"]
     both = lambda listed: [e["id"] for e in listed if e["task"]] == list(ENVS)  # noqa: E731
-    with running_lab(tmp_path / "gym.db", envs, "lab_web lists both envs", both) as (endpoint, url):
-        yield Lab(endpoint=endpoint, url=url)
+    with running_lab(db, envs, "lab_web lists both envs", both) as (endpoint, url):
+        yield Lab(endpoint=endpoint, url=url, token=token)
+
+
+def add_user(db: Path, name: str) -> str:
+    """Registers `name` with `env_controller users add`; returns the token."""
+    return (
+        subprocess.run(
+            [str(binary("env_controller")), "--db", str(db), "users", "add", name],
+            check=True,
+            capture_output=True,
+            timeout=30,
+        )
+        .stdout.decode()
+        .strip()
+        .splitlines()[-1]
+    )
 
 
 @pytest.fixture()
@@ -165,12 +185,7 @@ def booking_lab(tmp_path: Path):
     env `REAL_ENV` (no robot: bookings need none) and the access token of its
     user `alice`, registered with `env_controller users add`."""
     db = tmp_path / "gym.db"
-    token = subprocess.run(
-        [str(binary("env_controller")), "--db", str(db), "users", "add", "alice"],
-        check=True,
-        capture_output=True,
-        timeout=30,
-    ).stdout.decode().strip().splitlines()[-1]
+    token = add_user(db, "alice")
 
     def controller_listed(listed) -> bool:
         return any(e["id"] == REAL_ENV and "controller" in e["components"] for e in listed)

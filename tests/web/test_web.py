@@ -11,7 +11,9 @@ shown on the availability page, and released with its confirmation.
 availability page, with one env leased, for the docs;
 `OFFWORLD_WEB_CONSOLE_SCREENSHOT=docs/img/web-console.png` the console
 with the enclosure's e-stop engaged; `OFFWORLD_WEB_ENV_SCREENSHOT=
-docs/img/web-env.png` an env's page with its live view while it steps."""
+docs/img/web-env.png` an env's page with its live view while it steps;
+`OFFWORLD_WEB_EXPERIMENT_SCREENSHOT=docs/img/web-experiment.png` an
+experiment's page with its learning curve."""
 
 from __future__ import annotations
 
@@ -133,6 +135,43 @@ def test_the_live_view_shows_a_stepping_envs_camera_and_overhead(lab, browser, t
         stop.set()
         stepper.join(timeout=30)
         env.close()
+
+
+def test_a_users_experiment_shows_its_episodes_and_learning_curve(lab, browser):
+    episodes = 6
+    env = gymnasium.make(
+        "OffWorldMonolithDiscreteSim-v0",
+        connect=lab.endpoint,
+        env_id=ENVS[1],
+        resolution=(32, 32),
+        token=lab.token,
+        experiment_name="curve-demo",
+    )
+    try:
+        for episode in range(episodes):
+            env.reset(seed=episode + 1)
+            for step in range(200):  # bounded: the env truncates first
+                _, _, terminated, truncated, _ = env.step((episode + step) % 3)
+                if terminated or truncated:
+                    break
+    finally:
+        env.close()
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.set_default_timeout(EVENTUALLY_MS)
+    sign_in(page, lab.url, lab.token)
+    page.goto(f"{lab.url}/envs/{ENVS[1]}/experiments")
+    experiment = page.locator("tr[data-experiment]")
+    expect(experiment).to_have_count(1)
+    expect(experiment.locator('[data-field="episodes"]')).to_have_text(str(episodes))
+    experiment.locator("a").click()
+    expect(page.locator("h1")).to_have_text("curve-demo")
+    expect(page.locator("tr[data-episode]")).to_have_count(episodes)
+    # The curve: one point per episode, drawn on the server.
+    expect(page.locator("svg.curve circle")).to_have_count(episodes)
+    screenshot = os.environ.get("OFFWORLD_WEB_EXPERIMENT_SCREENSHOT")
+    if screenshot:
+        page.screenshot(path=screenshot, full_page=True)
+    page.close()
 
 
 @pytest.mark.parametrize(

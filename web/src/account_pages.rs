@@ -61,7 +61,7 @@ pub fn signin_page(csrf: &str, n: Option<&Notice>) -> Markup {
             h1 { "Sign in" }
             p.lead {
                 "Paste your gym access token: the one you pass to "
-                code { "gymnasium.make(…, access_token=…)" } " or set as "
+                code { "gymnasium.make(…, token=…)" } " or set as "
                 code { "OFFWORLD_GYM_ACCESS_TOKEN" } ". It stays on this server for your session, "
                 "is checked by the deployment's controller, and is forgotten when you sign out."
             }

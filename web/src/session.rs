@@ -3,7 +3,7 @@
 //! parsing (cookies, forms) that needs no crate.
 //!
 //! Sign-in is pasting one's gym access token (the one
-//! `gymnasium.make(…, access_token=…)` and `OFFWORLD_GYM_ACCESS_TOKEN`
+//! `gymnasium.make(…, token=…)` and `OFFWORLD_GYM_ACCESS_TOKEN`
 //! take). The token stays on the server, in the session table; the
 //! browser holds only a random session id in an `HttpOnly`,
 //! `SameSite=Strict` cookie, so a page never contains the token and
