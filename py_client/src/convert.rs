@@ -158,15 +158,28 @@ pub fn listing<'py>(
     let dict = PyDict::new(py);
     dict.set_item("env_id", listing.env.to_string())?;
     dict.set_item("task", &listing.task)?;
-    let (state, until, message) = match &listing.state {
-        EnvState::Free => ("free", None, ""),
-        EnvState::Leased { until_unix_ms, .. } => ("leased", Some(*until_unix_ms), ""),
-        EnvState::Maintenance { message, .. } => ("maintenance", None, message.as_str()),
-        EnvState::Offline { reason } => ("offline", None, reason.as_str()),
+    let (state, until, message, who) = match &listing.state {
+        EnvState::Free => ("free", None, "", None),
+        EnvState::Leased {
+            until_unix_ms,
+            holder,
+        } => ("leased", Some(*until_unix_ms), "", Some(holder)),
+        EnvState::Maintenance {
+            message,
+            by,
+            back_unix_ms,
+        } => (
+            "maintenance",
+            (*back_unix_ms > 0).then_some(*back_unix_ms),
+            message.as_str(),
+            Some(by),
+        ),
+        EnvState::Offline { reason } => ("offline", None, reason.as_str(), None),
     };
     dict.set_item("state", state)?;
     dict.set_item("until_unix_ms", until)?;
     dict.set_item("message", message)?;
+    dict.set_item("who", who)?;
     dict.set_item("components", &listing.components)?;
     let bookings = PyList::empty(py);
     for b in &listing.bookings {

@@ -64,6 +64,7 @@ def test_list_envs_shows_each_env_with_task_state_and_components(trainer):
         assert e["state"] == "free", e
         assert e["components"] == ["controller", "sim_twin"]
         assert e["estops"] == {}, "no e-stop engaged"
+        assert e["who"] is None and e["until_unix_ms"] is None, e
     # The same through the CLI, as JSON.
     out = subprocess.run(
         [sys.executable, "-m", "offworld_gym", "envs", "--json"], capture_output=True, text=True, check=True
@@ -82,8 +83,10 @@ def test_make_vec_by_discovery_steps_twins_in_separate_processes(trainer):
         obs, _ = envs.reset(seed=5)
         assert obs.shape == (2, 84, 84, 1)
         # Both leased now: discovery says so.
-        states = {e["env_id"]: e["state"] for e in offworld_gym.list_envs()}
-        assert states == {env_id: "leased" for env_id in twin_processes}
+        listed = offworld_gym.list_envs()
+        assert {e["env_id"]: e["state"] for e in listed} == {env_id: "leased" for env_id in twin_processes}
+        # The trainer fixture signs in as alice (OFFWORLD_GYM_ACCESS_TOKEN).
+        assert all(e["who"] == "alice" and e["until_unix_ms"] > 0 for e in listed), listed
         for _ in range(5):
             obs, rewards, terminated, truncated, info = envs.step(np.array([2, 2]))
         assert list(info["step"]) == [5, 5]

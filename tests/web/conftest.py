@@ -100,12 +100,15 @@ class BookingLab:
 
 
 @contextlib.contextmanager
-def web_in_front_of(endpoint: str, ready: str, is_ready, owner: subprocess.Popen):
-    """Runs `lab_web` connected to `endpoint`; yields its URL once
+def web_in_front_of(endpoints: list[str], ready: str, is_ready, owners: list[subprocess.Popen]):
+    """Runs `lab_web` connected to `endpoints` (a Zenoh peer of all of them
+    when there are several: no router joins them here); yields its URL once
     `is_ready(listing)` holds for its `/api/envs` (named `ready`)."""
     http_port = free_port()
+    mode = ["--mode", "peer"] if len(endpoints) > 1 else []
+    connect = [arg for endpoint in endpoints for arg in ("--connect", endpoint)]
     web = subprocess.Popen(
-        [str(binary("lab_web")), "--connect", endpoint, "--http", f"127.0.0.1:{http_port}"],
+        [str(binary("lab_web")), *mode, *connect, "--http", f"127.0.0.1:{http_port}"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
@@ -113,8 +116,9 @@ def web_in_front_of(endpoint: str, ready: str, is_ready, owner: subprocess.Popen
         url = f"http://127.0.0.1:{http_port}"
 
         def listed() -> bool:
-            if owner.poll() is not None:
-                raise RuntimeError(f"{ready}: the deployment exited ({owner.returncode})")
+            for owner in owners:
+                if owner.poll() is not None:
+                    raise RuntimeError(f"{ready}: the deployment exited ({owner.returncode})")
             try:
                 return is_ready(get_json(f"{url}/api/envs")["envs"])
             except (urllib.error.URLError, ConnectionError):
@@ -127,10 +131,9 @@ def web_in_front_of(endpoint: str, ready: str, is_ready, owner: subprocess.Popen
 
 
 @contextlib.contextmanager
-def running_lab(db: Path, envs: list[str], ready: str, is_ready):
-    """Runs `env_controller serve` on `db` with `envs` (serve arguments) and
-    `lab_web` in front of it; yields (Zenoh endpoint, page URL) once
-    `is_ready(listing)` holds for the page's `/api/envs` (named `ready`)."""
+def serving(db: Path, envs: list[str]):
+    """Runs `env_controller serve` on `db` with `envs` (serve arguments);
+    yields (its Zenoh endpoint, the process) once it listens."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     controller = subprocess.Popen(
@@ -145,10 +148,19 @@ def running_lab(db: Path, envs: list[str], ready: str, is_ready):
                 return s.connect_ex(("127.0.0.1", port)) == 0
 
         wait_until("env_controller listens", listening, controller)
-        with web_in_front_of(endpoint, ready, is_ready, controller) as url:
-            yield endpoint, url
+        yield endpoint, controller
     finally:
         stop(controller)
+
+
+@contextlib.contextmanager
+def running_lab(db: Path, envs: list[str], ready: str, is_ready):
+    """Runs `env_controller serve` on `db` with `envs` (serve arguments) and
+    `lab_web` in front of it; yields (Zenoh endpoint, page URL) once
+    `is_ready(listing)` holds for the page's `/api/envs` (named `ready`)."""
+    with serving(db, envs) as (endpoint, controller):
+        with web_in_front_of([endpoint], ready, is_ready, [controller]) as url:
+            yield endpoint, url
 
 
 @pytest.fixture()
@@ -217,13 +229,17 @@ class EnclosureLab:
     url: str
     researcher_token: str
     operator_token: str
+    # The sim envs' controller (a gym client connects here).
+    sim_endpoint: str
 
 
 @pytest.fixture()
-def enclosure_lab():
-    """Yields `lab_web` in front of the emulated enclosure (`ENCLOSURE_ENV`:
-    the real stack's processes driving emulated hardware), with the tokens of
-    its researcher and its operator, once the page lists the env's robot agent."""
+def enclosure_lab(tmp_path: Path):
+    """Yields `lab_web` in front of one deployment of the emulated enclosure
+    (`ENCLOSURE_ENV`: the real stack's processes driving emulated hardware)
+    and two sim envs (`ENVS`, another controller with embedded twins), with
+    the tokens of the enclosure's researcher and operator, once the page
+    lists all three envs and the enclosure's robot agent."""
     launcher = subprocess.Popen(
         [str(binary("emulated_enclosure")), "--task", "MonolithDiscrete"],
         stdout=subprocess.DEVNULL,
@@ -248,17 +264,23 @@ def enclosure_lab():
             if key in wanted:
                 said[key] = value
 
-        def robot_listed(listed) -> bool:
-            return any(e["id"] == ENCLOSURE_ENV and "robot_agent" in e["components"] for e in listed)
+        def all_listed(listed) -> bool:
+            robot = any(e["id"] == ENCLOSURE_ENV and "robot_agent" in e["components"] for e in listed)
+            sims = all(any(e["id"] == env and e["task"] for e in listed) for env in ENVS)
+            return robot and sims
 
-        with web_in_front_of(
-            said["OFFWORLD_GYM_CONNECT"], "lab_web lists the enclosure's robot agent", robot_listed, launcher
-        ) as url:
-            yield EnclosureLab(
-                url=url,
-                researcher_token=said["OFFWORLD_GYM_ACCESS_TOKEN"],
-                operator_token=said["OFFWORLD_OPERATOR_TOKEN"],
-            )
+        sims = [arg for env in ENVS for arg in ("--env", f"{env}=MonolithDiscrete")] + ["--embedded-twins"]
+        with serving(tmp_path / "sims.db", sims) as (sim_endpoint, sim_controller):
+            endpoints = [said["OFFWORLD_GYM_CONNECT"], sim_endpoint]
+            with web_in_front_of(
+                endpoints, "lab_web lists the enclosure and both sim envs", all_listed, [launcher, sim_controller]
+            ) as url:
+                yield EnclosureLab(
+                    url=url,
+                    researcher_token=said["OFFWORLD_GYM_ACCESS_TOKEN"],
+                    operator_token=said["OFFWORLD_OPERATOR_TOKEN"],
+                    sim_endpoint=sim_endpoint,
+                )
     finally:
         # Ctrl-C: the launcher stops every process of the deployment.
         launcher.send_signal(signal.SIGINT)

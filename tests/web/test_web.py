@@ -265,11 +265,13 @@ def test_an_operator_e_stops_the_emulated_robot_from_the_console(enclosure_lab, 
     )
     researcher.close()
 
-    # Someone watching the availability page while the operator acts.
+    # Someone watching the availability page while the operator acts: the
+    # enclosure and both sim envs of the deployment.
     watcher = browser.new_page()
     watcher.set_default_timeout(EVENTUALLY_MS)
     watcher.goto(enclosure_lab.url)
-    expect(row(watcher, ENCLOSURE_ENV)).to_have_attribute("data-state", "free")
+    for env_id in (ENCLOSURE_ENV, *ENVS):
+        expect(row(watcher, env_id)).to_have_attribute("data-state", "free")
     expect(watcher.locator("#live")).to_have_attribute("data-state", "live")
 
     ops = browser.new_page(viewport={"width": 1200, "height": 800})
@@ -314,6 +316,34 @@ def test_an_operator_e_stops_the_emulated_robot_from_the_console(enclosure_lab, 
         f"E-stop released on {ENCLOSURE_ENV}: acknowledged by robot_agent of {ENCLOSURE_ENV}"
     )
     expect(row(watcher, ENCLOSURE_ENV)).to_have_attribute("data-state", "free")
+
+    # The site's e-stop reaches every robot and twin of the deployment.
+    site = ops.locator("#site-estop")
+    site.locator('input[name="reason"]').fill("fire alarm drill")
+    site.locator("button").click()
+    expect(ops.locator("#notice")).to_contain_text("E-stop engaged on the site: acknowledged by")
+    for component, env_id in (("robot_agent", ENCLOSURE_ENV), ("sim_twin", ENVS[0]), ("sim_twin", ENVS[1])):
+        expect(ops.locator(f'#acks li[data-component="{component}"][data-env="{env_id}"]')).to_contain_text(
+            "e-stops now engaged there: site"
+        )
+    for env_id in (ENCLOSURE_ENV, *ENVS):
+        expect(row(watcher, env_id)).to_have_attribute("data-state", "estopped")
+    # A researcher's Python session on a sim env is refused motion.
+    env = gymnasium.make(
+        "OffWorldMonolithDiscreteSim-v0", connect=enclosure_lab.sim_endpoint, env_id=ENVS[0], resolution=(32, 32)
+    )
+    try:
+        with pytest.raises(offworld_gym.errors.OffWorldGymError, match="e-stop engaged"):
+            env.reset(seed=1)
+    finally:
+        env.close()
+    release = ops.locator("#site-estop form[data-action=\"release\"]")
+    release.locator('input[name="reason"]').fill("drill over")
+    release.locator('input[name="confirm"]').check()
+    release.locator("button").click()
+    expect(ops.locator("#notice")).to_contain_text("E-stop released on the site")
+    for env_id in (ENCLOSURE_ENV, *ENVS):
+        expect(row(watcher, env_id)).to_have_attribute("data-state", "free")
     ops.close()
     watcher.close()
 

@@ -78,9 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     for env in listed:
         state = env["state"]
         if state == "leased":
-            state += f" until {_when(env['until_unix_ms'])}"
+            state += f" by {env.get('who')} until {_when(env['until_unix_ms'])}"
         elif env["message"]:
             state += f" ({env['message']})"
+            if state.startswith("maintenance") and env.get("until_unix_ms"):
+                state += f" back at {_when(env['until_unix_ms'])}"
         for latch, reason in env.get("estops", {}).items():
             state += f" E-STOP {latch} ({reason})"
         print(f"{env['env_id']:<28} {env['task'] or '-':<26} {state:<40} {','.join(env['components'])}")

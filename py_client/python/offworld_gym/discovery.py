@@ -19,10 +19,13 @@ class EnvInfo(TypedDict):
     task: str
     #: ``free``, ``leased``, ``maintenance`` or ``offline``.
     state: str
-    #: Lease expiry (Unix ms) while ``leased``.
+    #: Lease expiry (Unix ms) while ``leased``; the operator's expected end
+    #: of a ``maintenance``, when they said one.
     until_unix_ms: int | None
     #: Maintenance message or why the env is offline.
     message: str
+    #: Who holds the lease (``leased``) or put the env into ``maintenance``.
+    who: str | None
     #: Live components: ``controller``, ``sim_twin``, ``robot_agent``, …
     components: list[str]
     #: Booked slots in progress or ahead, earliest first.
