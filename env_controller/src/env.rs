@@ -32,7 +32,7 @@ use crate::link::{
 use crate::observation::{shape, validate_options};
 use crate::store::{
     format_unix_ms, lock_store, now_ms, validate_experiment_name, BookingRules, EpisodeRecord,
-    SlotAt, Store, User, ANONYMOUS, IN_PROGRESS,
+    SlotAt, Store, User, ANONYMOUS, IN_PROGRESS, LATEST_BOOKABLE_MS,
 };
 use crate::task::Task;
 
@@ -195,19 +195,30 @@ struct State {
 #[derive(Debug, Clone, Default)]
 struct Posted {
     maintenance: Option<Maintenance>,
-    /// The lease: when it lapses, the same in Unix ms, its holder's name.
-    lease: Option<(Instant, i64, String)>,
+    lease: Option<PostedLease>,
     last_reset: ResetAccuracy,
+}
+
+/// The lease as `status` shows it.
+#[derive(Debug, Clone)]
+struct PostedLease {
+    /// When it lapses if left idle.
+    expires: Instant,
+    /// The same, Unix ms.
+    until_unix_ms: i64,
+    /// Its holder's user name.
+    holder: String,
 }
 
 impl Posted {
     fn of(state: &State) -> Self {
         Self {
             maintenance: state.maintenance.clone(),
-            lease: state
-                .lease
-                .as_ref()
-                .map(|l| (l.expires, l.expires_unix_ms, l.user.name.clone())),
+            lease: state.lease.as_ref().map(|l| PostedLease {
+                expires: l.expires,
+                until_unix_ms: l.expires_unix_ms,
+                holder: l.user.name.clone(),
+            }),
             last_reset: state.last_reset,
         }
     }
@@ -383,12 +394,10 @@ impl EnvServer {
             };
         }
         match &posted.lease {
-            Some((expires, until_unix_ms, holder)) if *expires > Instant::now() => {
-                EnvState::Leased {
-                    until_unix_ms: *until_unix_ms,
-                    holder: holder.clone(),
-                }
-            }
+            Some(lease) if lease.expires > Instant::now() => EnvState::Leased {
+                until_unix_ms: lease.until_unix_ms,
+                holder: lease.holder.clone(),
+            },
             _ => EnvState::Free,
         }
     }
@@ -465,7 +474,7 @@ impl EnvServer {
                 let (expires, until) = (l.expires, l.expires_unix_ms);
                 self.posted.send_modify(|p| {
                     if let Some(posted) = p.lease.as_mut() {
-                        (posted.0, posted.1) = (expires, until);
+                        (posted.expires, posted.until_unix_ms) = (expires, until);
                     }
                 });
                 Ok(l)
@@ -849,9 +858,26 @@ impl EnvServer {
                 ..
             } => {
                 validate_operator_text("maintenance message", &message)?;
+                if back_unix_ms > LATEST_BOOKABLE_MS {
+                    return Err(WireError::bad_request(format!(
+                        "the expected return {back_unix_ms} is not a date (Unix ms up to year 9999)"
+                    )));
+                }
                 tracing::warn!(env = %self.env, %message, by = %user.name, "maintenance on");
                 self.link.stop().await;
                 self.abort_episode(&mut state, "maintenance").await;
+                // The lease ends with it: its holder is told why at their
+                // next request, and nobody holds the env through it.
+                state.episode = None;
+                if let Some(lease) = state.lease.take() {
+                    state.revoked = Some(Revoked {
+                        session_id: lease.session_id,
+                        reason: format!(
+                            "{} went into maintenance ({message}); your lease ended with it",
+                            self.env
+                        ),
+                    });
+                }
                 state.maintenance = Some(Maintenance {
                     message,
                     by: user.name.clone(),

@@ -419,7 +419,8 @@ impl Store {
                     .map_err(db)?;
                 Err(ControllerError::Conflict(if taken {
                     format!(
-                        "a user named {name} exists already (env_controller users list;                          users rotate {name} issues a new token)"
+                        "a user named {name} exists already (env_controller users list; users rotate {name} \
+                         issues a new token)"
                     )
                 } else {
                     "that token is another user's: choose another".into()

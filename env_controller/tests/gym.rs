@@ -468,6 +468,10 @@ async fn leases_busy_disconnect_and_maintenance() {
         "{refused}"
     );
     let back = 4_102_444_800_000; // 2100-01-01
+                                  // Bob holds the env when it goes into maintenance: his lease ends.
+    let mut held = open(&bob_session, &d.env, BOB, "held")
+        .await
+        .expect("bob gets the env");
     let set = AdminRequest::SetMaintenance {
         token: OPERATOR.into(),
         message: "new wheels".into(),
@@ -490,6 +494,18 @@ async fn leases_busy_disconnect_and_maintenance() {
             back_unix_ms: back,
         }
     );
+    let ended = held
+        .reset(Seed::Fixed(1))
+        .await
+        .expect_err("the lease ended with the maintenance");
+    assert_eq!(ended.code, ErrorCode::Unauthorized, "{ended}");
+    assert_eq!(
+        ended.message,
+        format!(
+            "{} went into maintenance (new wheels); your lease ended with it",
+            d.env
+        )
+    );
     let refused = open(&bob_session, &d.env, BOB, "m")
         .await
         .err()
@@ -500,6 +516,20 @@ async fn leases_busy_disconnect_and_maintenance() {
         refused.message.contains("expected back at 2100-01-01"),
         "{refused}"
     );
+    let not_a_date = wire::request::<_, AdminReply>(
+        &bob_session,
+        &d.env.key(Topic::Admin),
+        &AdminRequest::SetMaintenance {
+            token: OPERATOR.into(),
+            message: "x".into(),
+            back_unix_ms: i64::MAX,
+        },
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| e.into_wire().code)
+    .err();
+    assert_eq!(not_a_date, Some(ErrorCode::BadRequest));
     let clear = AdminRequest::ClearMaintenance {
         token: OPERATOR.into(),
     };

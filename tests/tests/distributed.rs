@@ -553,6 +553,46 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     );
     // It never reads localisation…
     assert_eq!(stolen.count("pose", None), 0, "the web page read poses");
+    // …never publishes what it only hears (an operator watches: a forged
+    // acknowledgement or fault never arrives)…
+    let operator = site.session(Role::Operator).await;
+    let (forged, _forged_sub) = Seen::watch(&operator, &format!("{}/**", env.prefix())).await;
+    settle().await;
+    let ack = EStopAck {
+        press_id: 7,
+        component: "robot_agent".into(),
+        env: env.to_string(),
+        state: EStopState::default(),
+    };
+    wire::put(&web, &env.key(Topic::EStopAck), &ack).await?;
+    let fault = MotionFault {
+        seq: 1,
+        reason: "forged".into(),
+    };
+    wire::put(&web, &env.key(Topic::Fault), &fault).await?;
+    settle().await;
+    assert_eq!(
+        forged.count("estop_ack", None),
+        0,
+        "a forged acknowledgement arrived"
+    );
+    assert_eq!(forged.count("fault", None), 0, "a forged fault arrived");
+    // Control: the twin's own acknowledgement reaches the same observer.
+    press_estop(
+        &web,
+        &EStopScope::Env(env.clone()),
+        false,
+        "control",
+        Duration::from_secs(10),
+        Duration::from_secs(5),
+    )
+    .await?;
+    settle().await;
+    assert_eq!(
+        forged.count("estop_ack", None),
+        1,
+        "the twin's acknowledgement"
+    );
     // …and never drives: the router drops its `open` (the trainer's
     // opened the same env above).
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;

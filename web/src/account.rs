@@ -11,7 +11,7 @@ use axum::extract::{Path, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use governor::clock::{Clock, DefaultClock};
-use offworld_runtime::keys::EnvId;
+use offworld_runtime::keys::{EnvId, Realm};
 use offworld_runtime::msg::{
     AdminReply, AdminRequest, Booking, BookingRequest, EpisodeRecordEntry, ExperimentsRequest,
 };
@@ -209,27 +209,37 @@ pub async fn signin(State(state): State<AppState>, request: Request) -> Response
 /// Asks a controller (real envs' first) whose `token` is.
 pub(crate) async fn identify(state: &AppState, token: &str) -> Result<AdminReply, HttpError> {
     let snapshot = state.discovery.snapshot();
-    let mut candidates: Vec<&EnvView> = snapshot
+    let mut candidates: Vec<EnvId> = snapshot
         .envs
         .iter()
         .filter(|e| e.components.iter().any(|c| c == "controller"))
+        .filter_map(|e| parse_env(&e.realm, &e.name).ok())
         .collect();
-    candidates.sort_by_key(|e| e.realm != "real");
+    candidates.sort_by_key(|id| id.realm() != Realm::Real);
+    candidates.truncate(3);
+    identify_with(state, token, &candidates, "Sign-in refused").await
+}
+
+/// Asks the controllers of `envs`, in turn, whose `token` is; a refusal
+/// says `refused` and the controller's reason.
+pub(crate) async fn identify_with(
+    state: &AppState,
+    token: &str,
+    envs: &[EnvId],
+    refused: &str,
+) -> Result<AdminReply, HttpError> {
     let mut last = HttpError::unavailable(
         "no controller of the deployment is reachable to check your token: retry shortly",
     );
-    for env in candidates.into_iter().take(3) {
-        let Ok(id) = parse_env(&env.realm, &env.name) else {
-            continue;
-        };
-        let request = AdminRequest::Identify {
-            token: token.to_owned(),
-        };
-        match state.discovery.admin(&id, &request).await {
+    let request = AdminRequest::Identify {
+        token: token.to_owned(),
+    };
+    for id in envs {
+        match state.discovery.admin(id, &request).await {
             Ok(who) => return Ok(who),
             Err(e) if e.code == ErrorCode::Unauthorized => {
                 return Err(HttpError::unauthorized(format!(
-                    "Sign-in refused by the controller of {id}: {}",
+                    "{refused} by the controller of {id}: {}",
                     e.message
                 )))
             }

@@ -10,15 +10,15 @@
 use axum::extract::{Request, State};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
-use offworld_runtime::keys::EnvId;
+use offworld_runtime::keys::{EnvId, Realm};
 use offworld_runtime::msg::AdminRequest;
 use offworld_runtime::operator::{EStopScope, PressError, PressReport};
 
-use crate::account::{acting_session, html_with, identify, known_env, post_form};
+use crate::account::{acting_session, html_with, identify_with, known_env, post_form};
 use crate::account_pages::{signin_needed, Notice};
 use crate::console_pages;
 use crate::discovery::now_unix_ms;
-use crate::error::HttpError;
+use crate::error::{HttpError, Kind};
 use crate::server::AppState;
 use crate::session::{field, Session};
 
@@ -114,6 +114,30 @@ fn form_env(state: &AppState, form: &[(String, String)]) -> Result<EnvId, String
         .map_err(|e| e.message)
 }
 
+/// The controllers whose word on a user's role counts for `scope`: the
+/// env's own; for the site, the real envs' (a sim farm's decides only
+/// where the deployment has no real env), at most three.
+fn authorities(state: &AppState, scope: &EStopScope) -> Vec<EnvId> {
+    if let EStopScope::Env(env) = scope {
+        return vec![env.clone()];
+    }
+    let snapshot = state.discovery.snapshot();
+    let controlled: Vec<EnvId> = snapshot
+        .envs
+        .iter()
+        .filter(|e| e.components.iter().any(|c| c == "controller"))
+        .filter_map(|e| e.id.parse().ok())
+        .collect();
+    let real: Vec<EnvId> = controlled
+        .iter()
+        .filter(|id| id.realm() == Realm::Real)
+        .cloned()
+        .collect();
+    let mut chosen = if real.is_empty() { controlled } else { real };
+    chosen.truncate(3);
+    chosen
+}
+
 /// How a press is told: who acknowledged, and when.
 fn acknowledged(report: &PressReport) -> String {
     let who: Vec<String> = report
@@ -171,10 +195,17 @@ pub async fn estop(State(state): State<AppState>, request: Request) -> Response 
                 .into(),
         );
     }
-    // The role may have changed since sign-in: asked again of a controller.
-    match identify(&state, &session.token).await {
+    // The role may have changed since sign-in: asked again of the
+    // controllers that answer for the scope.
+    let authorities = authorities(&state, &scope);
+    let refusal = format!("Not {verb}: refused");
+    match identify_with(&state, &session.token, &authorities, &refusal).await {
         Ok(who) if who.operator => {}
         Ok(who) => return not_an_operator(&who.user),
+        Err(e) if e.kind == Kind::Unauthorized => return refused(e.status, e.message),
+        // Stopping never waits for a controller: an engage goes out on the
+        // role the session was signed in with; a release waits.
+        Err(_) if engage => {}
         Err(e) => return refused(e.status, format!("Not {verb}: {}", e.message)),
     }
     let what = match &scope {
@@ -182,6 +213,7 @@ pub async fn estop(State(state): State<AppState>, request: Request) -> Response 
         EStopScope::Env(env) => env.to_string(),
     };
     let reason = format!("{reason} ({} via the web console)", session.user);
+    tracing::warn!(operator = %session.user, %what, %reason, engage, "e-stop pressed from the console");
     let pressed = state.discovery.press_estop(&scope, engage, &reason).await;
     // The latches as the controllers now report them, shown on the page
     // (a moment behind the acknowledgements).
@@ -200,7 +232,7 @@ pub async fn estop(State(state): State<AppState>, request: Request) -> Response 
         .await;
     match pressed {
         Ok(report) => {
-            tracing::warn!(operator = %session.user, %what, %reason, engage, "e-stop pressed from the console");
+            tracing::warn!(operator = %session.user, %what, engage, "{}", acknowledged(&report));
             let told = format!("E-stop {verb} on {what}: {}.", acknowledged(&report));
             render(
                 &state,
@@ -210,20 +242,27 @@ pub async fn estop(State(state): State<AppState>, request: Request) -> Response 
                 Some(&report),
             )
         }
-        Err(PressError::Unacknowledged { message, report }) => render(
-            &state,
-            &session,
-            StatusCode::SERVICE_UNAVAILABLE,
-            Notice::Refused(format!("E-stop {verb} on {what}, but {message}.")),
-            Some(&report),
-        ),
+        Err(PressError::Unacknowledged { message, report }) => {
+            tracing::error!(operator = %session.user, %what, engage, "{message}");
+            render(
+                &state,
+                &session,
+                StatusCode::SERVICE_UNAVAILABLE,
+                Notice::Refused(format!("E-stop {verb} on {what}, but {message}.")),
+                Some(&report),
+            )
+        }
         Err(e @ PressError::NotFound(_)) => {
+            tracing::error!(operator = %session.user, %what, engage, "not pressed: {e}");
             refused(StatusCode::NOT_FOUND, format!("Not {verb}: {e}."))
         }
-        Err(e @ PressError::Zenoh(_)) => refused(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("Not {verb}: the deployment refused the press ({e})."),
-        ),
+        Err(e @ PressError::Zenoh(_)) => {
+            tracing::error!(operator = %session.user, %what, engage, "not pressed: {e}");
+            refused(
+                StatusCode::SERVICE_UNAVAILABLE,
+                format!("Not {verb}: the deployment refused the press ({e})."),
+            )
+        }
     }
 }
 

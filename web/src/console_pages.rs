@@ -107,14 +107,22 @@ fn acknowledgements(report: &PressReport) -> Markup {
     }
 }
 
+/// The fields every console form carries: its CSRF token and the env it
+/// is about.
+fn form_fields(csrf: &str, env: Option<&str>) -> Markup {
+    html! {
+        input type="hidden" name="csrf" value=(csrf);
+        @if let Some(env) = env { input type="hidden" name="env" value=(env); }
+    }
+}
+
 /// Engage, or release with its confirmation, for `scope` (`site` or
 /// `env`, with `env` the env's id).
 fn estop_forms(csrf: &str, scope: &str, env: Option<&str>, engaged: bool, what: &str) -> Markup {
     html! {
         form.inline.estop method="post" action="/console/estop" data-action=(if engaged { "release" } else { "engage" }) {
-            input type="hidden" name="csrf" value=(csrf);
+            (form_fields(csrf, env))
             input type="hidden" name="scope" value=(scope);
-            @if let Some(env) = env { input type="hidden" name="env" value=(env); }
             @if engaged {
                 input type="hidden" name="action" value="release";
                 label { "Reason " input type="text" name="reason" required maxlength=(MAX_REASON_CHARS) placeholder="checked, all clear"; }
@@ -150,8 +158,7 @@ fn env_row(csrf: &str, env: &EnvView) -> Markup {
                             ", until " (time(lease.until_unix_ms, "clock")) " if idle"
                         }
                         form.inline method="post" action="/console/lease" data-action="revoke" {
-                            input type="hidden" name="csrf" value=(csrf);
-                            input type="hidden" name="env" value=(env.id);
+                            (form_fields(csrf, Some(&env.id)))
                             label { "Reason " input type="text" name="reason" required maxlength=(MAX_REASON_CHARS) placeholder="told to the holder"; }
                             button.danger type="submit" { "Revoke the lease" }
                         }
@@ -168,16 +175,14 @@ fn env_row(csrf: &str, env: &EnvView) -> Markup {
                             ")"
                         }
                         form.inline method="post" action="/console/maintenance" data-action="end" {
-                            input type="hidden" name="csrf" value=(csrf);
-                            input type="hidden" name="env" value=(env.id);
+                            (form_fields(csrf, Some(&env.id)))
                             input type="hidden" name="action" value="end";
                             button.secondary type="submit" { "End maintenance" }
                         }
                     }
                     None => {
                         form.inline method="post" action="/console/maintenance" data-action="start" {
-                            input type="hidden" name="csrf" value=(csrf);
-                            input type="hidden" name="env" value=(env.id);
+                            (form_fields(csrf, Some(&env.id)))
                             input type="hidden" name="action" value="start";
                             label { "What " input type="text" name="message" required maxlength=(MAX_REASON_CHARS) placeholder="wheel swap"; }
                             label { "Back in (min) " input type="number" name="back_minutes" min="1" max=(MAX_BACK_MINUTES) step="1"; }
