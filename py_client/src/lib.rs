@@ -646,6 +646,28 @@ fn cancel_booking<'py>(
     booking_request(py, connect, env_id, request, timeout_s)
 }
 
+/// Who `token` is, as `env_id`'s controller says: `{user, operator}`.
+#[pyfunction]
+#[pyo3(signature = (env_id, token, connect=None, timeout_s=5.0))]
+fn whoami<'py>(
+    py: Python<'py>,
+    env_id: &str,
+    token: String,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyDict>> {
+    let env = parse_env(env_id)?;
+    let timeout = convert::timeout(timeout_s)?;
+    let request = offworld_runtime::msg::AdminRequest::Identify { token };
+    let reply = on_deployment(py, connect, move |session| async move {
+        offworld_runtime::client::admin(&session, &env, &request, timeout).await
+    })?;
+    let dict = PyDict::new(py);
+    dict.set_item("user", &reply.user)?;
+    dict.set_item("operator", reply.operator)?;
+    Ok(dict)
+}
+
 /// The native half of `offworld_gym`.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -654,6 +676,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(book, m)?)?;
     m.add_function(wrap_pyfunction!(bookings, m)?)?;
     m.add_function(wrap_pyfunction!(cancel_booking, m)?)?;
+    m.add_function(wrap_pyfunction!(whoami, m)?)?;
     m.add_function(wrap_pyfunction!(experiments, m)?)?;
     m.add_function(wrap_pyfunction!(experiment_episodes, m)?)?;
     m.add_function(wrap_pyfunction!(leaderboard, m)?)?;

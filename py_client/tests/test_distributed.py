@@ -136,9 +136,29 @@ def test_bookings_from_python_and_the_cli(trainer):
         [sys.executable, "-m", "offworld_gym", "envs"], capture_output=True, text=True, check=True
     ).stdout
     assert "booked by alice" in table
+    # Who the token is, and her slots on every env.
+    assert offworld_gym.whoami() == {"user": "alice", "operator": False}
+    assert offworld_gym.whoami(env_id=trainer[1]) == {"user": "alice", "operator": False}
+    with pytest.raises(errors.Unauthorized, match="unknown access token"):
+        offworld_gym.whoami(token="not-a-token-of-anyone")
+    assert offworld_gym.my_bookings() == [made]
+    cli = subprocess.run(
+        [sys.executable, "-m", "offworld_gym", "bookings", "--mine", "--json"], capture_output=True, text=True, check=True
+    )
+    assert json.loads(cli.stdout) == [made]
+    who = subprocess.run([sys.executable, "-m", "offworld_gym", "whoami"], capture_output=True, text=True, check=True)
+    assert who.stdout == "alice\n"
     remaining = offworld_gym.cancel_booking(env_id, made["id"])
     assert made not in remaining
     assert all(e["bookings"] == [] for e in offworld_gym.list_envs())
+    assert offworld_gym.my_bookings() == []
+    empty = subprocess.run(
+        [sys.executable, "-m", "offworld_gym", "bookings", "--mine"], capture_output=True, text=True, check=True
+    )
+    assert (empty.stdout, empty.stderr) == ("", "nothing booked\n")
+    # `bookings` needs an env or --mine.
+    neither = subprocess.run([sys.executable, "-m", "offworld_gym", "bookings"], capture_output=True, text=True)
+    assert neither.returncode == 2 and "--env ENV_ID" in neither.stderr
     # Without a token: a clear error before anything is sent.
     with pytest.raises(errors.ConfigurationError, match="token"):
         offworld_gym.book(env_id, start, start + 60, token="")

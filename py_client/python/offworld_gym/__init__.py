@@ -16,7 +16,7 @@ ids need a deployment and an access token (``OFFWORLD_GYM_ACCESS_TOKEN``).
 from offworld_gym import errors
 from offworld_gym._native import __version__
 from offworld_gym._registration import ENV_IDS, LEGACY_IDS, register_envs
-from offworld_gym.bookings import Booking, book, bookings, cancel_booking
+from offworld_gym.bookings import Booking, Identity, book, bookings, cancel_booking, my_bookings, whoami
 from offworld_gym.discovery import EnvInfo, list_envs
 from offworld_gym.envs.common.channels import Channels
 from offworld_gym.envs.common.enums import AlgorithmMode, LearningType
@@ -42,6 +42,7 @@ __all__ = [
     "EnvInfo",
     "Episode",
     "Experiment",
+    "Identity",
     "LeaderboardEntry",
     "LearningType",
     "Recording",
@@ -55,5 +56,7 @@ __all__ = [
     "experiments",
     "leaderboard",
     "list_envs",
+    "my_bookings",
     "register_envs",
+    "whoami",
 ]

@@ -2,6 +2,8 @@
 
     python -m offworld_gym envs --connect quic/router.example:7447
     python -m offworld_gym bookings --env real/monolith-0
+    python -m offworld_gym bookings --mine
+    python -m offworld_gym whoami
     python -m offworld_gym book --env real/monolith-0 --start 2026-12-01T14:00 --minutes 60
     python -m offworld_gym cancel-booking --env real/monolith-0 --id 3
     python -m offworld_gym experiments --env real/monolith-0
@@ -20,7 +22,7 @@ import json
 import math
 import sys
 
-from offworld_gym.bookings import Booking, book, bookings, cancel_booking
+from offworld_gym.bookings import Booking, book, bookings, cancel_booking, my_bookings, whoami
 from offworld_gym.discovery import list_envs
 from offworld_gym.errors import OffWorldGymError
 from offworld_gym.experiments import ResetAccuracy, experiment, experiments, leaderboard
@@ -46,7 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     envs.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
     envs.add_argument("--timeout", type=float, default=2.0, help="seconds per query")
     envs.add_argument("--json", action="store_true", help="print JSON")
-    listing = sub.add_parser("bookings", help="list an env's booked slots")
+    listing = sub.add_parser("bookings", help="list an env's booked slots, or yours on every env (--mine)")
+    listing.add_argument("--mine", action="store_true", help="your slots on every env (needs your token)")
+    who = sub.add_parser("whoami", help="who your access token is, and whether you are an operator")
+    who.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
+    who.add_argument("--json", action="store_true", help="print JSON")
     made = sub.add_parser("book", help="reserve a slot on an env")
     made.add_argument("--start", required=True, help="ISO time, e.g. 2026-12-01T14:00 (local) or …Z")
     made.add_argument("--minutes", type=float, required=True, help="slot length")
@@ -57,13 +63,18 @@ def main(argv: list[str] | None = None) -> int:
     shown.add_argument("--id", type=int, required=True, help="experiment id (see `experiments`)")
     board = sub.add_parser("leaderboard", help="an env's test-mode experiments, best first")
     for p in (listing, made, cancel, mine, shown, board):
-        p.add_argument("--env", required=True, help="env id, e.g. real/monolith-0")
+        # `bookings --mine` needs no env.
+        p.add_argument("--env", required=p is not listing, help="env id, e.g. real/monolith-0")
         p.add_argument("--connect", help="Zenoh endpoint (default: OFFWORLD_GYM_CONNECT)")
         p.add_argument("--json", action="store_true", help="print JSON")
-    for p in (made, cancel, mine, shown):
+    for p in (listing, made, cancel, mine, shown, who):
         p.add_argument("--token", help="access token (default: OFFWORLD_GYM_ACCESS_TOKEN)")
     args = parser.parse_args(argv)
+    if args.command == "bookings" and not args.mine and not args.env:
+        parser.error("bookings: say which env (--env ENV_ID) or ask for yours (--mine)")
     try:
+        if args.command == "whoami":
+            return _whoami_command(args)
         if args.command in ("experiments", "episodes", "leaderboard"):
             return _records_command(args)
         if args.command != "envs":
@@ -104,6 +115,8 @@ def _bookings_command(args: argparse.Namespace) -> int:
         slots = [book(args.env, start, end, token=args.token, connect=args.connect)]
     elif args.command == "cancel-booking":
         slots = cancel_booking(args.env, args.id, token=args.token, connect=args.connect)
+    elif args.mine:
+        slots = my_bookings(token=args.token, connect=args.connect)
     else:
         slots = bookings(args.env, connect=args.connect)
     if args.json:
@@ -111,6 +124,17 @@ def _bookings_command(args: argparse.Namespace) -> int:
         return 0
     for b in slots:
         print(f"{b['id']:>5}  {b['env_id']:<24} {_when(b['start_unix_ms'])} .. {_when(b['end_unix_ms'])}  {b['user']}")
+    if not slots and args.command == "bookings":
+        print("nothing booked", file=sys.stderr)
+    return 0
+
+
+def _whoami_command(args: argparse.Namespace) -> int:
+    me = whoami(token=args.token, connect=args.connect)
+    if args.json:
+        print(json.dumps(me))
+    else:
+        print(f"{me['user']}{' (operator)' if me['operator'] else ''}")
     return 0
 
 
