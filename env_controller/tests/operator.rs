@@ -233,6 +233,13 @@ async fn the_cli_prints_who_acknowledged_and_fails_when_someone_did_not() {
             lines[0],
             format!("e-stop {verb} on {}", env.key(Topic::EStop))
         );
+        // Its log (stderr, a pipe here) is plain text: no colour codes.
+        let log = String::from_utf8_lossy(&out.stderr);
+        assert!(log.contains("e-stop published"), "{log}");
+        assert!(
+            !log.contains('\u{1b}'),
+            "colour codes in a piped log: {log:?}"
+        );
         assert!(
             lines[1].starts_with("  acknowledged by sim_twin of sim/estop-cli in ")
                 && lines[1].ends_with(&format!(" ms (e-stops now engaged: {now})")),

@@ -307,12 +307,17 @@ impl From<CommonArgs> for SessionConfig {
 /// Logging for binaries and examples: `RUST_LOG` or `info`, on stderr
 /// (stdout stays for a command's output, e.g. a printed token).
 pub fn init_logging() {
+    use std::io::IsTerminal;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    // Colour for people at a terminal; plain text in files, pipes and
+    // journald, and wherever NO_COLOR is set (no-color.org).
+    let colour = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
     // A second init (tests, embedding) is harmless.
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(colour)
         .try_init();
 }
 
