@@ -168,12 +168,30 @@ pub async fn press_estop(
         press_id,
     };
     let bytes = codec::encode(&stop).map_err(|e| zerr(e.to_string()))?;
-    let sent = Instant::now();
-    session
-        .put(&key, bytes)
+    let publisher = session
+        .declare_publisher(key.clone())
         .encoding(Encoding::APPLICATION_CDR)
         .congestion_control(Delivery::Every.congestion_control())
         .priority(wire::CONTROL_PRIORITY)
+        .await
+        .map_err(|e| zerr(e.to_string()))?;
+    // A new session learns the robots' subscriptions from the router a
+    // moment after it sees their presence, and a client drops a put that
+    // matches no subscription it knows of: wait (within the presence
+    // deadline) until one matches, then publish (regardless: the
+    // acknowledgements tell the truth).
+    while !publisher
+        .matching_status()
+        .await
+        .map_err(|e| zerr(e.to_string()))?
+        .matching()
+        && tokio::time::Instant::now() < deadline
+    {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let sent = Instant::now();
+    publisher
+        .put(bytes)
         .await
         .map_err(|e| zerr(e.to_string()))?;
     tracing::warn!(%key, engaged, %reason, "e-stop published");

@@ -476,6 +476,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     let (status, _status_sub) = Seen::watch(&web, &env.key(Topic::Status)).await;
     let (stolen, _stolen_sub) = Seen::watch(&web, &format!("{}/pose", env.prefix())).await;
     let (frames, _frames_sub) = Seen::watch(&web, &env.key(Topic::Obs)).await;
+    settle().await;
 
     // What its pages read: the listing with the lease's holder, a
     // leaderboard, the bookings, and `admin` (a user's token, checked by
@@ -522,7 +523,8 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         Duration::from_secs(10),
         Duration::from_secs(5),
     )
-    .await?;
+    .await
+    .map_err(|e| anyhow::anyhow!("press from the web console: {e}"))?;
     assert_eq!(report.acknowledged.len(), 1, "{report:?}");
     assert_eq!(report.acknowledged[0].component, "sim_twin");
     let refused = gym
@@ -538,7 +540,8 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         Duration::from_secs(10),
         Duration::from_secs(5),
     )
-    .await?;
+    .await
+    .map_err(|e| anyhow::anyhow!("press clear: {e}"))?;
     gym.reset(Seed::Fixed(4))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
@@ -586,7 +589,8 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         Duration::from_secs(10),
         Duration::from_secs(5),
     )
-    .await?;
+    .await
+    .map_err(|e| anyhow::anyhow!("press control: {e}"))?;
     settle().await;
     assert_eq!(
         forged.count("estop_ack", None),
