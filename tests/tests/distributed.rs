@@ -515,16 +515,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
 
     // Its console presses an e-stop: the twin acknowledges through the
     // router, and the controller's status (which the page shows) says so.
-    let report = press_estop(
-        &web,
-        &EStopScope::Env(env.clone()),
-        true,
-        "from the web console",
-        Duration::from_secs(10),
-        Duration::from_secs(5),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("press from the web console: {e}"))?;
+    let report = press_as(&web, &env, true, "from the web console").await?;
     assert_eq!(report.acknowledged.len(), 1, "{report:?}");
     assert_eq!(report.acknowledged[0].component, "sim_twin");
     let refused = gym
@@ -532,16 +523,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         .await
         .expect_err("no step under an e-stop");
     assert_eq!(refused.code, ErrorCode::InvalidState, "{refused}");
-    press_estop(
-        &web,
-        &EStopScope::Env(env.clone()),
-        false,
-        "clear",
-        Duration::from_secs(10),
-        Duration::from_secs(5),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("press clear: {e}"))?;
+    press_as(&web, &env, false, "clear").await?;
     gym.reset(Seed::Fixed(4))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
@@ -581,16 +563,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     );
     assert_eq!(forged.count("fault", None), 0, "a forged fault arrived");
     // Control: the twin's own acknowledgement reaches the same observer.
-    press_estop(
-        &web,
-        &EStopScope::Env(env.clone()),
-        false,
-        "control",
-        Duration::from_secs(10),
-        Duration::from_secs(5),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("press control: {e}"))?;
+    press_as(&web, &env, false, "control").await?;
     settle().await;
     assert_eq!(
         forged.count("estop_ack", None),
@@ -614,6 +587,26 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     // To this identity the gym's driving queries do not exist.
     assert_eq!(refused.code, ErrorCode::NotFound, "{refused}");
     Ok(())
+}
+
+/// Presses (`engaged`) or releases `env`'s e-stop through `session` as the
+/// CLI does; an error names the press by its `reason`.
+async fn press_as(
+    session: &Session,
+    env: &EnvId,
+    engaged: bool,
+    reason: &str,
+) -> anyhow::Result<offworld_runtime::operator::PressReport> {
+    press_estop(
+        session,
+        &EStopScope::Env(env.clone()),
+        engaged,
+        reason,
+        Duration::from_secs(10),
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("press {reason}: {e}"))
 }
 
 /// Steps FORWARD and returns the command's seq as the spy saw it; on

@@ -127,51 +127,21 @@ impl Discovery {
         });
         // The subscribers hold only a weak reference: dropping the last
         // `Discovery` drops the table.
-        let weak = Arc::downgrade(&inner);
-        let status = session
-            .declare_subscriber(keys::topic_on_all_envs(Topic::Status))
-            .callback(move |sample| {
-                let Some(inner) = weak.upgrade() else { return };
-                let Ok(env) = EnvId::from_key(sample.key_expr().as_str()) else {
-                    return;
-                };
-                match codec::decode_payload::<EnvStatus>(sample.payload()) {
-                    Ok(status) => inner.status_received(env, &status),
-                    Err(e) => tracing::debug!(%env, "undecodable status: {e}"),
-                }
-            })
-            .await
-            .map_err(zenoh_error)?;
-        let weak = Arc::downgrade(&inner);
-        let fault = session
-            .declare_subscriber(keys::topic_on_all_envs(Topic::Fault))
-            .callback(move |sample| {
-                let Some(inner) = weak.upgrade() else { return };
-                let Ok(env) = EnvId::from_key(sample.key_expr().as_str()) else {
-                    return;
-                };
-                match codec::decode_payload::<MotionFault>(sample.payload()) {
-                    Ok(fault) => inner.fault_received(env, fault.reason),
-                    Err(e) => tracing::debug!(%env, "undecodable fault: {e}"),
-                }
-            })
-            .await
-            .map_err(zenoh_error)?;
-        let weak = Arc::downgrade(&inner);
-        let tracking = session
-            .declare_subscriber(keys::topic_on_all_envs(Topic::Tracking))
-            .callback(move |sample| {
-                let Some(inner) = weak.upgrade() else { return };
-                let Ok(env) = EnvId::from_key(sample.key_expr().as_str()) else {
-                    return;
-                };
-                match codec::decode_payload::<TrackingStatus>(sample.payload()) {
-                    Ok(status) => inner.tracking_received(env, status),
-                    Err(e) => tracing::debug!(%env, "undecodable tracking status: {e}"),
-                }
-            })
-            .await
-            .map_err(zenoh_error)?;
+        let status = follow(
+            &session,
+            &inner,
+            Topic::Status,
+            |inner, env, status: EnvStatus| inner.status_received(env, &status),
+        )
+        .await?;
+        let fault = follow(
+            &session,
+            &inner,
+            Topic::Fault,
+            |inner, env, fault: MotionFault| inner.fault_received(env, fault.reason),
+        )
+        .await?;
+        let tracking = follow(&session, &inner, Topic::Tracking, Inner::tracking_received).await?;
         let weak = Arc::downgrade(&inner);
         let alive = session
             .liveliness()
@@ -318,6 +288,33 @@ impl Discovery {
         )
         .await
     }
+}
+
+/// Subscribes to `topic` on every env: each sample that decodes as `T`
+/// goes to `received` with its env (an undecodable one is logged). The
+/// subscriber holds only a weak reference: dropping the last `Discovery`
+/// drops the table.
+async fn follow<T: serde::de::DeserializeOwned>(
+    session: &Session,
+    inner: &Arc<Inner>,
+    topic: Topic,
+    received: impl Fn(&Inner, EnvId, T) + Send + Sync + 'static,
+) -> Result<offworld_runtime::zenoh::pubsub::Subscriber<()>, WireError> {
+    let weak = Arc::downgrade(inner);
+    session
+        .declare_subscriber(keys::topic_on_all_envs(topic))
+        .callback(move |sample| {
+            let Some(inner) = weak.upgrade() else { return };
+            let Ok(env) = EnvId::from_key(sample.key_expr().as_str()) else {
+                return;
+            };
+            match codec::decode_payload::<T>(sample.payload()) {
+                Ok(value) => received(&inner, env, value),
+                Err(e) => tracing::debug!(%env, ?topic, "undecodable sample: {e}"),
+            }
+        })
+        .await
+        .map_err(zenoh_error)
 }
 
 fn zenoh_error(e: impl std::fmt::Display) -> WireError {
