@@ -150,6 +150,8 @@ async fn a_silent_component_fails_the_press_and_an_unheard_press_is_an_error() {
                 report.silent,
                 [("real/estop-frozen".to_owned(), "robot_agent".to_owned())]
             );
+            // Once, though the press was repeated for the frozen agent
+            // and the twin acknowledged each repetition.
             assert_eq!(report.acknowledged.len(), 1, "the twin did");
             assert!(
                 message.contains("robot_agent of real/estop-frozen"),

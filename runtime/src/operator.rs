@@ -2,7 +2,8 @@
 //! and release the e-stops (one env's, or the whole site's), and learn who
 //! obeyed.
 //!
-//! A press is published once (never dropped, at control priority); every
+//! A press is published (never dropped, at control priority, again while
+//! someone is silent: pressing a latch twice is harmless); every
 //! robot agent and twin that receives it stops first, then acknowledges on
 //! its env's `estop_ack` with the press's id and the latches now in force.
 //! The operator waits for an acknowledgement from every robot agent and
@@ -190,25 +191,43 @@ pub async fn press_estop(
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     let sent = Instant::now();
-    publisher
-        .put(bytes)
-        .await
-        .map_err(|e| zerr(e.to_string()))?;
-    tracing::warn!(%key, engaged, %reason, "e-stop published");
     let mut waiting: BTreeSet<Obeyer> = expected.into_iter().collect();
     let mut report = PressReport::default();
     let ack_deadline = tokio::time::Instant::now() + ack_within;
-    while !waiting.is_empty() {
-        let Ok(Some((at, ack))) = tokio::time::timeout_at(ack_deadline, acks.recv()).await else {
-            break;
-        };
-        waiting.remove(&(ack.env.clone(), ack.component.clone()));
-        report.acknowledged.push(Acknowledgement {
-            env: ack.env,
-            component: ack.component,
-            after: at.saturating_duration_since(sent),
-            state: ack.state,
-        });
+    // The same press is published again while someone is still silent: a
+    // put or an acknowledgement can be lost while the sessions learn each
+    // other's subscriptions through the router (the acknowledgement's
+    // subscriber above is moments old). Pressing a latch twice to the same
+    // state is harmless; each obeyer counts once.
+    let mut republish_in = Duration::from_millis(250);
+    while !waiting.is_empty() && tokio::time::Instant::now() < ack_deadline {
+        publisher
+            .put(bytes.clone())
+            .await
+            .map_err(|e| zerr(e.to_string()))?;
+        tracing::warn!(%key, engaged, %reason, "e-stop published");
+        let next_publish = (tokio::time::Instant::now() + republish_in).min(ack_deadline);
+        republish_in = (republish_in * 2).min(Duration::from_secs(1));
+        while !waiting.is_empty() {
+            let Ok(Some((at, ack))) = tokio::time::timeout_at(next_publish, acks.recv()).await
+            else {
+                break;
+            };
+            let obeyer = (ack.env.clone(), ack.component.clone());
+            let first = waiting.remove(&obeyer)
+                || !report
+                    .acknowledged
+                    .iter()
+                    .any(|a| a.env == obeyer.0 && a.component == obeyer.1);
+            if first {
+                report.acknowledged.push(Acknowledgement {
+                    env: ack.env,
+                    component: ack.component,
+                    after: at.saturating_duration_since(sent),
+                    state: ack.state,
+                });
+            }
+        }
     }
     report.silent = waiting.into_iter().collect();
     if report.silent.is_empty() {

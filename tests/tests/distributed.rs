@@ -445,7 +445,9 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     assert_eq!(report.acknowledged[0].component, "sim_twin");
     assert_eq!(report.acknowledged[0].state.summary(), "env");
     settle().await;
-    assert_eq!(spy.count("estop", None), 1);
+    // Once, or again while the acknowledgement was on its way (a press
+    // repeats itself while someone is silent).
+    assert!(spy.count("estop", None) >= 1);
     // The controller refuses motion under the e-stop (as for a real env),
     // and no command reaches the robot.
     let commands = spy.cmds().len();
