@@ -19,6 +19,7 @@
 //! - [`embedded`]: twins + controller in one process.
 
 pub mod admission;
+pub mod cli;
 pub mod deployment;
 pub mod embedded;
 pub mod env;

@@ -47,6 +47,7 @@
 //! can also be given as one string (see [`Sink`]'s `FromStr`), which suits
 //! a `monitor="run.rrd"` option.
 
+pub mod cli;
 mod columns;
 pub mod layout;
 pub mod paths;

@@ -14,6 +14,7 @@
 //! - [`rrd`] writes the replay as a rerun recording, robot and twin side
 //!   by side.
 
+pub mod cli;
 pub mod identify;
 pub mod plots;
 pub mod recorded;

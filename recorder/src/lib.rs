@@ -13,6 +13,7 @@
 //!
 //! The format is documented in `docs/recording.md`.
 
+pub mod cli;
 pub mod episode_file;
 pub mod follow;
 pub mod msg;

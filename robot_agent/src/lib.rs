@@ -27,6 +27,7 @@
 
 pub mod agent;
 pub mod base_check;
+pub mod cli;
 pub mod config;
 mod error;
 pub mod guard;

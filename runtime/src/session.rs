@@ -190,11 +190,27 @@ impl SessionConfig {
         Ok(config)
     }
 
-    /// Opens the session.
+    /// Opens the session, and says where it listens and connects (a
+    /// person starting a program learns which address to give the others)
+    /// and whether anyone answered at the endpoints it connects to.
     pub async fn open(&self) -> Result<zenoh::Session, ContractError> {
-        zenoh::open(self.to_zenoh()?)
-            .await
-            .map_err(ContractError::from)
+        let config = self.to_zenoh()?;
+        let listen = config.get_json("listen/endpoints").unwrap_or_default();
+        let connect = config.get_json("connect/endpoints").unwrap_or_default();
+        let session = zenoh::open(config).await.map_err(ContractError::from)?;
+        tracing::info!(mode = self.mode.as_str(), %listen, %connect, "zenoh session open");
+        if !self.connect.is_empty() {
+            let info = session.info();
+            if info.routers_zid().await.next().is_none() && info.peers_zid().await.next().is_none()
+            {
+                tracing::warn!(
+                    "nobody answers at {} yet: still trying (is the address right, and is \
+                     the router or server there running?)",
+                    self.connect.join(", ")
+                );
+            }
+        }
+        Ok(session)
     }
 
     /// [`SessionConfig::open`] for a one-shot client (a listing, a booking,
@@ -319,6 +335,24 @@ pub fn init_logging() {
         .with_writer(std::io::stderr)
         .with_ansi(colour)
         .try_init();
+}
+
+/// What every OffWorld program's entry point does (`env_controller`,
+/// `sim_twin`, … and the matching `offworld` subcommand alike): logging as
+/// [`init_logging`], `body` on a multi-threaded Tokio runtime (as
+/// `#[tokio::main]`), and its result as the exit status (an error printed
+/// as `Error: …` with its causes, as `main` returning `Result` does).
+pub fn run_program<R: std::process::Termination>(
+    body: impl std::future::Future<Output = R>,
+) -> std::process::ExitCode {
+    init_logging();
+    match tokio::runtime::Runtime::new() {
+        Ok(runtime) => runtime.block_on(body).report(),
+        Err(e) => {
+            eprintln!("Error: cannot start the async runtime: {e}");
+            std::process::ExitCode::FAILURE
+        }
+    }
 }
 
 /// Where [`loopback_endpoint`] picks ports: below Linux's ephemeral range

@@ -19,6 +19,7 @@
 //!   raw tracker stream) for the real stack to run against.
 
 pub mod camera;
+pub mod cli;
 pub mod enclosure;
 mod error;
 pub mod frame_payload;

@@ -62,6 +62,7 @@
 
 pub mod agent;
 pub mod calibration;
+pub mod cli;
 pub mod filter;
 pub mod protocol;
 pub mod source;

@@ -26,6 +26,7 @@ pub mod account;
 pub mod account_pages;
 pub mod api;
 pub mod chart;
+pub mod cli;
 pub mod console;
 pub mod console_pages;
 pub mod discovery;

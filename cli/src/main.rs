@@ -1,0 +1,193 @@
+//! `offworld`: every OffWorld Gym program behind one command, with the
+//! flags each program has on its own (`offworld twin` is `sim_twin`,
+//! `offworld serve` is `env_controller serve`, …): the per-component
+//! binaries stay for site services (systemd units run one each).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+const EXAMPLES: &str = "\
+Examples:
+  offworld serve --env sim/monolith-0=MonolithDiscrete --embedded-twins   # a gym server with its twin
+  offworld twin --env sim/monolith-0                                      # a standalone twin
+  offworld monitor --all --viewer                                         # watch every env in rerun
+  offworld recorder record --all runs                                     # record every episode
+  offworld --db site.db users add alice                                   # prints alice's token once
+  offworld estop --env real/monolith-0 --reason \"person inside\"           # stop a robot
+  offworld web --http 0.0.0.0:8080                                        # the lab's web page
+
+Python: `python -m offworld_gym envs | whoami | bookings`; docs: README.md";
+
+/// OffWorld Gym on Zenoh: serve envs, run twins and robots, watch, record
+/// and administer a site.
+#[derive(Parser)]
+#[command(name = "offworld", version, after_help = EXAMPLES)]
+struct Cli {
+    /// The gym server's SQLite database of users, experiments and episodes
+    /// (serve, users, experiments, leaderboard; also after the command)
+    /// [env: OFFWORLD_DB] [default: offworld.db].
+    #[arg(long, value_name = "FILE")]
+    db: Option<PathBuf>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    #[command(flatten)]
+    Controller(offworld_env_controller::cli::Command),
+    /// Serve a simulated enclosure (`sim_twin`).
+    Twin(offworld_sim_twin::cli::Args),
+    /// Serve a real enclosure's robot (`robot_agent`).
+    Robot(offworld_robot_agent::cli::Args),
+    /// Localise the robot with the enclosure's Vive tracker (`tracker_agent`).
+    Tracker(offworld_tracker_agent::cli::Args),
+    /// Watch envs live in rerun, or replay a recorded episode (`monitor`).
+    Monitor(offworld_monitor::cli::Args),
+    /// Record episodes from outside the controller, inspect and recover
+    /// recordings (`recorder`).
+    Recorder(offworld_recorder::cli::Args),
+    /// Measure and calibrate the twin against recorded robot episodes
+    /// (`parity`).
+    Parity(offworld_parity::cli::Args),
+    /// Serve the lab's web page (`lab_web`).
+    Web(offworld_web::cli::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Controller(command) => offworld_env_controller::cli::run_command(cli.db, command),
+        Command::Twin(args) => offworld_sim_twin::cli::run(args),
+        Command::Robot(args) => offworld_robot_agent::cli::run(args),
+        Command::Tracker(args) => offworld_tracker_agent::cli::run(args),
+        Command::Monitor(args) => offworld_monitor::cli::run(args),
+        Command::Recorder(args) => offworld_recorder::cli::run(args),
+        Command::Parity(args) => offworld_parity::cli::run(args),
+        Command::Web(args) => offworld_web::cli::run(args),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+    use std::path::Path;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        Cli::command().debug_assert();
+    }
+
+    /// Every `offworld …` command in the README and the docs' code blocks
+    /// parses (flags, values, subcommands): the documentation cannot drift
+    /// from the command line. Lines with placeholders (`…`) are prose.
+    #[test]
+    fn the_documented_commands_parse() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .expect("workspace");
+        let mut files = vec![root.join("README.md"), root.join("deploy/README.md")];
+        for entry in std::fs::read_dir(root.join("docs")).expect("docs/") {
+            let path = entry.expect("entry").path();
+            if path.extension().is_some_and(|e| e == "md") {
+                files.push(path);
+            }
+        }
+        let mut checked = 0;
+        for file in &files {
+            let text = std::fs::read_to_string(file).expect("readable");
+            for command in documented_commands(&text) {
+                if command.contains('…') || command.contains("$(") {
+                    continue;
+                }
+                let words = shell_words(&command);
+                if let Err(e) = Cli::try_parse_from(&words) {
+                    panic!("{}: `{command}` does not parse:\n{e}", file.display());
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked >= 20, "only {checked} documented commands found");
+    }
+
+    /// The `offworld …` commands of the fenced code blocks, continuation
+    /// lines joined, comments and a trailing `&` removed.
+    fn documented_commands(markdown: &str) -> Vec<String> {
+        let mut commands = Vec::new();
+        let mut in_code = false;
+        let mut pending: Option<String> = None;
+        for line in markdown.lines() {
+            if line.trim_start().starts_with("```") {
+                in_code = !in_code;
+                continue;
+            }
+            if !in_code {
+                continue;
+            }
+            let code = without_comment(line).trim().to_owned();
+            let (code, continues) = match code.strip_suffix('\\') {
+                Some(head) => (head.trim().to_owned(), true),
+                None => (code, false),
+            };
+            let command = match pending.take() {
+                Some(head) => format!("{head} {code}"),
+                None if code.starts_with("offworld ") => code,
+                None => continue,
+            };
+            if continues {
+                pending = Some(command);
+            } else {
+                commands.push(command.trim_end_matches('&').trim().to_owned());
+            }
+        }
+        commands
+    }
+
+    /// `line` up to a `#` that starts a shell comment (outside quotes).
+    fn without_comment(line: &str) -> &str {
+        let mut quoted = false;
+        let mut previous = ' ';
+        for (i, c) in line.char_indices() {
+            match c {
+                '"' => quoted = !quoted,
+                '#' if !quoted && previous.is_whitespace() => return &line[..i],
+                _ => {}
+            }
+            previous = c;
+        }
+        line
+    }
+
+    /// Words as a shell splits them (double quotes only).
+    fn shell_words(command: &str) -> Vec<String> {
+        let mut words = Vec::new();
+        let mut word = String::new();
+        let mut quoted = false;
+        let mut started = false;
+        for c in command.chars() {
+            match c {
+                '"' => {
+                    quoted = !quoted;
+                    started = true;
+                }
+                c if c.is_whitespace() && !quoted => {
+                    if started {
+                        words.push(std::mem::take(&mut word));
+                        started = false;
+                    }
+                }
+                c => {
+                    word.push(c);
+                    started = true;
+                }
+            }
+        }
+        if started {
+            words.push(word);
+        }
+        words
+    }
+}

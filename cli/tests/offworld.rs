@@ -1,0 +1,156 @@
+//! `offworld` as a user runs it: one command whose subcommands are the
+//! project's programs, each with its own flags, version and help, and the
+//! exit status and messages of the program it runs.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+use offworld_env_controller::Store;
+
+const SUBCOMMANDS: [&str; 12] = [
+    "serve",
+    "users",
+    "experiments",
+    "leaderboard",
+    "estop",
+    "twin",
+    "robot",
+    "tracker",
+    "monitor",
+    "recorder",
+    "parity",
+    "web",
+];
+
+fn offworld(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_offworld"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .env_remove("OFFWORLD_DB")
+        .output()
+        .expect("offworld runs")
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// A database path in a directory removed at the end of the test.
+struct ScratchDb(PathBuf);
+
+impl ScratchDb {
+    fn new(test: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!(
+            "offworld-cli-{test}-{}",
+            offworld_runtime::client::random_id()
+        ));
+        std::fs::create_dir_all(&dir).expect("scratch dir");
+        Self(dir)
+    }
+
+    fn db(&self) -> PathBuf {
+        self.0.join("site.db")
+    }
+}
+
+impl Drop for ScratchDb {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+#[test]
+fn every_program_is_a_subcommand_with_its_own_help() {
+    let version = offworld(&["--version"]);
+    assert!(version.status.success());
+    assert_eq!(
+        text(&version.stdout).trim(),
+        format!("offworld {}", env!("CARGO_PKG_VERSION"))
+    );
+    let help = offworld(&["--help"]);
+    assert!(help.status.success());
+    let help = text(&help.stdout);
+    for sub in SUBCOMMANDS {
+        assert!(
+            help.lines()
+                .any(|l| l.trim_start().starts_with(&format!("{sub} "))),
+            "`{sub}` listed in:\n{help}"
+        );
+        let own = offworld(&[sub, "--help"]);
+        assert!(own.status.success(), "{sub} --help: {}", text(&own.stderr));
+        let own = text(&own.stdout);
+        assert!(
+            own.contains(&format!("Usage: offworld {sub}")),
+            "{sub}'s usage names it:\n{own}"
+        );
+    }
+    // The flags are the component's own: e.g. the twin's world and the
+    // zenoh endpoints every program shares.
+    let twin = text(&offworld(&["twin", "--help"]).stdout);
+    for flag in [
+        "--env",
+        "--world",
+        "--connect",
+        "--listen",
+        "--zenoh-config",
+    ] {
+        assert!(twin.contains(flag), "twin {flag}:\n{twin}");
+    }
+}
+
+#[test]
+fn site_records_are_kept_through_it() {
+    let scratch = ScratchDb::new("users");
+    let db = scratch.db();
+    let db_arg = db.to_str().expect("utf-8 path");
+    let added = offworld(&["--db", db_arg, "users", "add", "alice"]);
+    assert!(added.status.success(), "{}", text(&added.stderr));
+    let token = text(&added.stdout).trim().to_owned();
+    assert_eq!(token.len(), 32, "{token}");
+    let store = Store::open_existing(&db).expect("the database it made");
+    assert_eq!(
+        store.authenticate(&token).expect("lookup").map(|u| u.name),
+        Some("alice".to_owned())
+    );
+    let listed = offworld(&["--db", db_arg, "users", "list"]);
+    assert!(listed.status.success(), "{}", text(&listed.stderr));
+    let listed = text(&listed.stdout);
+    assert!(listed.lines().any(|l| l.starts_with("alice ")), "{listed}");
+    assert!(!listed.contains(&token), "a list never shows a token");
+    // The database can also come from the environment, as for env_controller.
+    let from_env = Command::new(env!("CARGO_BIN_EXE_offworld"))
+        .args(["experiments", "list"])
+        .env("OFFWORLD_DB", &db)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("offworld runs");
+    assert!(from_env.status.success(), "{}", text(&from_env.stderr));
+}
+
+#[test]
+fn failures_exit_non_zero_with_the_programs_message() {
+    let scratch = ScratchDb::new("fail");
+    let missing = scratch.0.join("typo.db");
+    let listed = offworld(&["--db", missing.to_str().expect("utf-8"), "users", "list"]);
+    assert_eq!(listed.status.code(), Some(1));
+    let message = text(&listed.stderr);
+    assert!(message.contains("no database at"), "{message}");
+    assert!(message.contains("typo.db"), "{message}");
+    assert!(!missing.exists(), "a mistyped --db created a database");
+
+    let nowhere = scratch.0.join("no-such-dir");
+    let info = offworld(&["recorder", "info", nowhere.to_str().expect("utf-8")]);
+    assert_eq!(info.status.code(), Some(1));
+    let message = text(&info.stderr);
+    assert!(message.starts_with("recorder: "), "{message}");
+    assert!(message.contains("no-such-dir"), "{message}");
+
+    // A mistyped subcommand: clap's usage error (status 2) with a suggestion.
+    let typo = offworld(&["monitr"]);
+    assert_eq!(typo.status.code(), Some(2));
+    assert!(
+        text(&typo.stderr).contains("monitor"),
+        "{}",
+        text(&typo.stderr)
+    );
+}

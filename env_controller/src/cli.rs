@@ -1,0 +1,463 @@
+//! `env_controller`: the gym server and its record-keeping CLI.
+//!
+//! ```text
+//! env_controller serve --env sim/monolith-0=MonolithDiscrete [--embedded-twins [--twin-profile FILE]]
+//! env_controller users add alice [--operator]
+//! env_controller users list | revoke alice | rotate alice
+//! env_controller experiments list
+//! env_controller leaderboard --env sim/monolith-0
+//! env_controller estop --env real/monolith-0 --reason "person in the enclosure" [--release]
+//! env_controller estop --site --reason "fire alarm"
+//! ```
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use crate::embedded::{Embedded, SimEnv, TwinProfile};
+use crate::link::LinkSeals;
+use crate::store::{self, BookingRules};
+use crate::{Controller, EnvOptions, RequestLimits, Store, Task};
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use offworld_runtime::operator::{press_estop, EStopScope, PressError};
+use offworld_runtime::seal::{SealArgs, Sealer};
+use offworld_runtime::{CommonArgs, EnvId, Realm};
+
+/// The OffWorld gym server.
+#[derive(Parser)]
+#[command(version)]
+pub struct Args {
+    /// SQLite database of users, experiments and episodes (also after the
+    /// command, e.g. `users --db FILE list`).
+    #[arg(long, value_name = "FILE")]
+    db: Option<PathBuf>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// The site's database, for the commands that keep records: `--db` on the
+/// command line (before or after the command), else `OFFWORLD_DB`, else
+/// `offworld.db`.
+#[derive(clap::Args)]
+pub struct Database {
+    /// SQLite database of users, experiments and episodes [env:
+    /// OFFWORLD_DB] [default: offworld.db].
+    #[arg(long = "db", value_name = "FILE", global = true)]
+    path: Option<PathBuf>,
+}
+
+impl Database {
+    /// The path in force, given the one named before the command.
+    fn resolve(self, before_command: Option<PathBuf>) -> PathBuf {
+        self.path
+            .or(before_command)
+            .or_else(|| std::env::var_os("OFFWORLD_DB").map(PathBuf::from))
+            .unwrap_or_else(|| PathBuf::from("offworld.db"))
+    }
+}
+
+/// What `env_controller` (or `offworld`) does: each variant's fields are
+/// its flags, documented in its `--help`.
+#[allow(missing_docs)] // The flattened groups and subcommands document their own flags.
+#[derive(Subcommand)]
+pub enum Command {
+    /// Serve envs over Zenoh.
+    Serve {
+        /// `ENV=TASK`, repeatable, e.g. `sim/monolith-0=MonolithDiscrete`.
+        #[arg(long = "env", required = true)]
+        envs: Vec<String>,
+        /// Also run an in-process sim twin for every `sim/` env.
+        #[arg(long)]
+        embedded_twins: bool,
+        /// The embedded twins behave like this physical robot (a twin
+        /// profile, docs/twin-profile.md); default: the nominal twin.
+        #[arg(long, value_name = "FILE", requires = "embedded_twins")]
+        twin_profile: Option<PathBuf>,
+        /// Real envs also put the robot's pose and distance to the monolith
+        /// in each step's info (sim envs always do): privileged information.
+        #[arg(long)]
+        share_real_pose: bool,
+        /// Record every episode of every env served as an MCAP file under
+        /// this directory (see docs/recording.md).
+        #[arg(long, value_name = "DIR", env = "OFFWORLD_RECORD")]
+        record: Option<PathBuf>,
+        /// Lease idle timeout, s.
+        #[arg(long, default_value_t = 300)]
+        lease_idle_s: u64,
+        /// Longest booking slot, minutes.
+        #[arg(long, default_value_t = 240)]
+        max_slot_minutes: u32,
+        /// How far ahead a booking may start, days.
+        #[arg(long, default_value_t = 30)]
+        booking_horizon_days: u32,
+        /// Requests queued or running per env (waiting for its state or the
+        /// store); more are answered Busy at once. `status` and `spec`
+        /// never queue.
+        #[arg(long, default_value_t = RequestLimits::default().env_queue)]
+        env_queue: usize,
+        /// Requests one client may have queued or running per env.
+        #[arg(long, default_value_t = RequestLimits::default().client_queue)]
+        client_queue: usize,
+        /// Requests per second one client may send, sustained.
+        #[arg(long, default_value_t = RequestLimits::default().client_rate_per_s)]
+        client_rate: u32,
+        /// Requests one client may send at once above `--client-rate`.
+        #[arg(long, default_value_t = RequestLimits::default().client_burst)]
+        client_burst: u32,
+        /// Largest request accepted, bytes (larger: BadRequest, undecoded).
+        #[arg(long, default_value_t = RequestLimits::default().max_request_bytes)]
+        max_request_bytes: usize,
+        #[command(flatten)]
+        seals: SealArgs,
+        #[command(flatten)]
+        db: Database,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
+    /// Manage users.
+    Users {
+        #[command(flatten)]
+        db: Database,
+        #[command(subcommand)]
+        command: UsersCommand,
+    },
+    /// Manage experiments.
+    Experiments {
+        #[command(flatten)]
+        db: Database,
+        #[command(subcommand)]
+        command: ExperimentsCommand,
+    },
+    /// Print the leaderboard of an env (test-mode experiments).
+    Leaderboard {
+        /// Env id.
+        #[arg(long)]
+        env: EnvId,
+        #[command(flatten)]
+        db: Database,
+    },
+    /// Press (or release) an e-stop: one env's robot, or every robot of the site.
+    Estop {
+        /// The env whose robot stops.
+        #[arg(long, required_unless_present = "site", conflicts_with = "site")]
+        env: Option<EnvId>,
+        /// Every robot of the site.
+        #[arg(long)]
+        site: bool,
+        /// Who and why, for the robots' logs.
+        #[arg(long)]
+        reason: String,
+        /// Release instead of press.
+        #[arg(long)]
+        release: bool,
+        /// How long to wait for a robot or twin to listen, s.
+        #[arg(long, default_value_t = 5.0)]
+        wait_s: f64,
+        /// Every robot agent and twin present must acknowledge within this
+        /// long, ms (else the command fails).
+        #[arg(long, default_value_t = 1000)]
+        ack_ms: u64,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
+}
+
+/// `users …`.
+#[derive(Subcommand)]
+pub enum UsersCommand {
+    /// Register a user and print their token (stored hashed; shown once).
+    Add {
+        /// User name.
+        name: String,
+        /// May put envs into maintenance, revoke leases and use the web
+        /// page's operator console.
+        #[arg(long)]
+        operator: bool,
+    },
+    /// List the registered users (never their tokens).
+    List,
+    /// Revoke a user's token: it no longer opens, books or administers
+    /// (their experiments stay; `rotate` issues a new one).
+    Revoke {
+        /// User name.
+        name: String,
+    },
+    /// Issue a user a new token (printed once); the old one stops working.
+    Rotate {
+        /// User name.
+        name: String,
+    },
+}
+
+/// `experiments …`.
+#[derive(Subcommand)]
+pub enum ExperimentsCommand {
+    /// List experiments, newest first.
+    List,
+}
+
+/// `users …`: the record-keeping of who may use the gym.
+fn users(db: &std::path::Path, command: UsersCommand) -> anyhow::Result<()> {
+    match command {
+        UsersCommand::Add { name, operator } => {
+            let token = Store::open(db)?.add_user(&name, operator)?;
+            println!("{token}");
+        }
+        UsersCommand::List => {
+            let users = Store::open_existing(db)?.users()?;
+            if users.is_empty() {
+                println!("no users yet: env_controller users add NAME");
+                return Ok(());
+            }
+            println!(
+                "{:<24} {:<9} {:<20} {:<20} {:>11}  token",
+                "name", "role", "registered", "token issued", "experiments"
+            );
+            for user in users {
+                let token = match user.revoked_ms {
+                    Some(at) => format!("revoked {}", store::format_unix_ms(at)),
+                    None => "active".to_owned(),
+                };
+                println!(
+                    "{:<24} {:<9} {:<20} {:<20} {:>11}  {token}",
+                    user.name,
+                    user.role,
+                    store::format_unix_ms(user.created_ms),
+                    store::format_unix_ms(user.token_issued_ms),
+                    user.experiments
+                );
+            }
+        }
+        UsersCommand::Revoke { name } => {
+            Store::open_existing(db)?.revoke_user(&name)?;
+            println!(
+                "{name}'s token is revoked: it no longer opens, books or administers \
+                 (a lease taken before runs until it ends; revoke it from the web console)"
+            );
+        }
+        UsersCommand::Rotate { name } => {
+            let token = Store::open_existing(db)?.rotate_token(&name)?;
+            println!("{token}");
+            eprintln!("{name}'s new token (shown once); the old one no longer works");
+        }
+    }
+    Ok(())
+}
+
+/// What `serve` runs.
+enum Running {
+    Embedded(Embedded),
+    Controller(Controller),
+}
+
+fn parse_env(text: &str) -> anyhow::Result<(EnvId, Task)> {
+    let (env, task) = text
+        .split_once('=')
+        .context("--env must look like sim/monolith-0=MonolithDiscrete")?;
+    Ok((env.parse()?, Task::by_name(task)?))
+}
+
+/// Runs `env_controller` with these arguments.
+pub fn run(args: Args) -> ExitCode {
+    run_command(args.db, args.command)
+}
+
+/// Runs one of its commands on the database `db` (also `offworld serve`,
+/// `offworld users`, …).
+pub fn run_command(db: Option<PathBuf>, command: Command) -> ExitCode {
+    offworld_runtime::session::run_program(main_async(db, command))
+}
+
+async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Result<()> {
+    match command {
+        Command::Serve {
+            envs,
+            embedded_twins,
+            twin_profile,
+            share_real_pose,
+            record,
+            lease_idle_s,
+            max_slot_minutes,
+            booking_horizon_days,
+            env_queue,
+            client_queue,
+            client_rate,
+            client_burst,
+            max_request_bytes,
+            seals,
+            db,
+            common,
+        } => {
+            let db = db.resolve(db_before);
+            let envs: Vec<(EnvId, Task)> = envs
+                .iter()
+                .map(|e| parse_env(e))
+                .collect::<Result<_, _>>()?;
+            // Read before anything starts: a bad file names itself and its field.
+            let twin_profile = match &twin_profile {
+                Some(path) => TwinProfile::load(path)?,
+                None => TwinProfile::default(),
+            };
+            let seals = LinkSeals {
+                command: seals.command()?.map(|key| Arc::new(Sealer::new(key))),
+                tracker: seals.tracker()?,
+            };
+            if envs.iter().any(|(env, _)| env.realm() == Realm::Real) {
+                if seals.command.is_none() {
+                    tracing::warn!("commands to real robots are not sealed (no --command-key): the router's access control is their only guard");
+                }
+                if seals.tracker.is_none() {
+                    tracing::warn!("tracker poses are believed unsealed (no --tracker-key): the router's access control is their only guard");
+                }
+            }
+            let store = Store::open(&db)?;
+            let session = common.server_config().open().await?;
+            let site = EnvOptions {
+                lease_idle: std::time::Duration::from_secs(lease_idle_s),
+                share_real_pose,
+                booking_rules: BookingRules {
+                    max_slot_ms: i64::from(max_slot_minutes) * 60_000,
+                    horizon_ms: i64::from(booking_horizon_days) * 86_400_000,
+                    ..BookingRules::default()
+                },
+                ..EnvOptions::default()
+            };
+            let limits = RequestLimits {
+                env_queue,
+                client_queue,
+                client_rate_per_s: client_rate,
+                client_burst,
+                max_request_bytes,
+            };
+            // Refused here, before anything starts, rather than per env.
+            site.check()?;
+            limits.check()?;
+            let options = |env: &EnvId| EnvOptions {
+                allow_anonymous: env.realm() == Realm::Sim,
+                ..site
+            };
+            // Keep whichever deployment runs alive until a stop signal.
+            let running = if embedded_twins {
+                let sims: Vec<SimEnv> = envs
+                    .iter()
+                    .map(|(env, task)| SimEnv {
+                        env: env.clone(),
+                        task: task.name.clone(),
+                        resolution: None,
+                        seed: 0,
+                        profile: twin_profile,
+                    })
+                    .collect();
+                Running::Embedded(
+                    Embedded::start_with(&session, &sims, store, site, limits, record.as_deref())
+                        .await?,
+                )
+            } else {
+                let mut controller = Controller::with_limits(session.clone(), store, limits)?;
+                controller.seal_with(seals);
+                if let Some(dir) = &record {
+                    controller.record_into(dir)?;
+                    tracing::info!(dir = %dir.display(), "recording every episode");
+                }
+                for (env, task) in envs {
+                    let opts = options(&env);
+                    controller.serve(env, task, opts).await?;
+                }
+                Running::Controller(controller)
+            };
+            tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
+            let signal = offworld_runtime::shutdown::signalled().await?;
+            // Robots told to stop, episodes in progress recorded; then the
+            // liveliness tokens go with the deployment.
+            let reason = format!("the controller stopped ({signal})");
+            match running {
+                Running::Embedded(embedded) => embedded.shutdown(&reason).await,
+                Running::Controller(controller) => controller.shutdown(&reason).await,
+            }
+        }
+        Command::Estop {
+            env,
+            site: _,
+            reason,
+            release,
+            wait_s,
+            ack_ms,
+            common,
+        } => {
+            let scope = env.map_or(EStopScope::Site, EStopScope::Env);
+            let wait = std::time::Duration::try_from_secs_f64(wait_s)
+                .context("--wait-s must be a non-negative number of seconds")?;
+            let ack_within = std::time::Duration::from_millis(ack_ms);
+            let session = common.client_config().open().await?;
+            let pressed = press_estop(&session, &scope, !release, &reason, wait, ack_within).await;
+            session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+            let verb = if release { "released" } else { "engaged" };
+            let report = match &pressed {
+                Ok(report) => report,
+                Err(PressError::Unacknowledged { report, .. }) => report,
+                Err(_) => return Ok(pressed.map(drop)?),
+            };
+            println!("e-stop {verb} on {}", scope.key());
+            for ack in &report.acknowledged {
+                println!(
+                    "  acknowledged by {} of {} in {} ms (e-stops now engaged: {})",
+                    ack.component,
+                    ack.env,
+                    ack.after.as_millis(),
+                    ack.state.summary()
+                );
+            }
+            for (env, component) in &report.silent {
+                println!("  NOT acknowledged by {component} of {env}");
+            }
+            pressed?;
+        }
+        Command::Users { db, command } => users(&db.resolve(db_before), command)?,
+        Command::Experiments {
+            db,
+            command: ExperimentsCommand::List,
+        } => {
+            let db = db.resolve(db_before);
+            let store = Store::open_existing(&db)?;
+            println!(
+                "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
+                "id", "user", "env", "experiment", "type", "mode", "episodes", "steps"
+            );
+            for e in store.experiments()? {
+                println!(
+                    "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
+                    e.id,
+                    e.user,
+                    e.env_id,
+                    e.name,
+                    e.learning_type,
+                    e.algorithm_mode,
+                    e.episodes,
+                    e.steps
+                );
+            }
+        }
+        Command::Leaderboard { env, db } => {
+            let store = Store::open_existing(&db.resolve(db_before))?;
+            println!("leaderboard of {env} (test-mode experiments)");
+            println!(
+                "{:<4} {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",
+                "rank", "experiment", "user", "type", "episodes", "success", "return"
+            );
+            for (i, e) in store.leaderboard(&env.to_string())?.iter().enumerate() {
+                println!(
+                    "{:<4} {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
+                    i + 1,
+                    e.experiment,
+                    e.user,
+                    e.learning_type,
+                    e.episodes,
+                    e.success_rate * 100.0,
+                    e.mean_return
+                );
+            }
+        }
+    }
+    Ok(())
+}
