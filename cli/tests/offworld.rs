@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::process::{Command, Output};
 
 use offworld_env_controller::Store;
+use offworld_test_support::ScratchDir;
 
 const SUBCOMMANDS: [&str; 12] = [
     "serve",
@@ -35,28 +36,9 @@ fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
-/// A database path in a directory removed at the end of the test.
-struct ScratchDb(PathBuf);
-
-impl ScratchDb {
-    fn new(test: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-cli-{test}-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
-    }
-
-    fn db(&self) -> PathBuf {
-        self.0.join("site.db")
-    }
-}
-
-impl Drop for ScratchDb {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
+/// `site.db` in a directory of its own.
+fn scratch_db(scratch: &ScratchDir) -> PathBuf {
+    scratch.join("site.db")
 }
 
 #[test]
@@ -100,8 +82,8 @@ fn every_program_is_a_subcommand_with_its_own_help() {
 
 #[test]
 fn site_records_are_kept_through_it() {
-    let scratch = ScratchDb::new("users");
-    let db = scratch.db();
+    let scratch = ScratchDir::new("cli-users");
+    let db = scratch_db(&scratch);
     let db_arg = db.to_str().expect("utf-8 path");
     let added = offworld(&["--db", db_arg, "users", "add", "alice"]);
     assert!(added.status.success(), "{}", text(&added.stderr));
@@ -129,8 +111,8 @@ fn site_records_are_kept_through_it() {
 
 #[test]
 fn failures_exit_non_zero_with_the_programs_message() {
-    let scratch = ScratchDb::new("fail");
-    let missing = scratch.0.join("typo.db");
+    let scratch = ScratchDir::new("cli-fail");
+    let missing = scratch.join("typo.db");
     let listed = offworld(&["--db", missing.to_str().expect("utf-8"), "users", "list"]);
     assert_eq!(listed.status.code(), Some(1));
     let message = text(&listed.stderr);
@@ -138,7 +120,7 @@ fn failures_exit_non_zero_with_the_programs_message() {
     assert!(message.contains("typo.db"), "{message}");
     assert!(!missing.exists(), "a mistyped --db created a database");
 
-    let nowhere = scratch.0.join("no-such-dir");
+    let nowhere = scratch.join("no-such-dir");
     let info = offworld(&["recorder", "info", nowhere.to_str().expect("utf-8")]);
     assert_eq!(info.status.code(), Some(1));
     let message = text(&info.stderr);

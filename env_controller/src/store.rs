@@ -1238,26 +1238,7 @@ impl Store {
 mod tests {
     use super::*;
 
-    /// A scratch directory removed on drop (no tempfile crate, see
-    /// `tests/gym.rs`).
-    struct ScratchDir(std::path::PathBuf);
-
-    impl ScratchDir {
-        fn new() -> Self {
-            let dir = std::env::temp_dir().join(format!(
-                "offworld-store-test-{}",
-                offworld_runtime::client::random_id()
-            ));
-            std::fs::create_dir_all(&dir).expect("scratch dir");
-            Self(dir)
-        }
-    }
-
-    impl Drop for ScratchDir {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
+    use offworld_test_support::ScratchDir;
 
     fn user_version(path: &Path) -> usize {
         Connection::open(path)
@@ -1275,7 +1256,7 @@ mod tests {
 
     #[test]
     fn a_database_from_before_schema_versions_is_migrated_with_its_records() {
-        let dir = ScratchDir::new();
+        let dir = ScratchDir::new("store-test");
         let path = dir.0.join("site.db");
         {
             // What every controller before schema versions made.
@@ -1323,7 +1304,7 @@ mod tests {
 
     #[test]
     fn a_database_from_a_newer_build_is_refused_and_left_untouched() {
-        let dir = ScratchDir::new();
+        let dir = ScratchDir::new("store-test");
         let path = dir.0.join("site.db");
         let store = Store::open(&path).expect("store");
         store.add_user("ada", false).expect("user");

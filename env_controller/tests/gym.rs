@@ -2,6 +2,7 @@
 //! embedded sim twin: full episodes, determinism, every bad input, leases,
 //! disconnects, maintenance, persistence across restarts, the leaderboard.
 
+use offworld_test_support::ScratchDir;
 use std::path::Path;
 use std::time::Duration;
 
@@ -13,31 +14,6 @@ use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::zenoh::qos::Priority;
 use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
-
-/// A scratch directory removed on drop (no tempfile crate: its dev-only
-/// features would split the dependency tree between tests and the wheel).
-struct ScratchDir(std::path::PathBuf);
-
-impl ScratchDir {
-    fn new() -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-gym-test-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
-    }
-
-    fn path(&self) -> &Path {
-        &self.0
-    }
-}
-
-impl Drop for ScratchDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 struct Deployment {
     _server: Session,
@@ -166,7 +142,7 @@ async fn seeded_run(env: &mut EnvClient, seed: u64) -> Vec<Vec<u8>> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn full_episode_and_seeded_determinism() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;
     let spec = client::spec(&session, &d.env, Duration::from_secs(5))
@@ -281,7 +257,7 @@ async fn full_episode_and_seeded_determinism() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_inputs_get_typed_errors_and_the_server_keeps_serving() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithContinuous", &users()).await;
     let session = client_session(&d).await;
     let code = |r: Result<EnvClient, WireError>| r.err().map(|e| e.code);
@@ -372,7 +348,7 @@ async fn bad_inputs_get_typed_errors_and_the_server_keeps_serving() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn leases_busy_disconnect_and_maintenance() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let alice_session = client_session(&d).await;
     let bob_session = client_session(&d).await;
@@ -634,7 +610,7 @@ async fn leases_busy_disconnect_and_maintenance() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn records_survive_a_restart_and_rank_on_the_leaderboard() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let db = dir.path().join("gym.db");
     let mut first_steps = 0;
     {
@@ -726,7 +702,7 @@ fn make(token: &str, start_unix_ms: i64, end_unix_ms: i64) -> BookingRequest {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bookings_reserve_slots_and_end_leases_with_them() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let db = dir.path().join("gym.db");
     let d = deploy(&db, "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;
@@ -870,7 +846,7 @@ async fn bookings_reserve_slots_and_end_leases_with_them() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_sim_env_under_an_estop_refuses_motion_and_shows_it() {
     use offworld_runtime::operator::{press_estop, EStopScope};
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;
     let mut gym = open(&session, &d.env, ALICE, "estopped")
@@ -926,7 +902,7 @@ async fn a_sim_env_under_an_estop_refuses_motion_and_shows_it() {
 /// while the store was held.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_bookings_are_refused_and_the_env_keeps_serving() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;
     let now = offworld_env_controller::store::now_ms();
@@ -1000,7 +976,7 @@ async fn hostile_bookings_are_refused_and_the_env_keeps_serving() {
 /// clashing; `open` works, across a restart too.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn invalid_booking_rows_on_disk_are_quarantined_and_open_works() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let db = dir.path().join("gym.db");
     {
         let store = Store::open(&db).expect("store");
@@ -1080,7 +1056,7 @@ fn show(token: &str, experiment_id: i64) -> ExperimentsRequest {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn experiments_are_shown_to_their_owner_and_operators_only() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;
 
@@ -1247,7 +1223,7 @@ async fn experiments_are_shown_to_their_owner_and_operators_only() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_long_experiment_is_answered_a_page_at_a_time() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("gym-test");
     let db = dir.path().join("gym.db");
     let episodes = u64::from(EXPERIMENT_EPISODES_PER_REPLY) * 2 + 37;
     let experiment_id = {

@@ -2,6 +2,7 @@
 //! with `record`, stepped by a real client; every file read back and
 //! compared with what the client was answered.
 
+use offworld_test_support::ScratchDir;
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -15,13 +16,8 @@ use offworld_runtime::msg::{
     Seed,
 };
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "offworld-recording-{name}-{}",
-        offworld_runtime::client::random_id()
-    ));
-    std::fs::create_dir_all(&dir).expect("scratch dir");
-    dir
+fn scratch(name: &str) -> ScratchDir {
+    ScratchDir::new(&format!("recording-{name}"))
 }
 
 /// An embedded MonolithDiscrete env rendering `resolution` (w, h),
@@ -254,14 +250,15 @@ async fn a_full_disk_stops_the_recording_and_never_the_episodes() {
     // A 256 KiB filesystem: full within the first episode's frames.
     let mounted = std::process::Command::new("mount")
         .args(["-t", "tmpfs", "-o", "size=256k", "tmpfs"])
-        .arg(&dir)
+        .arg(dir.path())
         .status()
         .expect("mount runs");
     assert!(
         mounted.success(),
         "mounting a tmpfs needs root (CI runs as root): {mounted}"
     );
-    let _tmpfs = Tmpfs(dir.clone());
+    // Unmounted before the scratch directory goes (dropped first).
+    let _tmpfs = Tmpfs(dir.to_path_buf());
     let connection = recording_sim((64, 48), &dir)
         .await
         .expect("the directory is writable at the start");

@@ -4,29 +4,11 @@
 //! stay), rotate (a new token works, the old one not), and a mistyped
 //! `--db` refused instead of silently creating an empty site.
 
-use std::path::{Path, PathBuf};
+use offworld_test_support::ScratchDir;
+use std::path::Path;
 use std::process::{Command, Output};
 
 use offworld_env_controller::Store;
-
-struct ScratchDir(PathBuf);
-
-impl ScratchDir {
-    fn new() -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-users-cli-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
-    }
-}
-
-impl Drop for ScratchDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 fn cli(db: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_env_controller"))
@@ -65,7 +47,7 @@ fn user_of(db: &Path, token: &str) -> Option<String> {
 
 #[test]
 fn users_are_added_listed_revoked_and_rotated_and_mistakes_are_named() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("users-cli");
     let db = dir.0.join("site.db");
 
     // A mistyped --db: refused, and no empty database appears.
@@ -167,7 +149,7 @@ fn users_are_added_listed_revoked_and_rotated_and_mistakes_are_named() {
 
 #[test]
 fn an_empty_site_says_how_to_add_a_user() {
-    let dir = ScratchDir::new();
+    let dir = ScratchDir::new("users-cli");
     let db = dir.0.join("site.db");
     Store::open(&db).expect("a new database");
     let out = cli(&db, &["users", "list"]);

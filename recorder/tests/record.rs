@@ -3,8 +3,9 @@
 //! TCP on loopback, while a real client steps two episodes: every step the
 //! client was answered is in the subscriber's files, with its observation.
 
+use offworld_test_support::ScratchDir;
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -24,13 +25,8 @@ use offworld_runtime::{EnvId, SessionConfig, Topic};
 
 const RECORDER: &str = env!("CARGO_BIN_EXE_recorder");
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "offworld-follow-{name}-{}",
-        offworld_runtime::client::random_id()
-    ));
-    std::fs::create_dir_all(&dir).expect("scratch dir");
-    dir
+fn scratch(name: &str) -> ScratchDir {
+    ScratchDir::new(&format!("follow-{name}"))
 }
 
 /// A `recorder` child, its stderr lines collected; killed when dropped.

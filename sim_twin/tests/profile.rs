@@ -2,6 +2,7 @@
 //! field changes what it says and nothing else; files load, fail and
 //! round-trip as documented.
 
+use offworld_test_support::ScratchDir;
 use std::path::{Path, PathBuf};
 
 use offworld_sim_twin::camera::{CameraPose, ColumnRenderer, ExactRenderer, RgbdFrame};
@@ -444,12 +445,9 @@ fn profile_depth_noise_is_the_randomization_model() {
     assert!(err.to_string().contains("depth noise"), "{err}");
 }
 
-/// A fresh directory under the system's temporary directory.
-fn scratch_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-profile-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("scratch dir");
-    dir
+/// A fresh directory, removed at the end of the test.
+fn scratch_dir(name: &str) -> ScratchDir {
+    ScratchDir::new(&format!("twin-profile-{name}"))
 }
 
 fn load_error(dir: &Path, name: &str, text: &str) -> (PathBuf, SimError) {

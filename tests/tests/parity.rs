@@ -4,7 +4,7 @@
 //! random actions; `parity identify` recovers the parameters, and the
 //! fitted twin replays the episodes far closer than the nominal one.
 
-use std::path::PathBuf;
+use offworld_test_support::ScratchDir as Scratch;
 use std::time::Duration;
 
 use offworld_parity::identify::{identify, IdentifyOptions};
@@ -44,14 +44,6 @@ fn hardware() -> TwinProfile {
             noise: 0.01,
             dropout: 0.03,
         },
-    }
-}
-
-struct Scratch(PathBuf);
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
     }
 }
 
@@ -161,12 +153,7 @@ async fn record_on_emulated_hardware(
 }
 
 fn scratch(name: &str) -> Scratch {
-    let dir = std::env::temp_dir().join(format!(
-        "offworld-parity-{name}-{}",
-        offworld_runtime::client::random_id()
-    ));
-    std::fs::create_dir_all(&dir).expect("scratch");
-    Scratch(dir)
+    Scratch::new(&format!("parity-{name}"))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

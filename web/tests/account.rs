@@ -10,9 +10,9 @@
 //! twin, a release only with its confirmation, maintenance with its
 //! expected return, a revoked lease whose holder is told why).
 
+use offworld_test_support::ScratchDir;
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -43,25 +43,6 @@ const OPS: &str = "ops-web-token-000003";
 const SIM: &str = "sim/acct-a";
 const REAL: &str = "real/acct-bench";
 
-struct ScratchDir(PathBuf);
-
-impl ScratchDir {
-    fn new() -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-web-test-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
-    }
-}
-
-impl Drop for ScratchDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 /// A deployment with users, a sim env and a real env, and the service.
 struct Lab {
     web: LabWeb,
@@ -83,7 +64,7 @@ impl Lab {
             .expect("alice");
         store.add_user_with_token("bob", BOB, false).expect("bob");
         store.add_user_with_token("ops", OPS, true).expect("ops");
-        let records = ScratchDir::new();
+        let records = ScratchDir::new("web-test");
         let sim = SimEnv {
             env: EnvId::sim("acct-a").expect("env id"),
             task: "MonolithDiscrete".into(),

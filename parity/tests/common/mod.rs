@@ -1,7 +1,7 @@
 //! What the parity tests share: scratch directories and episodes recorded
 //! by an embedded twin with a given profile.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use offworld_env_controller::deployment::{connect, Target};
 use offworld_parity::recorded::RecordedEpisode;
@@ -10,24 +10,7 @@ use offworld_runtime::msg::{Action, Channels, DepthFormat, ObsOptions, OpenReque
 use offworld_sim_twin::TwinProfile;
 
 /// A scratch directory, removed on drop.
-pub struct Scratch(pub PathBuf);
-
-impl Scratch {
-    pub fn new(name: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!(
-            "offworld-parity-{name}-{}",
-            offworld_runtime::client::random_id()
-        ));
-        std::fs::create_dir_all(&dir).expect("scratch dir");
-        Self(dir)
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+pub use offworld_test_support::ScratchDir as Scratch;
 
 /// What to record.
 pub struct Recording<'a> {
