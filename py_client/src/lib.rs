@@ -449,10 +449,11 @@ impl NativeEnvs {
 }
 
 /// The session config of a remote deployment: the `OFFWORLD_ZENOH_*`
-/// environment, with `connect` replacing its endpoints.
+/// environment (a client unless it names a mode), with `connect` replacing
+/// its endpoints.
 fn remote_session(connect: Option<String>) -> PyResult<SessionConfig> {
     let mut session =
-        SessionConfig::from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
+        SessionConfig::connecting_from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
     if let Some(endpoint) = connect {
         session.connect = vec![endpoint];
     }

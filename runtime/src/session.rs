@@ -133,6 +133,18 @@ impl SessionConfig {
         })
     }
 
+    /// [`SessionConfig::from_env`] for a client of a remote deployment
+    /// (the Python client's `connect=`): a client of what it connects to
+    /// unless [`ENV_MODE`] or a config file says otherwise, as the
+    /// programs' [`CommonArgs::client_config`].
+    pub fn connecting_from_env() -> Result<Self, ContractError> {
+        let mut config = Self::from_env()?;
+        if std::env::var_os(ENV_MODE).is_none() && config.config_file.is_none() {
+            config.mode = Mode::Client;
+        }
+        Ok(config)
+    }
+
     /// Builds the Zenoh config.
     pub fn to_zenoh(&self) -> Result<zenoh::Config, ContractError> {
         let mut config = match &self.config_file {
@@ -261,9 +273,13 @@ pub struct CommonArgs {
     #[arg(short = 'c', long = "zenoh-config", env = ENV_CONFIG, value_name = "JSON5")]
     pub zenoh_config: Option<PathBuf>,
     /// Session role (the same variable the Python client reads, so one
-    /// environment connects a client and its servers alike).
-    #[arg(short, long, value_enum, default_value_t = Mode::Peer, env = ENV_MODE)]
-    pub mode: Mode,
+    /// environment connects a client and its servers alike). Default: a
+    /// program that connects is a client of what it connects to (which
+    /// then routes everything to it: a monitor sees the twins behind a
+    /// controller), a serving program a peer; with `--zenoh-config`, the
+    /// file's.
+    #[arg(short, long, value_enum, env = ENV_MODE)]
+    pub mode: Option<Mode>,
     /// Endpoints to connect to (repeatable), e.g. tcp/127.0.0.1:7447.
     #[arg(short = 'e', long, value_delimiter = ',', env = ENV_CONNECT)]
     pub connect: Vec<String>,
@@ -294,28 +310,34 @@ impl CommonArgs {
         if self.is_unset() {
             self.listen.push(DEFAULT_ENDPOINT.into());
         }
-        self.into()
+        let mode = self.mode.unwrap_or(Mode::Peer);
+        self.into_config(mode)
     }
 
     /// The session of a connecting process: connects to [`DEFAULT_ENDPOINT`]
-    /// unless endpoints or a config file are given.
+    /// unless endpoints or a config file are given; a client unless a mode
+    /// (or a config file) says otherwise.
     pub fn client_config(mut self) -> SessionConfig {
         if self.is_unset() {
             self.connect.push(DEFAULT_ENDPOINT.into());
         }
-        self.into()
+        let mode = self.mode.unwrap_or(if self.zenoh_config.is_some() {
+            // Keeps the file's own mode (see `to_zenoh`).
+            Mode::Peer
+        } else {
+            Mode::Client
+        });
+        self.into_config(mode)
     }
-}
 
-impl From<CommonArgs> for SessionConfig {
-    fn from(args: CommonArgs) -> Self {
-        Self {
-            config_file: args.zenoh_config,
-            mode: args.mode,
-            connect: args.connect,
-            listen: args.listen,
-            multicast_scouting: args.multicast_scouting,
-            overrides: args.cfg,
+    fn into_config(self, mode: Mode) -> SessionConfig {
+        SessionConfig {
+            config_file: self.zenoh_config,
+            mode,
+            connect: self.connect,
+            listen: self.listen,
+            multicast_scouting: self.multicast_scouting,
+            overrides: self.cfg,
         }
     }
 }
@@ -431,6 +453,30 @@ mod tests {
             .get_json("connect/endpoints")
             .expect("connect")
             .contains("tcp/127.0.0.1:7447"));
+    }
+
+    /// What connects is a client of it (routed everything, e.g. the twins
+    /// behind a peer controller), what serves a peer; a mode given, or a
+    /// config file's, is kept.
+    #[test]
+    fn connecting_programs_are_clients_and_serving_ones_peers_by_default() {
+        let connecting = CommonArgs::default().client_config();
+        assert_eq!(connecting.mode, Mode::Client);
+        assert_eq!(connecting.connect, [DEFAULT_ENDPOINT]);
+        let serving = CommonArgs::default().server_config();
+        assert_eq!(serving.mode, Mode::Peer);
+        assert_eq!(serving.listen, [DEFAULT_ENDPOINT]);
+        let explicit = CommonArgs {
+            mode: Some(Mode::Peer),
+            ..CommonArgs::default()
+        };
+        assert_eq!(explicit.client_config().mode, Mode::Peer);
+        let role_file = CommonArgs {
+            zenoh_config: Some("deploy/roles/monitor.json5".into()),
+            ..CommonArgs::default()
+        };
+        // Peer here means "the file's own mode" (`to_zenoh` keeps it).
+        assert_eq!(role_file.client_config().mode, Mode::Peer);
     }
 
     #[test]
