@@ -42,6 +42,9 @@ enum Command {
     Twin(offworld_sim_twin::cli::Args),
     /// Serve a real enclosure's robot (`robot_agent`).
     Robot(offworld_robot_agent::cli::Args),
+    /// Zero the robot's base when the robot agent dies, freezes or goes
+    /// silent: its independent safety process (`base_guard`).
+    Guard(offworld_robot_agent::guard_cli::Args),
     /// Localise the robot with the enclosure's Vive tracker (`tracker_agent`).
     Tracker(offworld_tracker_agent::cli::Args),
     /// Watch envs live in rerun, or replay a recorded episode (`monitor`).
@@ -62,6 +65,7 @@ fn main() -> ExitCode {
         Command::Controller(command) => offworld_env_controller::cli::run_command(cli.db, command),
         Command::Twin(args) => offworld_sim_twin::cli::run(args),
         Command::Robot(args) => offworld_robot_agent::cli::run(args),
+        Command::Guard(args) => offworld_robot_agent::guard_cli::run(args),
         Command::Tracker(args) => offworld_tracker_agent::cli::run(args),
         Command::Monitor(args) => offworld_monitor::cli::run(args),
         Command::Recorder(args) => offworld_recorder::cli::run(args),
@@ -111,6 +115,64 @@ mod tests {
             }
         }
         assert!(checked >= 20, "only {checked} documented commands found");
+    }
+
+    /// Every unit of `deploy/systemd/` starts an `offworld` command that
+    /// parses, with the example environment file's values (`${VAR}` one
+    /// word, `$VAR` split into words, as systemd does).
+    #[test]
+    fn the_systemd_units_start_commands_that_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .expect("workspace")
+            .join("deploy/systemd");
+        let env_file = std::fs::read_to_string(dir.join("offworld.env")).expect("offworld.env");
+        let vars: Vec<(String, String)> = env_file
+            .lines()
+            .filter(|l| !l.trim_start().starts_with('#'))
+            .filter_map(|l| l.split_once('='))
+            .map(|(k, v)| (k.trim().to_owned(), v.trim().to_owned()))
+            .chain([("STATE_DIRECTORY".into(), "/var/lib/offworld".into())])
+            .collect();
+        let mut checked = 0;
+        for entry in std::fs::read_dir(&dir).expect("deploy/systemd") {
+            let path = entry.expect("entry").path();
+            if path.extension().is_none_or(|e| e != "service") {
+                continue;
+            }
+            let unit = std::fs::read_to_string(&path).expect("readable");
+            let Some(exec) = unit
+                .lines()
+                .find_map(|l| l.strip_prefix("ExecStart=/usr/local/bin/offworld "))
+            else {
+                continue;
+            };
+            let mut words = vec!["offworld".to_owned()];
+            for word in exec.replace("%i", "0").split_whitespace() {
+                let mut word = word.to_owned();
+                for (name, value) in &vars {
+                    word = word.replace(&format!("${{{name}}}"), value);
+                }
+                match vars.iter().find(|(name, _)| word == format!("${name}")) {
+                    Some((_, value)) => words.extend(shell_words(value)),
+                    None => words.push(word),
+                }
+            }
+            assert!(
+                !words.iter().any(|w| w.contains('$')),
+                "{}: an unknown variable in {words:?}",
+                path.display()
+            );
+            if let Err(e) = Cli::try_parse_from(&words) {
+                panic!(
+                    "{}: `{}` does not parse:\n{e}",
+                    path.display(),
+                    words.join(" ")
+                );
+            }
+            checked += 1;
+        }
+        assert_eq!(checked, 7, "units starting `offworld`");
     }
 
     /// The `offworld …` commands of the fenced code blocks, continuation

@@ -8,7 +8,7 @@ use std::process::{Command, Output};
 use offworld_env_controller::Store;
 use offworld_test_support::ScratchDir;
 
-const SUBCOMMANDS: [&str; 12] = [
+const SUBCOMMANDS: [&str; 13] = [
     "serve",
     "users",
     "experiments",
@@ -16,6 +16,7 @@ const SUBCOMMANDS: [&str; 12] = [
     "estop",
     "twin",
     "robot",
+    "guard",
     "tracker",
     "monitor",
     "recorder",
@@ -134,5 +135,47 @@ fn failures_exit_non_zero_with_the_programs_message() {
         text(&typo.stderr).contains("monitor"),
         "{}",
         text(&typo.stderr)
+    );
+}
+
+/// The units of `deploy/systemd/` are valid for systemd itself
+/// (`systemd-analyze verify`: directives, values, the programs they start),
+/// with `/usr/local/bin/offworld` as the binary under test.
+#[test]
+fn the_systemd_units_verify() {
+    let scratch = ScratchDir::new("cli-units");
+    let units = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/systemd");
+    // The router unit starts zenohd (installed by .ci/setup); any
+    // executable stands in for it where it is not on PATH.
+    let zenohd = Command::new("sh")
+        .args(["-c", "command -v zenohd || command -v true"])
+        .output()
+        .expect("sh");
+    let zenohd = text(&zenohd.stdout).trim().to_owned();
+    let mut copied = Vec::new();
+    for entry in std::fs::read_dir(&units).expect("deploy/systemd") {
+        let path = entry.expect("entry").path();
+        if path.extension().is_none_or(|e| e != "service") {
+            continue;
+        }
+        let unit = std::fs::read_to_string(&path)
+            .expect("readable")
+            .replace("/usr/local/bin/offworld", env!("CARGO_BIN_EXE_offworld"))
+            .replace("/usr/local/bin/zenohd", &zenohd);
+        let copy = scratch.join(path.file_name().expect("name"));
+        std::fs::write(&copy, unit).expect("writable");
+        copied.push(copy);
+    }
+    assert_eq!(copied.len(), 8, "{copied:?}");
+    let verified = Command::new("systemd-analyze")
+        .arg("verify")
+        .args(&copied)
+        .output()
+        .expect("systemd-analyze runs (Debian's systemd package, installed by .ci/setup)");
+    assert!(
+        verified.status.success() && verified.stderr.is_empty(),
+        "{}{}",
+        text(&verified.stdout),
+        text(&verified.stderr)
     );
 }

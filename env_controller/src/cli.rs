@@ -207,7 +207,7 @@ fn users(db: &std::path::Path, command: UsersCommand) -> anyhow::Result<()> {
         UsersCommand::List => {
             let users = Store::open_existing(db)?.users()?;
             if users.is_empty() {
-                println!("no users yet: env_controller users add NAME");
+                println!("no users yet: `users add NAME` registers one");
                 return Ok(());
             }
             println!(
@@ -389,7 +389,12 @@ async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Res
             let wait = std::time::Duration::try_from_secs_f64(wait_s)
                 .context("--wait-s must be a non-negative number of seconds")?;
             let ack_within = std::time::Duration::from_millis(ack_ms);
-            let session = common.client_config().open().await?;
+            // A press nobody can hear is an error within seconds, naming the
+            // endpoint, never a wait.
+            let session = common
+                .client_config()
+                .open_reaching(offworld_runtime::session::REACH_WITHIN)
+                .await?;
             let pressed = press_estop(&session, &scope, !release, &reason, wait, ack_within).await;
             session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
             let verb = if release { "released" } else { "engaged" };

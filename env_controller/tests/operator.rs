@@ -278,3 +278,61 @@ async fn the_cli_prints_who_acknowledged_and_fails_when_someone_did_not() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+/// A press repeated by its operator (while another obeyer was silent) is
+/// acknowledged again but never re-applied: a late copy of a release does
+/// not undo an engage pressed in between by someone else.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_repeated_release_never_undoes_a_later_engage() {
+    use offworld_runtime::msg::{EStop, EStopAck};
+    use offworld_runtime::{codec, wire};
+
+    let (robot_side, operator) = loopback_pair().await.expect("sessions");
+    let _twin = twin(&robot_side, "estop-repeat");
+    let env = EnvId::sim("estop-repeat").expect("env");
+    until_visible(&operator, &env.alive_key(Component::SimTwin)).await;
+    let (tx, mut acks) = tokio::sync::mpsc::unbounded_channel();
+    let _acks = operator
+        .declare_subscriber(env.key(Topic::EStopAck))
+        .callback(move |s| {
+            if let Ok(ack) = codec::decode_payload::<EStopAck>(s.payload()) {
+                let _ = tx.send(ack);
+            }
+        })
+        .await
+        .expect("ack subscriber");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let press = |engaged: bool, press_id: u64| {
+        let stop = EStop {
+            engaged,
+            reason: format!("press {press_id}"),
+            press_id,
+        };
+        let operator = operator.clone();
+        let key = env.key(Topic::EStop);
+        async move {
+            wire::put_control(&operator, &key, &stop)
+                .await
+                .expect("published");
+        }
+    };
+    let mut ack_of = async |press_id: u64| loop {
+        let ack = tokio::time::timeout(ACK, acks.recv())
+            .await
+            .expect("acknowledged in time")
+            .expect("subscriber open");
+        if ack.press_id == press_id {
+            return ack;
+        }
+    };
+    // Alice releases (press 11), Bob engages (press 12), then a copy of
+    // Alice's release arrives late.
+    press(false, 11).await;
+    assert_eq!(ack_of(11).await.state.summary(), "none");
+    press(true, 12).await;
+    assert_eq!(ack_of(12).await.state.summary(), "env");
+    press(false, 11).await;
+    let late = ack_of(11).await;
+    assert_eq!(late.state.summary(), "env", "Bob's engage stands: {late:?}");
+    assert_eq!(late.state.env.reason, "press 12");
+}

@@ -156,6 +156,6 @@ fn an_empty_site_says_how_to_add_a_user() {
     assert!(out.status.success(), "{}", stderr(&out));
     assert_eq!(
         stdout(&out),
-        "no users yet: env_controller users add NAME\n"
+        "no users yet: `users add NAME` registers one\n"
     );
 }

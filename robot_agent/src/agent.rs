@@ -10,7 +10,7 @@
 use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
-use offworld_runtime::estop::{self, Latch};
+use offworld_runtime::estop::{self, Latch, RecentPresses};
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault,
@@ -157,6 +157,7 @@ pub async fn spawn<H: RobotHardware>(
         config,
         estops,
         estop_tx,
+        presses: RecentPresses::default(),
         tracking: true,
         activity: Activity::Idle,
         last_motion: None,
@@ -570,6 +571,8 @@ struct Agent<H: RobotHardware> {
     estops: EStopState,
     /// What the `estop_state` queryable answers.
     estop_tx: watch::Sender<EStopState>,
+    /// Presses applied lately: a repeated copy is acknowledged, not applied.
+    presses: RecentPresses,
     /// Where the latches are remembered across restarts.
     latch: Option<EStopLatch>,
     tracking: bool,
@@ -649,20 +652,22 @@ impl<H: RobotHardware> Agent<H> {
     /// Applies an e-stop to its latch: stops the robot first, then
     /// remembers the latches on disk, then acknowledges.
     async fn estop(&mut self, latch: Latch, stop: EStop) {
-        self.estops.apply(latch, &stop, Time::now());
-        if stop.engaged {
-            tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, "E-STOP engaged");
-            self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
-                .await;
-        } else {
-            tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, still = self.estops.summary(), "e-stop released");
-        }
-        if let Some(file) = &self.latch {
-            if let Err(e) = file.store(&self.estops) {
-                tracing::error!(path = %file.path().display(), "cannot write the e-stop latch: {e}");
+        if self.presses.first_time(stop.press_id) {
+            self.estops.apply(latch, &stop, Time::now());
+            if stop.engaged {
+                tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, "E-STOP engaged");
+                self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
+                    .await;
+            } else {
+                tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, still = self.estops.summary(), "e-stop released");
             }
+            if let Some(file) = &self.latch {
+                if let Err(e) = file.store(&self.estops) {
+                    tracing::error!(path = %file.path().display(), "cannot write the e-stop latch: {e}");
+                }
+            }
+            self.estop_tx.send_replace(self.estops.clone());
         }
-        self.estop_tx.send_replace(self.estops.clone());
         let ack = EStopAck {
             press_id: stop.press_id,
             component: Component::RobotAgent.as_str().to_owned(),

@@ -78,7 +78,7 @@ async fn main_async(args: Args) -> anyhow::Result<()> {
         tracing::info!(path = %path.display(), "e-stop latch");
     }
     config.validate()?;
-    let session = args.common.client_config().open().await?;
+    let session = args.common.robot_side_config().open().await?;
     let robot = Ros2Robot::connect(&session, &config.graph()?, &config.topics).await?;
     let agent = crate::spawn(&session, args.env.clone(), config, robot).await?;
     tracing::info!(env = %args.env, "robot agent ready; Ctrl-C, SIGTERM or SIGHUP to stop");

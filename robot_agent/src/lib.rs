@@ -31,6 +31,7 @@ pub mod cli;
 pub mod config;
 mod error;
 pub mod guard;
+pub mod guard_cli;
 pub mod hardware;
 pub mod latch;
 pub mod limiter;

@@ -107,6 +107,34 @@ impl EStopState {
     }
 }
 
+/// The presses an obeyer applied lately. An operator repeats a press
+/// while someone is still silent (`operator::press_estop`): every copy is
+/// acknowledged, only the first applied, so a repeated release cannot undo
+/// an engage pressed in between (nor a repeated engage a later release).
+#[derive(Debug, Default)]
+pub struct RecentPresses(std::collections::VecDeque<u64>);
+
+impl RecentPresses {
+    /// How many press ids are remembered: far more than can be in flight.
+    const KEPT: usize = 64;
+
+    /// Whether the press `press_id` is new here (remembering it). Id 0 (a
+    /// publication that names no press) is always new.
+    pub fn first_time(&mut self, press_id: u64) -> bool {
+        if press_id == 0 {
+            return true;
+        }
+        if self.0.contains(&press_id) {
+            return false;
+        }
+        if self.0.len() == Self::KEPT {
+            self.0.pop_front();
+        }
+        self.0.push_back(press_id);
+        true
+    }
+}
+
 /// An e-stop publication as every obeying component reads it: one that
 /// does not decode engages (safety first), naming why.
 pub fn decode(payload: &ZBytes) -> EStop {
@@ -243,6 +271,26 @@ fn fold_reply(state: &mut EStopState, env: &EnvId, reply: &Reply) {
 
 #[cfg(test)]
 mod tests {
+    /// A press is applied once however often it arrives; id 0 always; the
+    /// oldest ids are forgotten past the bound.
+    #[test]
+    fn a_repeated_press_is_applied_once() {
+        let mut recent = RecentPresses::default();
+        assert!(recent.first_time(7));
+        assert!(!recent.first_time(7));
+        assert!(recent.first_time(8));
+        assert!(
+            !recent.first_time(7),
+            "still remembered after another press"
+        );
+        assert!(recent.first_time(0));
+        assert!(recent.first_time(0));
+        for id in 100..100 + RecentPresses::KEPT as u64 {
+            assert!(recent.first_time(id));
+        }
+        assert!(recent.first_time(7), "forgotten past the bound");
+    }
+
     use super::*;
 
     fn at(sec: i32) -> Time {

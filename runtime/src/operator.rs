@@ -3,7 +3,7 @@
 //! obeyed.
 //!
 //! A press is published (never dropped, at control priority, again while
-//! someone is silent: pressing a latch twice is harmless); every
+//! someone is silent: an obeyer applies each press once); every
 //! robot agent and twin that receives it stops first, then acknowledges on
 //! its env's `estop_ack` with the press's id and the latches now in force.
 //! The operator waits for an acknowledgement from every robot agent and
@@ -197,10 +197,12 @@ pub async fn press_estop(
     // The same press is published again while someone is still silent: a
     // put or an acknowledgement can be lost while the sessions learn each
     // other's subscriptions through the router (the acknowledgement's
-    // subscriber above is moments old). Pressing a latch twice to the same
-    // state is harmless; each obeyer counts once.
+    // subscriber above is moments old). An obeyer applies a press once and
+    // acknowledges every copy ([`crate::estop::RecentPresses`]), so a
+    // repeated release never undoes an engage pressed in between; each
+    // obeyer counts once here.
     let mut republish_in = Duration::from_millis(250);
-    while !waiting.is_empty() && tokio::time::Instant::now() < ack_deadline {
+    loop {
         publisher
             .put(bytes.clone())
             .await
@@ -227,6 +229,10 @@ pub async fn press_estop(
                     state: ack.state,
                 });
             }
+        }
+        // Published at least once, whatever the deadline.
+        if waiting.is_empty() || tokio::time::Instant::now() >= ack_deadline {
+            break;
         }
     }
     report.silent = waiting.into_iter().collect();

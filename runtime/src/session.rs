@@ -22,7 +22,7 @@ pub const ENV_CFG: &str = "OFFWORLD_ZENOH_CFG";
 /// Zenoh session role.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum Mode {
-    /// Talks to other peers directly (default).
+    /// Talks to other peers directly.
     #[default]
     Peer,
     /// Talks only through a router.
@@ -191,6 +191,14 @@ impl SessionConfig {
                 PATIENT_DROP_US.to_string(),
             )?;
         }
+        if self.config_file.is_none() && self.mode == Mode::Client {
+            // A client waits for what it connects to, as a peer does (Zenoh's
+            // client default: one attempt, then fail), so programs may
+            // start in any order; one-shot clients bound the wait
+            // (`open_reaching`).
+            set(&mut config, "connect/timeout_ms", "-1".to_owned())?;
+            set(&mut config, "connect/exit_on_failure", "false".to_owned())?;
+        }
         for item in &self.overrides {
             let (key, value) = item.split_once(':').ok_or_else(|| {
                 ContractError::Config(format!(
@@ -204,55 +212,95 @@ impl SessionConfig {
 
     /// Opens the session, and says where it listens and connects (a
     /// person starting a program learns which address to give the others)
-    /// and whether anyone answered at the endpoints it connects to.
+    /// and whether anyone answered at the endpoints it connects to. A
+    /// client waits here until one of its endpoints answers.
     pub async fn open(&self) -> Result<zenoh::Session, ContractError> {
-        let config = self.to_zenoh()?;
+        self.open_with(self.to_zenoh()?, None).await
+    }
+
+    async fn open_with(
+        &self,
+        config: zenoh::Config,
+        within: Option<Duration>,
+    ) -> Result<zenoh::Session, ContractError> {
         let listen = config.get_json("listen/endpoints").unwrap_or_default();
         let connect = config.get_json("connect/endpoints").unwrap_or_default();
+        let client = is_client(&config);
+        if client {
+            let waiting = match within {
+                Some(within) => format!("waiting up to {} ms", within.as_millis()),
+                None => "waiting until an endpoint answers".to_owned(),
+            };
+            tracing::info!(%connect, "connecting as a client ({waiting})");
+        }
         let session = zenoh::open(config).await.map_err(ContractError::from)?;
         tracing::info!(mode = self.mode.as_str(), %listen, %connect, "zenoh session open");
-        if !self.connect.is_empty() {
-            let info = session.info();
-            if info.routers_zid().await.next().is_none() && info.peers_zid().await.next().is_none()
-            {
-                tracing::warn!(
-                    "nobody answers at {} yet: still trying (is the address right, and is \
-                     the router or server there running?)",
-                    self.connect.join(", ")
-                );
-            }
+        if !client && !self.connect.is_empty() && !answered(&session).await {
+            tracing::warn!(
+                "nobody answers at {} yet: still trying (is the address right, and is \
+                 the router or server there running?)",
+                self.connect.join(", ")
+            );
         }
         Ok(session)
     }
 
     /// [`SessionConfig::open`] for a one-shot client (a listing, a booking,
-    /// opening an env): when it names endpoints to connect to, one of them
-    /// must answer (a router or a peer connected) within `within`, else
-    /// [`ContractError::Unreachable`] names them. A peer session otherwise
-    /// opens fine with nobody there, and an unreachable deployment would
-    /// look like an empty one.
+    /// opening an env, an e-stop): when it names endpoints to connect to,
+    /// one of them must answer (a router or a peer connected) within
+    /// `within`, else [`ContractError::Unreachable`] names them. A peer
+    /// session otherwise opens fine with nobody there, and an unreachable
+    /// deployment would look like an empty one; a client would wait.
     pub async fn open_reaching(&self, within: Duration) -> Result<zenoh::Session, ContractError> {
-        let session = self.open().await?;
+        let unreachable = || ContractError::Unreachable {
+            endpoints: self.connect.join(", "),
+            waited_ms: u64::try_from(within.as_millis()).unwrap_or(u64::MAX),
+        };
+        let mut config = self.to_zenoh()?;
+        if is_client(&config) {
+            let bounded = |config: &mut zenoh::Config, key: &str, value: String| {
+                config
+                    .insert_json5(key, &value)
+                    .map_err(|e| ContractError::Config(format!("{key} = {value}: {e}")))
+            };
+            bounded(
+                &mut config,
+                "connect/timeout_ms",
+                within.as_millis().to_string(),
+            )?;
+            bounded(&mut config, "connect/exit_on_failure", "true".to_owned())?;
+            return match self.open_with(config, Some(within)).await {
+                Err(ContractError::Zenoh(_)) if !self.connect.is_empty() => Err(unreachable()),
+                other => other,
+            };
+        }
+        let session = self.open_with(config, None).await?;
         if self.connect.is_empty() {
             return Ok(session);
         }
         let deadline = tokio::time::Instant::now() + within;
         loop {
-            let info = session.info();
-            if info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some()
-            {
+            if answered(&session).await {
                 return Ok(session);
             }
             if tokio::time::Instant::now() >= deadline {
                 let _ = session.close().await;
-                return Err(ContractError::Unreachable {
-                    endpoints: self.connect.join(", "),
-                    waited_ms: u64::try_from(within.as_millis()).unwrap_or(u64::MAX),
-                });
+                return Err(unreachable());
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     }
+}
+
+/// Whether `config` opens a client session (its own mode, or a file's).
+fn is_client(config: &zenoh::Config) -> bool {
+    config.get_json("mode").is_ok_and(|m| m == "\"client\"")
+}
+
+/// Whether a router or a peer is connected to `session`.
+async fn answered(session: &zenoh::Session) -> bool {
+    let info = session.info();
+    info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some()
 }
 
 /// How long a one-shot client waits for one of its endpoints to answer
@@ -276,8 +324,8 @@ pub struct CommonArgs {
     /// environment connects a client and its servers alike). Default: a
     /// program that connects is a client of what it connects to (which
     /// then routes everything to it: a monitor sees the twins behind a
-    /// controller), a serving program a peer; with `--zenoh-config`, the
-    /// file's.
+    /// controller) and waits for it; a serving program, the robot agent
+    /// and the base guard are peers; with `--zenoh-config`, the file's.
     #[arg(short, long, value_enum, env = ENV_MODE)]
     pub mode: Option<Mode>,
     /// Endpoints to connect to (repeatable), e.g. tcp/127.0.0.1:7447.
@@ -317,7 +365,19 @@ impl CommonArgs {
     /// The session of a connecting process: connects to [`DEFAULT_ENDPOINT`]
     /// unless endpoints or a config file are given; a client unless a mode
     /// (or a config file) says otherwise.
-    pub fn client_config(mut self) -> SessionConfig {
+    pub fn client_config(self) -> SessionConfig {
+        self.connecting(Mode::Client)
+    }
+
+    /// The session of a process on the robot's own Zenoh network (the
+    /// robot agent, the base guard): connects as [`Self::client_config`],
+    /// but as a peer unless told otherwise, so that its direct links to
+    /// the base driver outlive the robot's router.
+    pub fn robot_side_config(self) -> SessionConfig {
+        self.connecting(Mode::Peer)
+    }
+
+    fn connecting(mut self, default: Mode) -> SessionConfig {
         if self.is_unset() {
             self.connect.push(DEFAULT_ENDPOINT.into());
         }
@@ -325,7 +385,7 @@ impl CommonArgs {
             // Keeps the file's own mode (see `to_zenoh`).
             Mode::Peer
         } else {
-            Mode::Client
+            default
         });
         self.into_config(mode)
     }
@@ -367,8 +427,21 @@ pub fn init_logging() {
 pub fn run_program<R: std::process::Termination>(
     body: impl std::future::Future<Output = R>,
 ) -> std::process::ExitCode {
+    run_program_on(None, body)
+}
+
+/// [`run_program`] on `workers` runtime threads (default: one per core),
+/// for a program that must stay small beside others (the base guard).
+pub fn run_program_on<R: std::process::Termination>(
+    workers: Option<usize>,
+    body: impl std::future::Future<Output = R>,
+) -> std::process::ExitCode {
     init_logging();
-    match tokio::runtime::Runtime::new() {
+    let mut builder = tokio::runtime::Builder::new_multi_thread();
+    if let Some(workers) = workers {
+        builder.worker_threads(workers);
+    }
+    match builder.enable_all().build() {
         Ok(runtime) => runtime.block_on(body).report(),
         Err(e) => {
             eprintln!("Error: cannot start the async runtime: {e}");
@@ -471,6 +544,7 @@ mod tests {
             ..CommonArgs::default()
         };
         assert_eq!(explicit.client_config().mode, Mode::Peer);
+        assert_eq!(CommonArgs::default().robot_side_config().mode, Mode::Peer);
         let role_file = CommonArgs {
             zenoh_config: Some("deploy/roles/monitor.json5".into()),
             ..CommonArgs::default()

@@ -439,6 +439,8 @@ struct Worker {
     clock: Clock,
     /// The site and env e-stop latches in force.
     estops: EStopState,
+    /// Presses applied lately (`estop::RecentPresses`).
+    presses: estop::RecentPresses,
     /// What the `estop_state` queryable answers.
     shared_estops: tokio::sync::watch::Sender<EStopState>,
     publishers: Publishers,
@@ -496,6 +498,7 @@ impl Worker {
             twin,
             clock,
             estops: EStopState::default(),
+            presses: estop::RecentPresses::default(),
             shared_estops: tokio::sync::watch::channel(EStopState::default()).0,
             publishers,
             frames: FramePayloads::new(),
@@ -688,9 +691,12 @@ impl Worker {
     /// Applies an e-stop to its latch and acknowledges it.
     fn estop(&mut self, latch: Latch, sample: &Sample) {
         let stop = estop::decode(sample.payload());
-        self.estops.apply(latch, &stop, Time::now());
-        tracing::warn!(env = %self.env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, now = self.estops.summary(), "e-stop");
-        self.shared_estops.send_replace(self.estops.clone());
+        // A repeated copy of a press is acknowledged, not applied again.
+        if self.presses.first_time(stop.press_id) {
+            self.estops.apply(latch, &stop, Time::now());
+            tracing::warn!(env = %self.env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, now = self.estops.summary(), "e-stop");
+            self.shared_estops.send_replace(self.estops.clone());
+        }
         let ack = EStopAck {
             press_id: stop.press_id,
             component: Component::SimTwin.as_str().to_owned(),

@@ -951,9 +951,12 @@ fn start(args: &Args) -> anyhow::Result<Deployment> {
         match &deployment.site {
             Some(site) => site.role_args(role),
             None if role == Role::Controller => vec!["--listen".into(), peer_endpoint.clone()],
-            // Peers listen too (any loopback port): the monitor reaches the
+            // Peers (not the connecting programs' default, clients) that
+            // listen too (any loopback port): the monitor reaches the
             // twins' frames and poses directly, as on a robot's network.
             None => vec![
+                "--mode".into(),
+                "peer".into(),
                 "--connect".into(),
                 peer_endpoint.clone(),
                 "--listen".into(),
