@@ -93,3 +93,47 @@ async fn a_standalone_twin_behind_a_peer_controller_is_reachable_by_every_client
     assert_eq!(report.acknowledged[0].state.summary(), "env");
     let _ = session.close().await;
 }
+
+/// A connecting program waits for its server (programs start in any
+/// order), and a stop while it waits ends it, saying so.
+#[test]
+fn a_client_waiting_for_its_server_stops_when_told() {
+    let endpoint = offworld_runtime::session::loopback_endpoint().expect("a free port");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_offworld"))
+        .args(["twin", "--env", "sim/waiting-0", "--connect", &endpoint])
+        .env("RUST_LOG", "info")
+        .env("RUST_BACKTRACE", "0")
+        .env_remove("OFFWORLD_ZENOH_MODE")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("offworld starts");
+    // Still waiting after a while: nobody listens there.
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(child.try_wait().expect("status").is_none(), "it waits");
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let mut status = None;
+    for _ in 0..200 {
+        status = child.try_wait().expect("status");
+        if status.is_some() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let Some(status) = status else {
+        let _ = child.kill();
+        panic!("still running 10 s after SIGTERM");
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().expect("piped"), &mut stderr)
+        .expect("stderr");
+    assert_eq!(status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "stopped (SIGTERM) while waiting for {endpoint} to answer"
+        )),
+        "{stderr}"
+    );
+}

@@ -279,9 +279,10 @@ async fn the_cli_prints_who_acknowledged_and_fails_when_someone_did_not() {
     );
 }
 
-/// A press repeated by its operator (while another obeyer was silent) is
-/// acknowledged again but never re-applied: a late copy of a release does
-/// not undo an engage pressed in between by someone else.
+/// A copy of a press arriving again (an engage repeated while another
+/// obeyer was silent, a duplicated delivery) is acknowledged but never
+/// re-applied: a late copy does not undo a press made in between by
+/// someone else.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_repeated_release_never_undoes_a_later_engage() {
     use offworld_runtime::msg::{EStop, EStopAck};

@@ -661,13 +661,15 @@ impl<H: RobotHardware> Agent<H> {
             } else {
                 tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, still = self.estops.summary(), "e-stop released");
             }
-            if let Some(file) = &self.latch {
-                if let Err(e) = file.store(&self.estops) {
-                    tracing::error!(path = %file.path().display(), "cannot write the e-stop latch: {e}");
-                }
-            }
-            self.estop_tx.send_replace(self.estops.clone());
         }
+        // Every copy stores the latches again: a write that failed for the
+        // first is retried.
+        if let Some(file) = &self.latch {
+            if let Err(e) = file.store(&self.estops) {
+                tracing::error!(path = %file.path().display(), "cannot write the e-stop latch: {e}");
+            }
+        }
+        self.estop_tx.send_replace(self.estops.clone());
         let ack = EStopAck {
             press_id: stop.press_id,
             component: Component::RobotAgent.as_str().to_owned(),

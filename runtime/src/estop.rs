@@ -107,10 +107,10 @@ impl EStopState {
     }
 }
 
-/// The presses an obeyer applied lately. An operator repeats a press
-/// while someone is still silent (`operator::press_estop`): every copy is
-/// acknowledged, only the first applied, so a repeated release cannot undo
-/// an engage pressed in between (nor a repeated engage a later release).
+/// The presses an obeyer applied lately. An operator repeats an engage
+/// while someone is still silent (`operator::press_estop`; a release is
+/// never repeated): every copy is acknowledged, only the first applied, so
+/// a late copy of an engage does not re-engage a latch released since.
 #[derive(Debug, Default)]
 pub struct RecentPresses(std::collections::VecDeque<u64>);
 

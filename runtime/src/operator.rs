@@ -2,8 +2,8 @@
 //! and release the e-stops (one env's, or the whole site's), and learn who
 //! obeyed.
 //!
-//! A press is published (never dropped, at control priority, again while
-//! someone is silent: an obeyer applies each press once); every
+//! A press is published (never dropped, at control priority; an engage
+//! again while someone is silent, a release once); every
 //! robot agent and twin that receives it stops first, then acknowledges on
 //! its env's `estop_ack` with the press's id and the latches now in force.
 //! The operator waits for an acknowledgement from every robot agent and
@@ -194,14 +194,20 @@ pub async fn press_estop(
     let mut waiting: BTreeSet<Obeyer> = expected.into_iter().collect();
     let mut report = PressReport::default();
     let ack_deadline = tokio::time::Instant::now() + ack_within;
-    // The same press is published again while someone is still silent: a
-    // put or an acknowledgement can be lost while the sessions learn each
-    // other's subscriptions through the router (the acknowledgement's
-    // subscriber above is moments old). An obeyer applies a press once and
-    // acknowledges every copy ([`crate::estop::RecentPresses`]), so a
-    // repeated release never undoes an engage pressed in between; each
-    // obeyer counts once here.
-    let mut republish_in = Duration::from_millis(250);
+    // An engage is published again while someone is still silent: a put or
+    // an acknowledgement can be lost while the sessions learn each other's
+    // subscriptions through the router (the acknowledgement's subscriber
+    // above is moments old). A release is published once: a copy of it
+    // arriving late (its first lost, or the obeyer restarted) would undo
+    // an engage pressed in between, so a silent obeyer of a release fails
+    // the press and the operator presses again. An obeyer applies a press
+    // once and acknowledges every copy ([`crate::estop::RecentPresses`]);
+    // each obeyer counts once here.
+    let mut republish_in = if engaged {
+        Duration::from_millis(250)
+    } else {
+        ack_within
+    };
     loop {
         publisher
             .put(bytes.clone())
@@ -209,7 +215,7 @@ pub async fn press_estop(
             .map_err(|e| zerr(e.to_string()))?;
         tracing::warn!(%key, engaged, %reason, "e-stop published");
         let next_publish = (tokio::time::Instant::now() + republish_in).min(ack_deadline);
-        republish_in = (republish_in * 2).min(Duration::from_secs(1));
+        republish_in = republish_in.saturating_mul(2).min(Duration::from_secs(1));
         while !waiting.is_empty() {
             let Ok(Some((at, ack))) = tokio::time::timeout_at(next_publish, acks.recv()).await
             else {

@@ -191,14 +191,6 @@ impl SessionConfig {
                 PATIENT_DROP_US.to_string(),
             )?;
         }
-        if self.config_file.is_none() && self.mode == Mode::Client {
-            // A client waits for what it connects to, as a peer does (Zenoh's
-            // client default: one attempt, then fail), so programs may
-            // start in any order; one-shot clients bound the wait
-            // (`open_reaching`).
-            set(&mut config, "connect/timeout_ms", "-1".to_owned())?;
-            set(&mut config, "connect/exit_on_failure", "false".to_owned())?;
-        }
         for item in &self.overrides {
             let (key, value) = item.split_once(':').ok_or_else(|| {
                 ContractError::Config(format!(
@@ -207,7 +199,29 @@ impl SessionConfig {
             })?;
             set(&mut config, key.trim(), value.trim().to_owned())?;
         }
+        if self.waits_for_its_endpoint(&config) {
+            // A client waits for what it connects to, as a peer does (Zenoh's
+            // client default: one attempt, then fail), so programs may
+            // start in any order; one-shot clients bound the wait
+            // (`open_reaching`).
+            set(&mut config, "connect/timeout_ms", "-1".to_owned())?;
+        }
         Ok(config)
+    }
+
+    /// Whether this session, a client, waits for its endpoint to answer:
+    /// our own config (a role file keeps Zenoh's one attempt, which the
+    /// credential checks rely on), exactly one endpoint (Zenoh tries a
+    /// client's endpoints in turn, each until it answers: a dead first one
+    /// would hide the others), and no `--cfg` of the timeout.
+    fn waits_for_its_endpoint(&self, config: &zenoh::Config) -> bool {
+        self.config_file.is_none()
+            && is_client(config)
+            && self.connect.len() == 1
+            && !self
+                .overrides
+                .iter()
+                .any(|o| o.trim_start().starts_with("connect/timeout_ms"))
     }
 
     /// Opens the session, and says where it listens and connects (a
@@ -226,14 +240,36 @@ impl SessionConfig {
         let listen = config.get_json("listen/endpoints").unwrap_or_default();
         let connect = config.get_json("connect/endpoints").unwrap_or_default();
         let client = is_client(&config);
+        let waits = within.is_none() && self.waits_for_its_endpoint(&config);
         if client {
             let waiting = match within {
                 Some(within) => format!("waiting up to {} ms", within.as_millis()),
-                None => "waiting until an endpoint answers".to_owned(),
+                None if waits => "waiting until it answers".to_owned(),
+                None => "one attempt per endpoint".to_owned(),
             };
             tracing::info!(%connect, "connecting as a client ({waiting})");
         }
-        let session = zenoh::open(config).await.map_err(ContractError::from)?;
+        let session = if waits {
+            // A stop while waiting ends the wait (the program's own signal
+            // handlers only act once its session is open).
+            // Zenoh's open may hold its thread while it retries: on a task
+            // of its own, the signal is still heard.
+            let opening = tokio::spawn(async move { zenoh::open(config).await });
+            tokio::select! {
+                opened = opening => opened
+                    .map_err(|e| ContractError::Zenoh(format!("opening the session: {e}")))?
+                    .map_err(ContractError::from)?,
+                signal = crate::shutdown::signalled() => {
+                    return Err(ContractError::Zenoh(format!(
+                        "stopped ({}) while waiting for {} to answer",
+                        signal.map_or_else(|e| e.to_string(), |s| s.to_string()),
+                        self.connect.join(", ")
+                    )));
+                }
+            }
+        } else {
+            zenoh::open(config).await.map_err(ContractError::from)?
+        };
         tracing::info!(mode = self.mode.as_str(), %listen, %connect, "zenoh session open");
         if !client && !self.connect.is_empty() && !answered(&session).await {
             tracing::warn!(
@@ -258,19 +294,20 @@ impl SessionConfig {
         };
         let mut config = self.to_zenoh()?;
         if is_client(&config) {
-            let bounded = |config: &mut zenoh::Config, key: &str, value: String| {
+            if self.waits_for_its_endpoint(&config) {
+                let timeout = within.as_millis().to_string();
                 config
-                    .insert_json5(key, &value)
-                    .map_err(|e| ContractError::Config(format!("{key} = {value}: {e}")))
-            };
-            bounded(
-                &mut config,
-                "connect/timeout_ms",
-                within.as_millis().to_string(),
-            )?;
-            bounded(&mut config, "connect/exit_on_failure", "true".to_owned())?;
+                    .insert_json5("connect/timeout_ms", &timeout)
+                    .map_err(|e| ContractError::Config(format!("connect/timeout_ms: {e}")))?;
+            }
             return match self.open_with(config, Some(within)).await {
-                Err(ContractError::Zenoh(_)) if !self.connect.is_empty() => Err(unreachable()),
+                // Nobody answered; any other failure (a refused
+                // certificate or password, a bad endpoint) says so itself.
+                Err(ContractError::Zenoh(e))
+                    if !self.connect.is_empty() && e.contains("Unable to connect") =>
+                {
+                    Err(unreachable())
+                }
                 other => other,
             };
         }
@@ -442,7 +479,14 @@ pub fn run_program_on<R: std::process::Termination>(
         builder.worker_threads(workers);
     }
     match builder.enable_all().build() {
-        Ok(runtime) => runtime.block_on(body).report(),
+        Ok(runtime) => {
+            let status = runtime.block_on(body).report();
+            // What the program awaited has finished; a task still holding
+            // its thread (Zenoh retrying a connection when a stop came) is
+            // abandoned instead of holding the exit.
+            runtime.shutdown_timeout(std::time::Duration::from_secs(2));
+            status
+        }
         Err(e) => {
             eprintln!("Error: cannot start the async runtime: {e}");
             std::process::ExitCode::FAILURE
