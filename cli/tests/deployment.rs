@@ -12,20 +12,28 @@ use offworld_runtime::operator::{press_estop, EStopScope};
 use offworld_runtime::CommonArgs;
 use offworld_test_support::ScratchDir;
 
+/// `offworld ARGS` with the connection modes left to their defaults.
+fn offworld(args: &[&str]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_offworld"));
+    command
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .env_remove("OFFWORLD_ZENOH_MODE")
+        .stdout(Stdio::null())
+        .stderr(Stdio::inherit());
+    command
+}
+
 /// A program of the deployment, killed when the test ends.
 struct Running(Child);
 
 impl Running {
     fn start(args: &[&str]) -> Self {
-        let child = Command::new(env!("CARGO_BIN_EXE_offworld"))
-            .args(args)
-            .env("RUST_LOG", "warn")
-            .env_remove("OFFWORLD_ZENOH_MODE")
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("offworld starts");
-        Self(child)
+        Self::spawn(&mut offworld(args))
+    }
+
+    fn spawn(command: &mut Command) -> Self {
+        Self(command.spawn().expect("offworld starts"))
     }
 }
 
@@ -99,15 +107,13 @@ async fn a_standalone_twin_behind_a_peer_controller_is_reachable_by_every_client
 #[test]
 fn a_client_waiting_for_its_server_stops_when_told() {
     let endpoint = offworld_runtime::session::loopback_endpoint().expect("a free port");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_offworld"))
-        .args(["twin", "--env", "sim/waiting-0", "--connect", &endpoint])
-        .env("RUST_LOG", "info")
-        .env("RUST_BACKTRACE", "0")
-        .env_remove("OFFWORLD_ZENOH_MODE")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("offworld starts");
+    let mut running = Running::spawn(
+        offworld(&["twin", "--env", "sim/waiting-0", "--connect", &endpoint])
+            .env("RUST_LOG", "info")
+            .env("RUST_BACKTRACE", "0")
+            .stderr(Stdio::piped()),
+    );
+    let child = &mut running.0;
     // Still waiting after a while: nobody listens there.
     std::thread::sleep(Duration::from_millis(1500));
     assert!(child.try_wait().expect("status").is_none(), "it waits");
@@ -123,7 +129,6 @@ fn a_client_waiting_for_its_server_stops_when_told() {
         std::thread::sleep(Duration::from_millis(50));
     }
     let Some(status) = status else {
-        let _ = child.kill();
         panic!("still running 10 s after SIGTERM");
     };
     let mut stderr = String::new();
