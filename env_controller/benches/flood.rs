@@ -31,9 +31,9 @@ use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::{loopback_endpoint, Mode};
 use offworld_runtime::wire::{self, RequestError};
-use offworld_runtime::zenoh::query::Query;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{Component, EnvId, ErrorCode, SessionConfig, Topic, WireError};
+use zenoh::query::Query;
+use zenoh::Session;
 
 fn setting(name: &str, default: u64) -> u64 {
     std::env::var(name)

@@ -24,9 +24,9 @@ use governor::clock::{Clock, DefaultClock};
 use governor::{DefaultKeyedRateLimiter, Quota, RateLimiter};
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::msg::ClientTag;
-use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::query::Query;
 use offworld_runtime::{codec, WireError};
+use zenoh::bytes::ZBytes;
+use zenoh::query::Query;
 
 use crate::env::validate_client_id;
 use crate::error::ControllerError;

@@ -3,8 +3,8 @@
 //! Zenoh. Shared by the Python package and any other front end.
 
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{client, SessionConfig};
+use zenoh::Session;
 
 use crate::admission::RequestLimits;
 use crate::embedded::{Embedded, SimEnv, TwinProfile};

@@ -5,11 +5,11 @@
 use std::time::Duration;
 
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::zenoh::Session;
 /// The twin profile an embedded env's twin is built with (re-exported so
 /// front ends need not depend on the twin crate).
 pub use offworld_sim_twin::TwinProfile;
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
+use zenoh::Session;
 
 use crate::admission::RequestLimits;
 use crate::env::{EnvOptions, EnvServer};

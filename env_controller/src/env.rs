@@ -17,12 +17,12 @@ use offworld_runtime::msg::{
     StepRequest, Time, Twist, EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
 };
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::pubsub::Publisher;
-use offworld_runtime::zenoh::query::Query;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
 use rand::Rng;
 use tokio::sync::{watch, Mutex as AsyncMutex};
+use zenoh::pubsub::Publisher;
+use zenoh::query::Query;
+use zenoh::Session;
 
 use crate::episode::{judge, step_info, EndReason, Outcome, SpawnSampler};
 use crate::estops::EnvEStops;

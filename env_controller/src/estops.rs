@@ -11,12 +11,12 @@ use std::time::Duration;
 use offworld_runtime::estop::{self, Latch};
 use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
 use offworld_runtime::msg::{EStopState, Time};
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::query::Queryable;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
 use tokio::sync::watch;
+use zenoh::pubsub::Subscriber;
+use zenoh::query::Queryable;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 use crate::error::ControllerError;
 
@@ -33,7 +33,7 @@ pub struct EnvEStops {
 impl EnvEStops {
     /// Learns the latches from the network, then follows both e-stop keys.
     pub async fn follow(session: &Session, env: &EnvId) -> Result<Self, ControllerError> {
-        let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
+        let zerr = |e: zenoh::Error| ControllerError::Zenoh(e.to_string());
         let recalled = estop::recall(session, env, RECALL).await;
         if let Some(reason) = recalled.refusal() {
             tracing::warn!(%env, %reason, "e-stop in force at start (from the network)");

@@ -15,12 +15,12 @@ use offworld_runtime::msg::{
 use offworld_runtime::pool::BufferPool;
 use offworld_runtime::seal::{Gate, SealKey, Sealer};
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
-use offworld_runtime::zenoh::sample::{Sample, SampleKind};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
 use tokio::sync::{oneshot, watch};
+use zenoh::bytes::ZBytes;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::Session;
 
 use crate::error::ControllerError;
 use crate::observation::{assemble_into, shape};
@@ -316,7 +316,7 @@ impl RobotLink {
         timeouts: LinkTimeouts,
         seals: &LinkSeals,
     ) -> Result<Self, ControllerError> {
-        let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
+        let zerr = |e: zenoh::Error| ControllerError::Zenoh(e.to_string());
         let (frame_tx, frames) = watch::channel(None);
         let pending = Pending::default();
         let building = pending.clone();
@@ -749,7 +749,7 @@ async fn subscribe_decoded<T: serde::de::DeserializeOwned>(
     what: &'static str,
     gate: Option<Gate>,
     on: impl Fn(T, &Sample) + Send + Sync + 'static,
-) -> Result<Subscriber<()>, offworld_runtime::zenoh::Error> {
+) -> Result<Subscriber<()>, zenoh::Error> {
     session
         .declare_subscriber(key)
         .callback(move |sample: Sample| {

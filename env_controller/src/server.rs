@@ -24,13 +24,13 @@ use offworld_runtime::msg::{
     AdminRequest, BookingRequest, CloseRequest, ExperimentsRequest, Heartbeat, OpenRequest,
     ResetRequest, StepRequest, Time,
 };
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::query::{Query, Queryable};
-use offworld_runtime::zenoh::sample::SampleKind;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, WireError};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::SampleKind;
+use zenoh::Session;
 
 use crate::admission::{self, ClientRates, Gate, RequestLimits};
 use crate::env::{EnvOptions, EnvServer};
@@ -256,7 +256,7 @@ impl Controller {
             )
             .await?,
         );
-        let zerr = |e: offworld_runtime::zenoh::Error| ControllerError::Zenoh(e.to_string());
+        let zerr = |e: zenoh::Error| ControllerError::Zenoh(e.to_string());
         let mut tasks = Vec::new();
         let (serving, serving_rx) = watch::channel(());
         let admission = Arc::new(Admission {

@@ -18,11 +18,11 @@ use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::wire::{self, RequestError};
-use offworld_runtime::zenoh::handlers::FifoChannelHandler;
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::query::{Query, Queryable};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{Component, EnvId, ErrorCode, SessionConfig, Topic, WireError};
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::query::{Query, Queryable};
+use zenoh::Session;
 
 /// Limits small enough to reach with a bounded flood; rates out of the way
 /// (the rate test sets its own).

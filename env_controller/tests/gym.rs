@@ -11,9 +11,9 @@ use offworld_env_controller::Store;
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
-use offworld_runtime::zenoh::qos::Priority;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
+use zenoh::qos::Priority;
+use zenoh::Session;
 
 struct Deployment {
     _server: Session,

@@ -18,10 +18,10 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::{Session, Wait};
 use offworld_runtime::{codec, ErrorCode, WireError};
+use zenoh::liveliness::LivelinessToken;
+use zenoh::sample::Sample;
+use zenoh::{Session, Wait};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reported_fault_fails_the_command_with_its_reason() {

@@ -10,8 +10,8 @@ use std::time::Duration;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
-use offworld_runtime::zenoh::Session;
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
+use zenoh::Session;
 
 const PRESENCE: Duration = Duration::from_secs(10);
 /// Generous on a loaded machine; the CLI's default is 1 s.

@@ -117,25 +117,12 @@ pub fn obs_options(
 
 /// `learning_type` from its string.
 pub fn learning_type(value: &str) -> PyResult<LearningType> {
-    match value {
-        "end2end" => Ok(LearningType::EndToEnd),
-        "sim2real" => Ok(LearningType::SimToReal),
-        "humandemos" => Ok(LearningType::HumanDemos),
-        other => Err(PyValueError::new_err(format!(
-            "learning_type must be end2end, sim2real or humandemos, got {other:?}"
-        ))),
-    }
+    offworld_runtime::named::parse("learning_type", value).map_err(PyValueError::new_err)
 }
 
 /// `algorithm_mode` from its string.
 pub fn algorithm_mode(value: &str) -> PyResult<AlgorithmMode> {
-    match value {
-        "train" => Ok(AlgorithmMode::Train),
-        "test" => Ok(AlgorithmMode::Test),
-        other => Err(PyValueError::new_err(format!(
-            "algorithm_mode must be train or test, got {other:?}"
-        ))),
-    }
+    offworld_runtime::named::parse("algorithm_mode", value).map_err(PyValueError::new_err)
 }
 
 /// A timeout in seconds from Python (finite, positive).

@@ -466,7 +466,7 @@ fn remote_session(connect: Option<String>) -> PyResult<SessionConfig> {
 fn on_deployment<T, Fut>(
     py: Python<'_>,
     connect: Option<String>,
-    work: impl FnOnce(offworld_runtime::zenoh::Session) -> Fut + Send + 'static,
+    work: impl FnOnce(zenoh::Session) -> Fut + Send + 'static,
 ) -> PyResult<T>
 where
     T: Send + 'static,

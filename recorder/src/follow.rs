@@ -40,13 +40,13 @@ use offworld_runtime::msg::{
     CameraFrameView, EnvSpec, EnvState, EnvStatus, EpisodeEvent, Header, MotionCommand,
     PoseStamped, SeqTag, Time, Twist,
 };
-use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::{Sample, SampleKind};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{wire, Realm};
 use tokio::sync::{mpsc, watch, Notify};
 use tokio::task::JoinHandle;
+use zenoh::bytes::ZBytes;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::Session;
 
 use crate::msg::{EpisodeEnd, EpisodeInfo, Step};
 use crate::{EnvRecorder, RecordError, RecordTo, StepRecord};

@@ -11,11 +11,11 @@ use std::thread::JoinHandle;
 use offworld_runtime::codec;
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{CameraFrameView, Header, Odometry, PoseStamped, Time, Twist};
-use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use tokio::sync::mpsc;
+use zenoh::bytes::ZBytes;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 use crate::episode_file::{now_ns, stamp_ns, Channel, Compression, EpisodeFile};
 use crate::msg::{EpisodeEnd, EpisodeInfo, Step};

@@ -18,16 +18,16 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::seal::{Gate, SealKey, Sealed};
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::query::{Query, Queryable};
-use offworld_runtime::zenoh::sample::{Sample, SampleKind};
-use offworld_runtime::zenoh::Session;
-use offworld_runtime::zenoh::Wait;
 use offworld_runtime::WireError;
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
+use zenoh::bytes::ZBytes;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::Session;
+use zenoh::Wait;
 
 use crate::base_check::{BaseCheck, CheckStep};
 use crate::config::AgentConfig;

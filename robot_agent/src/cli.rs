@@ -11,6 +11,7 @@ use crate::{AgentConfig, Ros2Robot};
 use clap::Parser;
 use offworld_runtime::seal::SealArgs;
 use offworld_runtime::shutdown::ShutdownSignals;
+use offworld_runtime::state_dir;
 use offworld_runtime::{CommonArgs, EnvId, Realm};
 
 /// Run the OffWorld robot agent (ROS 2 robot over Zenoh).
@@ -31,8 +32,8 @@ pub struct Args {
     #[arg(long)]
     watchdog_ms: Option<u64>,
     /// File that remembers an engaged e-stop across restarts (overrides
-    /// the config; default `$XDG_STATE_HOME` or `~/.local/state`, then
-    /// `offworld/robot_agent/<env>.estop`).
+    /// the config; default `<env>.estop` in `$STATE_DIRECTORY`, else in
+    /// `offworld/robot_agent/` of `$XDG_STATE_HOME` or `~/.local/state`).
     #[arg(long)]
     estop_latch: Option<PathBuf>,
     /// The site's keys (override the config's `command_key`, `tracker_key`).
@@ -72,7 +73,13 @@ async fn main_async(args: Args) -> anyhow::Result<()> {
         config.tracker_key = args.seals.tracker_key;
     }
     if config.estop_latch.is_none() {
-        config.estop_latch = default_latch(&args.env);
+        // Never none: an agent without a latch would forget an e-stop on restart.
+        let file = format!("{}.estop", args.env.to_string().replace('/', "+"));
+        config.estop_latch = Some(state_dir::state_file(
+            "robot_agent",
+            &file,
+            "--estop-latch",
+        )?);
     }
     if let Some(path) = &config.estop_latch {
         tracing::info!(path = %path.display(), "e-stop latch");
@@ -86,17 +93,4 @@ async fn main_async(args: Args) -> anyhow::Result<()> {
     tracing::info!(%signal, "stopping the robot and exiting");
     agent.shutdown().await;
     Ok(())
-}
-
-/// `<state dir>/offworld/robot_agent/<env>.estop`, the env's `/` as `+`;
-/// the state dir is `$XDG_STATE_HOME`, else `~/.local/state`, else (a
-/// systemd unit without `HOME`, a container) `/var/lib`: never none, an
-/// agent without a latch would forget an e-stop on restart.
-fn default_latch(env: &EnvId) -> Option<PathBuf> {
-    let state = std::env::var_os("XDG_STATE_HOME")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".local/state")))
-        .unwrap_or_else(|| PathBuf::from("/var/lib"));
-    let file = format!("{}.estop", env.to_string().replace('/', "+"));
-    Some(state.join("offworld/robot_agent").join(file))
 }

@@ -14,8 +14,8 @@ pub enum AgentError {
     Encode(String),
 }
 
-impl From<offworld_runtime::zenoh::Error> for AgentError {
-    fn from(e: offworld_runtime::zenoh::Error) -> Self {
+impl From<zenoh::Error> for AgentError {
+    fn from(e: zenoh::Error) -> Self {
         AgentError::Zenoh(e.to_string())
     }
 }

@@ -27,12 +27,12 @@ use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{MotionFault, Twist};
 use offworld_runtime::ros2::{RobotTopics, RosGraph, RosType};
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
-use offworld_runtime::zenoh::sample::{Sample, SampleKind};
-use offworld_runtime::zenoh::Session;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, oneshot};
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::Session;
 
 use crate::agent::NodeHandle;
 use crate::error::AgentError;

@@ -11,11 +11,11 @@ use offworld_runtime::codec;
 use offworld_runtime::msg::{Image, Odometry, Twist};
 use offworld_runtime::ros2::{KeyStyle, RmwPublisherId, RobotTopics, RosGraph, RosType};
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::bytes::Encoding;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use tokio::sync::watch;
+use zenoh::bytes::Encoding;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 use crate::error::AgentError;
 use crate::hardware::{Received, RobotHardware, Sensors};

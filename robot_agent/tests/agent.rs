@@ -24,13 +24,13 @@ use offworld_runtime::msg::{
 use offworld_runtime::seal::{SealKey, Sealer};
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, WireError};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 /// Synthetic camera size.
 const WIDTH: u32 = 8;

@@ -21,7 +21,8 @@ use crate::keys::{topic_on_all_envs, EnvId, Topic};
 use crate::msg::{EStop, EStopState, LatchState, Time};
 
 /// Which latch an e-stop publication sets.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, strum::IntoStaticStr)]
+#[strum(serialize_all = "snake_case")]
 pub enum Latch {
     /// Every robot of the site.
     Site,
@@ -32,10 +33,7 @@ pub enum Latch {
 impl Latch {
     /// `site` or `env`, for logs and messages.
     pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Site => "site",
-            Self::Env => "env",
-        }
+        self.into()
     }
 }
 

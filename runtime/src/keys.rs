@@ -17,7 +17,20 @@ pub const ROOT: &str = "offworld";
 pub const VERSION: &str = "@v1";
 
 /// Whether an environment is a simulated twin or a physical enclosure.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    strum::IntoStaticStr,
+    strum::EnumIter,
+    strum::VariantNames,
+)]
+#[strum(serialize_all = "snake_case")]
 pub enum Realm {
     /// A simulated twin (sim_twin).
     Sim,
@@ -28,23 +41,14 @@ pub enum Realm {
 impl Realm {
     /// The key chunk for this realm.
     pub fn as_str(self) -> &'static str {
-        match self {
-            Realm::Sim => "sim",
-            Realm::Real => "real",
-        }
+        self.into()
     }
 }
 
 impl FromStr for Realm {
     type Err = ContractError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "sim" => Ok(Realm::Sim),
-            "real" => Ok(Realm::Real),
-            other => Err(ContractError::InvalidEnvId(format!(
-                "realm must be `sim` or `real`, got `{other}`"
-            ))),
-        }
+        crate::named::parse("realm", s).map_err(ContractError::InvalidEnvId)
     }
 }
 
@@ -156,8 +160,11 @@ impl FromStr for EnvId {
     }
 }
 
-/// The per-env topics. Payloads are CDR (see [`crate::msg`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// The per-env topics. Payloads are CDR (see [`crate::msg`]). Each one's
+/// key chunk is its name in snake case (`HeartbeatEcho` → `heartbeat_echo`),
+/// `estop` spelt as one word.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, strum::IntoStaticStr, strum::EnumIter)]
+#[strum(serialize_all = "snake_case")]
 pub enum Topic {
     /// Controller → twin/robot: [`crate::msg::MotionCommand`] (pub/sub).
     Cmd,
@@ -184,13 +191,16 @@ pub enum Topic {
     /// second when it stops hearing the robot (a cut or frozen link).
     HeartbeatEcho,
     /// Operator/controller → robot: [`crate::msg::EStop`] (acts immediately).
+    #[strum(serialize = "estop")]
     EStop,
     /// Robot agent / twin → operators: [`crate::msg::EStopAck`], one per
     /// e-stop received and applied.
+    #[strum(serialize = "estop_ack")]
     EStopAck,
     /// Queryable on robot agents, twins and the controller: () →
     /// [`crate::msg::EStopState`], the latches in force for the env (how a
     /// restarted component learns them from the network).
+    #[strum(serialize = "estop_state")]
     EStopState,
     /// Queryable on the twin/robot: [`crate::msg::GotoRequest`] → [`crate::msg::GotoReply`]
     /// (sim teleports, real navigates).
@@ -218,65 +228,15 @@ pub enum Topic {
 }
 
 impl Topic {
-    /// Every topic, in declaration order.
-    pub const ALL: [Topic; 23] = [
-        Topic::Cmd,
-        Topic::Obs,
-        Topic::Odom,
-        Topic::Fault,
-        Topic::Pose,
-        Topic::Tracking,
-        Topic::Reward,
-        Topic::Status,
-        Topic::Heartbeat,
-        Topic::HeartbeatEcho,
-        Topic::EStop,
-        Topic::EStopAck,
-        Topic::EStopState,
-        Topic::Goto,
-        Topic::Open,
-        Topic::Spec,
-        Topic::Reset,
-        Topic::Step,
-        Topic::Close,
-        Topic::Admin,
-        Topic::Leaderboard,
-        Topic::Book,
-        Topic::Experiments,
-    ];
-
     /// The key chunk of this topic.
     pub fn as_str(self) -> &'static str {
-        match self {
-            Topic::Cmd => "cmd",
-            Topic::Obs => "obs",
-            Topic::Odom => "odom",
-            Topic::Fault => "fault",
-            Topic::Pose => "pose",
-            Topic::Tracking => "tracking",
-            Topic::Reward => "reward",
-            Topic::Status => "status",
-            Topic::Heartbeat => "heartbeat",
-            Topic::HeartbeatEcho => "heartbeat_echo",
-            Topic::EStop => "estop",
-            Topic::EStopAck => "estop_ack",
-            Topic::EStopState => "estop_state",
-            Topic::Goto => "goto",
-            Topic::Open => "open",
-            Topic::Spec => "spec",
-            Topic::Reset => "reset",
-            Topic::Step => "step",
-            Topic::Close => "close",
-            Topic::Admin => "admin",
-            Topic::Leaderboard => "leaderboard",
-            Topic::Book => "book",
-            Topic::Experiments => "experiments",
-        }
+        self.into()
     }
 }
 
 /// Components that declare liveliness tokens.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, strum::IntoStaticStr)]
+#[strum(serialize_all = "snake_case")]
 pub enum Component {
     /// The gym server.
     Controller,
@@ -296,14 +256,7 @@ pub enum Component {
 impl Component {
     /// The key chunk of this component.
     pub fn as_str(self) -> &'static str {
-        match self {
-            Component::Controller => "controller",
-            Component::SimTwin => "sim_twin",
-            Component::RobotAgent => "robot_agent",
-            Component::TrackerAgent => "tracker_agent",
-            Component::Monitor => "monitor",
-            Component::BaseGuard => "base_guard",
-        }
+        self.into()
     }
 }
 
@@ -363,7 +316,7 @@ mod tests {
     #[test]
     fn every_topic_key_is_a_valid_zenoh_key() {
         let env = EnvId::sim("m").expect("valid");
-        for topic in Topic::ALL {
+        for topic in <Topic as strum::IntoEnumIterator>::iter() {
             let key = env.key(topic);
             zenoh::key_expr::KeyExpr::try_from(key.clone()).expect(&key);
         }

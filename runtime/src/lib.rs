@@ -5,6 +5,7 @@
 //!   nothing else formats keys.
 //! - [`msg`]: message types — ROS 2 layouts where a ROS type exists, our own
 //!   request/reply types otherwise.
+//! - [`named`]: enums named by fixed strings, read back with one error.
 //! - [`estop`]: the site and env e-stop latches, merged by age.
 //! - [`ros2`]: key expressions of a ROS 2 robot's topics (rmw_zenoh or
 //!   zenoh-bridge-ros2dds) and rmw_zenoh's attachment.
@@ -14,6 +15,7 @@
 //! - [`session`]: opening sessions from files, environment or flags.
 //! - [`priority`]: background threads yield to the step path.
 //! - [`shutdown`]: SIGINT, SIGTERM and SIGHUP as one "stop cleanly".
+//! - [`state_dir`]: where a component keeps files across restarts.
 //! - [`world`]: enclosure definitions (`runtime/worlds/*.toml`) every
 //!   component reads: geometry, task, robot, camera.
 //! - [`WireError`]: the one typed error every reply can carry.
@@ -24,6 +26,7 @@ mod error;
 pub mod estop;
 pub mod keys;
 pub mod msg;
+pub mod named;
 pub mod operator;
 pub mod pool;
 pub mod priority;
@@ -31,6 +34,7 @@ pub mod ros2;
 pub mod seal;
 pub mod session;
 pub mod shutdown;
+pub mod state_dir;
 pub mod wire;
 pub mod world;
 
@@ -39,6 +43,3 @@ pub use keys::{Component, EnvId, Realm, Topic};
 pub use session::{CommonArgs, SessionConfig};
 pub use wire::RequestError;
 pub use world::{WorldError, WorldSpec};
-
-/// Re-exported so dependents use the same Zenoh as the contract.
-pub use zenoh;

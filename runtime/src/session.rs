@@ -20,7 +20,19 @@ pub const ENV_LISTEN: &str = "OFFWORLD_ZENOH_LISTEN";
 pub const ENV_CFG: &str = "OFFWORLD_ZENOH_CFG";
 
 /// Zenoh session role.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    clap::ValueEnum,
+    strum::IntoStaticStr,
+    strum::EnumIter,
+    strum::VariantNames,
+)]
+#[strum(serialize_all = "snake_case")]
 pub enum Mode {
     /// Talks to other peers directly.
     #[default]
@@ -33,25 +45,14 @@ pub enum Mode {
 
 impl Mode {
     fn as_str(self) -> &'static str {
-        match self {
-            Mode::Peer => "peer",
-            Mode::Client => "client",
-            Mode::Router => "router",
-        }
+        self.into()
     }
 }
 
 impl std::str::FromStr for Mode {
     type Err = ContractError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "peer" => Ok(Mode::Peer),
-            "client" => Ok(Mode::Client),
-            "router" => Ok(Mode::Router),
-            other => Err(ContractError::Config(format!(
-                "mode must be peer, client or router, got `{other}`"
-            ))),
-        }
+        crate::named::parse("mode", s).map_err(ContractError::Config)
     }
 }
 
@@ -507,7 +508,10 @@ pub fn free_loopback_port(ip: &str) -> std::io::Result<u16> {
     let mut attempts = 0;
     loop {
         let port = rng.random_range(TEST_PORTS);
-        match std::net::TcpListener::bind((ip, port)) {
+        // Free for TCP and UDP alike: QUIC endpoints listen on UDP.
+        let bound = std::net::TcpListener::bind((ip, port))
+            .and_then(|_tcp| std::net::UdpSocket::bind((ip, port)));
+        match bound {
             Ok(_) => return Ok(port),
             Err(e) if attempts >= 64 => return Err(e),
             Err(_) => attempts += 1,

@@ -310,8 +310,8 @@ fn assert_same_payload<T: Serialize>(in_place: &[u8], full: &T, len: usize) {
 }
 
 /// A payload as Zenoh hands over a reassembled reply: in fragments.
-fn fragmented(bytes: &[u8], cuts: &[usize]) -> offworld_runtime::zenoh::bytes::ZBytes {
-    let mut writer = offworld_runtime::zenoh::bytes::ZBytes::writer();
+fn fragmented(bytes: &[u8], cuts: &[usize]) -> zenoh::bytes::ZBytes {
+    let mut writer = zenoh::bytes::ZBytes::writer();
     let mut start = 0;
     for &cut in cuts.iter().chain([&bytes.len()]) {
         writer.append(bytes[start..cut].to_vec().into());

@@ -9,9 +9,9 @@ use std::time::Duration;
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{codec, EnvId, ErrorCode, Topic, WireError};
 use serde::{de::DeserializeOwned, Serialize};
+use zenoh::Session;
 
 /// Bounded retries while declarations propagate between the two peers.
 const ATTEMPTS: usize = 100;
@@ -31,10 +31,7 @@ async fn pub_sub<T: Serialize + DeserializeOwned + PartialEq + Debug>(
     for _ in 0..ATTEMPTS {
         wire::put(a, key, msg).await.expect("put");
         if let Ok(Ok(sample)) = tokio::time::timeout(RETRY, sub.recv_async()).await {
-            assert_eq!(
-                sample.encoding(),
-                &offworld_runtime::zenoh::bytes::Encoding::APPLICATION_CDR
-            );
+            assert_eq!(sample.encoding(), &zenoh::bytes::Encoding::APPLICATION_CDR);
             let got: T = codec::decode_payload(sample.payload()).expect("decode");
             assert_eq!(&got, msg, "{key}");
             return;

@@ -40,11 +40,11 @@ use nalgebra::{Isometry3, Quaternion as NaQuaternion, Translation3, UnitQuaterni
 use offworld_runtime::codec;
 use offworld_runtime::msg::{PixelEncoding, Time, Twist};
 use offworld_runtime::ros2::{RmwPublisherId, RobotTopics, RosGraph, RosType};
-use offworld_runtime::zenoh::bytes::Encoding;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::session::SessionPutBuilder;
-use offworld_runtime::zenoh::{Session, Wait};
+use zenoh::bytes::Encoding;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::session::SessionPutBuilder;
+use zenoh::{Session, Wait};
 
 use crate::error::SimError;
 use crate::overhead::OverheadStream;

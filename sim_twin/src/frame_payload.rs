@@ -6,8 +6,8 @@
 use offworld_runtime::codec::{self, CDR_LE_HEADER};
 use offworld_runtime::msg::{CameraFrameView, PixelEncoding, Time};
 use offworld_runtime::pool::BufferPool;
-use offworld_runtime::zenoh::bytes::ZBytes;
 use offworld_runtime::EncodeError;
+use zenoh::bytes::ZBytes;
 
 use crate::camera::PixelsMut;
 use crate::ros_out::{self, COLOR_FRAME, DEPTH_FRAME};

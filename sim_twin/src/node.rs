@@ -30,12 +30,12 @@ use offworld_runtime::msg::{
     EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, SeqTag, Time,
 };
 use offworld_runtime::wire::{self, Delivery};
-use offworld_runtime::zenoh::liveliness::LivelinessToken;
-use offworld_runtime::zenoh::pubsub::{Publisher, Subscriber};
-use offworld_runtime::zenoh::query::{Query, Queryable};
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::{Session, Wait};
 use offworld_runtime::WireError;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::Sample;
+use zenoh::{Session, Wait};
 
 use crate::error::SimError;
 use crate::frame_payload::FramePayloads;
@@ -202,7 +202,7 @@ impl TwinNode {
     ) -> Result<Self, SimError> {
         let (tx, rx) = sync_channel::<Event>(QUEUE);
         let busy = Arc::new(Busy::new());
-        let zerr = |e: offworld_runtime::zenoh::Error| SimError::Zenoh(e.to_string());
+        let zerr = |e: zenoh::Error| SimError::Zenoh(e.to_string());
         let forward = |tx: &SyncSender<Event>, make: fn(Sample) -> Event| {
             let tx = tx.clone();
             move |sample: Sample| {

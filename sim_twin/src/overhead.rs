@@ -179,19 +179,14 @@ impl OverheadStream {
 
     /// Publishes a frame on `session` if the last one is older than the
     /// period.
-    pub fn maybe_publish(
-        &mut self,
-        session: &offworld_runtime::zenoh::Session,
-        scene: &Scene,
-        robot: &BodyPose,
-    ) {
-        use offworld_runtime::zenoh::Wait;
+    pub fn maybe_publish(&mut self, session: &zenoh::Session, scene: &Scene, robot: &BodyPose) {
+        use zenoh::Wait;
         let Some(bytes) = self.maybe_encode(scene, robot) else {
             return;
         };
         let put = session
             .put(&self.key, bytes)
-            .encoding(offworld_runtime::zenoh::bytes::Encoding::APPLICATION_CDR)
+            .encoding(zenoh::bytes::Encoding::APPLICATION_CDR)
             .wait();
         if let Err(e) = put {
             tracing::warn!("overhead put failed: {e}");

@@ -8,12 +8,12 @@ use offworld_runtime::keys::global_estop_key;
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
-use offworld_runtime::zenoh::handlers::FifoChannelHandler;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{Component, EnvId, ErrorCode, Topic};
 use offworld_sim_twin::{Clock, PlanarPose, SimTwin, TwinConfig, TwinNode};
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 struct Client {
     session: Session,

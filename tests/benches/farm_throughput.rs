@@ -16,10 +16,10 @@ use std::time::{Duration, Instant};
 use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{EnvId, SessionConfig};
 use offworld_tests::site::{Role, RouterSite, SimFarm};
 use offworld_tests::Process;
+use zenoh::Session;
 
 fn seconds() -> f64 {
     std::env::var("FARM_SECONDS")

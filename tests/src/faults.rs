@@ -18,10 +18,10 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::ros2::{RobotTopics, RosGraph, RosType};
 use offworld_runtime::session::Mode;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig, WireError};
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 use anyhow::Context;
 

@@ -18,11 +18,11 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::*;
 use offworld_runtime::wire;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ContractError, ErrorCode};
 use offworld_tests::netns::Namespaces;
 use offworld_tests::site::{role_file, Role, RouterSite, SimFarm};
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 /// One site at a time: each runs a router and two component processes.
 static ONE_SITE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
@@ -86,10 +86,7 @@ type Received = (String, Option<u64>, Vec<u8>);
 struct Seen(Arc<Mutex<Vec<Received>>>);
 
 impl Seen {
-    async fn watch(
-        session: &Session,
-        key: &str,
-    ) -> (Self, offworld_runtime::zenoh::pubsub::Subscriber<()>) {
+    async fn watch(session: &Session, key: &str) -> (Self, zenoh::pubsub::Subscriber<()>) {
         let seen = Seen::default();
         let log = seen.clone();
         let sub = session

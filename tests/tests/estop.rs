@@ -23,11 +23,11 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Realm, Topic};
 use offworld_runtime::msg::{EStopState, Seed};
 use offworld_runtime::operator::{press_estop, EStopScope, PressReport};
-use offworld_runtime::zenoh::query::{ConsolidationMode, QueryTarget};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig};
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::open_request;
+use zenoh::query::{ConsolidationMode, QueryTarget};
+use zenoh::Session;
 
 /// How long a press waits for its obeyers to be present, and for their
 /// acknowledgements (generous: this host also runs every process).

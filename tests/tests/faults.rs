@@ -13,13 +13,13 @@ use std::time::Duration;
 
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig};
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::{
     inject, open_request, recover, reset_when_ready, BaseObserver, Fault,
 };
 use offworld_tests::link::Impairment;
+use zenoh::Session;
 
 /// How long the base is watched after each fault. A base that held its
 /// velocity would turn 1.5 rad/s × 3 s = 4.5 rad in it.

@@ -13,10 +13,10 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::*;
 use offworld_runtime::ros2::{RobotTopics, RosGraph, RosType};
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{ErrorCode, SessionConfig, WireError};
 use offworld_tests::emulated::{EmulatedEnclosure, Options};
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 /// One emulated enclosure at a time: each runs four real-time processes,
 /// and two at once starve each other on a 2-core machine (the watchdog then
@@ -90,7 +90,7 @@ async fn reset(gym: &mut EnvClient, seed: u64) -> ResetReply {
 struct CmdVelLog(Arc<Mutex<Vec<(Instant, f64, f64)>>>);
 
 impl CmdVelLog {
-    async fn watch(session: &Session) -> (Self, offworld_runtime::zenoh::pubsub::Subscriber<()>) {
+    async fn watch(session: &Session) -> (Self, zenoh::pubsub::Subscriber<()>) {
         let log = CmdVelLog::default();
         let key = RosGraph::new(Default::default(), "")
             .and_then(|g| g.subscription_key(&RobotTopics::default().cmd_vel, RosType::Twist))
@@ -119,10 +119,7 @@ impl CmdVelLog {
 async fn watch_pose(
     session: &Session,
     env: &EnvId,
-) -> (
-    Arc<Mutex<Option<Pose2D>>>,
-    offworld_runtime::zenoh::pubsub::Subscriber<()>,
-) {
+) -> (Arc<Mutex<Option<Pose2D>>>, zenoh::pubsub::Subscriber<()>) {
     let latest = Arc::new(Mutex::new(None));
     let sink = latest.clone();
     let sub = session

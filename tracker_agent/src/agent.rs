@@ -23,10 +23,10 @@ use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{Header, Point, Pose, PoseStamped, Quaternion, Time, TrackingStatus};
 use offworld_runtime::seal::{SealKey, Sealer};
 use offworld_runtime::wire;
-use offworld_runtime::zenoh::{Session, Wait};
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
+use zenoh::{Session, Wait};
 
 use crate::calibration::Calibration;
 use crate::filter::{FilterConfig, OutlierFilter, Verdict};
@@ -208,7 +208,7 @@ pub struct TrackerNode {
     last_rejection: String,
     next_status: Instant,
     _pump: AbortOnDrop,
-    _token: offworld_runtime::zenoh::liveliness::LivelinessToken,
+    _token: zenoh::liveliness::LivelinessToken,
 }
 
 impl TrackerNode {
@@ -568,8 +568,8 @@ impl Drop for TrackerAgent {
                 let _ = self
                     .session
                     .put(key, bytes)
-                    .encoding(offworld_runtime::zenoh::bytes::Encoding::APPLICATION_CDR)
-                    .attachment(seal.map(offworld_runtime::zenoh::bytes::ZBytes::from))
+                    .encoding(zenoh::bytes::Encoding::APPLICATION_CDR)
+                    .attachment(seal.map(zenoh::bytes::ZBytes::from))
                     .wait();
             }
         }

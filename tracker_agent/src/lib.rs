@@ -50,7 +50,7 @@
 //! # Library use
 //!
 //! ```no_run
-//! # async fn demo(session: offworld_runtime::zenoh::Session) -> Result<(), Box<dyn std::error::Error>> {
+//! # async fn demo(session: zenoh::Session) -> Result<(), Box<dyn std::error::Error>> {
 //! use offworld_tracker_agent::{AgentConfig, Calibration, SourceSpec, TrackerAgent};
 //! let env = "real/monolith-0".parse()?;
 //! let source = "tcp://127.0.0.1:6969".parse::<SourceSpec>()?.open().await?;

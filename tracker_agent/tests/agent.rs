@@ -13,10 +13,6 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{PoseStamped, Time, TrackingStatus};
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
-use offworld_runtime::zenoh::handlers::FifoChannelHandler;
-use offworld_runtime::zenoh::pubsub::Subscriber;
-use offworld_runtime::zenoh::sample::Sample;
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{Component, EnvId, Topic};
 use offworld_tracker_agent::calibration::{rosbot_mount, ReferenceFile, ReferencePoint};
 use offworld_tracker_agent::source::{Backoff, LineSource, TcpLineSource, UdpLineSource};
@@ -24,6 +20,10 @@ use offworld_tracker_agent::{
     AgentConfig, AgentStats, Calibration, PoseSource, ProtocolErrorKind, SourceError, SourceSpec,
     TrackerAgent, TrackerSample,
 };
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+use zenoh::Session;
 
 const DEVICE: &str = "LHR-0A1B2C3D";
 

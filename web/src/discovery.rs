@@ -22,9 +22,9 @@ use offworld_runtime::msg::{
     Leaderboard, MotionFault, TrackingStatus,
 };
 use offworld_runtime::operator::{press_estop, EStopScope, PressError, PressReport};
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::{codec, WireError};
 use tokio::sync::{watch, Notify};
+use zenoh::Session;
 
 use crate::model::{DeploymentView, EnvView, FaultView, Snapshot, TrackingView};
 
@@ -299,7 +299,7 @@ async fn follow<T: serde::de::DeserializeOwned>(
     inner: &Arc<Inner>,
     topic: Topic,
     received: impl Fn(&Inner, EnvId, T) + Send + Sync + 'static,
-) -> Result<offworld_runtime::zenoh::pubsub::Subscriber<()>, WireError> {
+) -> Result<zenoh::pubsub::Subscriber<()>, WireError> {
     let weak = Arc::downgrade(inner);
     session
         .declare_subscriber(keys::topic_on_all_envs(topic))

@@ -40,10 +40,10 @@ pub mod thumbnails;
 
 use std::net::SocketAddr;
 
-use offworld_runtime::zenoh::Session;
 use offworld_runtime::WireError;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
+use zenoh::Session;
 
 pub use discovery::{Discovery, DiscoveryConfig};
 pub use server::Limits;

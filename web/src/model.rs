@@ -41,8 +41,9 @@ pub struct DeploymentView {
 
 /// The one-word state of an env, most urgent first: an offline env's
 /// other fields are stale, and an e-stop stops a leased env too.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, strum::IntoStaticStr)]
 #[serde(rename_all = "snake_case")]
+#[strum(serialize_all = "snake_case")]
 pub enum StateKind {
     /// No controller answers for it, or its robot or twin is missing.
     Offline,
@@ -59,13 +60,7 @@ pub enum StateKind {
 impl StateKind {
     /// The JSON and CSS name.
     pub fn as_str(self) -> &'static str {
-        match self {
-            StateKind::Offline => "offline",
-            StateKind::Estopped => "estopped",
-            StateKind::Maintenance => "maintenance",
-            StateKind::Leased => "leased",
-            StateKind::Free => "free",
-        }
+        self.into()
     }
 }
 

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{CameraFrameView, ImageView, PixelEncoding};
-use offworld_runtime::zenoh::Session;
+use zenoh::Session;
 
 /// A thumbnail is served from the cache for this long.
 pub const MAX_AGE: Duration = Duration::from_secs(2);
@@ -23,7 +23,8 @@ pub const WAIT: Duration = Duration::from_millis(1500);
 pub const MAX_WIDTH: u32 = 240;
 
 /// Which view.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, strum::IntoStaticStr)]
+#[strum(serialize_all = "snake_case")]
 pub enum View {
     /// The robot's camera (`obs`, its colour image).
     Camera,
@@ -34,10 +35,7 @@ pub enum View {
 impl View {
     /// The URL's and the page's name.
     pub fn as_str(self) -> &'static str {
-        match self {
-            View::Camera => "camera",
-            View::Overhead => "overhead",
-        }
+        self.into()
     }
 
     fn key(self, env: &EnvId) -> String {
@@ -144,7 +142,7 @@ impl Thumbnails {
         let subscriber = self
             .session
             .declare_subscriber(view.key(env))
-            .with(offworld_runtime::zenoh::handlers::RingChannel::new(1))
+            .with(zenoh::handlers::RingChannel::new(1))
             .await
             .map_err(|e| ThumbnailError::Zenoh(e.to_string()))?;
         let sample = tokio::time::timeout(WAIT, subscriber.recv_async()).await;

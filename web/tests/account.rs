@@ -27,9 +27,9 @@ use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::msg::{AlgorithmMode, ObsOptions, OpenRequest, Seed};
 use offworld_runtime::session::loopback_pair;
-use offworld_runtime::zenoh::Session;
 use offworld_web::{LabWeb, WebOptions};
 use serde_json::Value;
+use zenoh::Session;
 
 /// Bound of every wait for something that must happen (never a speed).
 mod common;

@@ -22,9 +22,9 @@ use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::msg::{AlgorithmMode, ObsOptions, OpenRequest, Seed};
 use offworld_runtime::session::{loopback_pair, SessionConfig};
-use offworld_runtime::zenoh::Session;
 use offworld_web::{DiscoveryConfig, LabWeb, Limits, WebOptions};
 use serde_json::{json, Value};
+use zenoh::Session;
 
 /// Bound of every wait for something that must happen (never a speed).
 mod common;

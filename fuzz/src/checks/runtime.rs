@@ -19,10 +19,10 @@ use offworld_runtime::estop;
 use offworld_runtime::keys::{EnvId, Realm, Topic};
 use offworld_runtime::msg::*;
 use offworld_runtime::ros2::{KeyStyle, RmwAttachment, RosGraph, RosType, RMW_ATTACHMENT_LEN};
-use offworld_runtime::zenoh::bytes::ZBytes;
-use offworld_runtime::zenoh::key_expr::KeyExpr;
 use offworld_runtime::{DecodeError, ErrorCode, WireError};
 use serde::{de::DeserializeOwned, Serialize};
+use zenoh::bytes::ZBytes;
+use zenoh::key_expr::KeyExpr;
 
 /// A framed CDR input.
 struct Framed<'a> {

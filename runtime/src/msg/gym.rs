@@ -112,29 +112,53 @@ impl ObsArray {
 }
 
 /// What kind of learning an experiment does (the original's `learning_type`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Hash,
+    Serialize,
+    Deserialize,
+    strum::IntoStaticStr,
+    strum::EnumIter,
+    strum::VariantNames,
+)]
 pub enum LearningType {
-    /// Trained on the real robot from scratch ("end2end").
+    /// Trained on the real robot from scratch.
+    #[strum(serialize = "end2end")]
     EndToEnd,
-    /// Trained in sim, evaluated on the real robot ("sim2real").
+    /// Trained in sim, evaluated on the real robot.
+    #[strum(serialize = "sim2real")]
     SimToReal,
-    /// From human demonstrations ("humandemos").
+    /// From human demonstrations.
+    #[strum(serialize = "humandemos")]
     HumanDemos,
 }
 
 impl LearningType {
     /// The original's string.
     pub fn as_str(self) -> &'static str {
-        match self {
-            LearningType::EndToEnd => "end2end",
-            LearningType::SimToReal => "sim2real",
-            LearningType::HumanDemos => "humandemos",
-        }
+        self.into()
     }
 }
 
 /// Train or test; test runs count for the leaderboard.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Hash,
+    Serialize,
+    Deserialize,
+    strum::IntoStaticStr,
+    strum::EnumIter,
+    strum::VariantNames,
+)]
+#[strum(serialize_all = "snake_case")]
 pub enum AlgorithmMode {
     /// Training.
     Train,
@@ -145,10 +169,7 @@ pub enum AlgorithmMode {
 impl AlgorithmMode {
     /// The original's string.
     pub fn as_str(self) -> &'static str {
-        match self {
-            AlgorithmMode::Train => "train",
-            AlgorithmMode::Test => "test",
-        }
+        self.into()
     }
 }
 

@@ -207,27 +207,28 @@ pub struct Odometry {
 }
 
 /// Pixel encodings we produce and accept (`sensor_msgs/image_encodings`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumIter, strum::VariantNames,
+)]
 pub enum PixelEncoding {
     /// 3 × u8, red first.
+    #[strum(serialize = "rgb8")]
     Rgb8,
     /// 3 × u8, blue first (some cameras; converted on ingest).
+    #[strum(serialize = "bgr8")]
     Bgr8,
     /// Depth, u16 millimetres, 0 = invalid.
+    #[strum(serialize = "16UC1")]
     Depth16UC1,
     /// Depth, f32 metres, NaN = invalid.
+    #[strum(serialize = "32FC1")]
     Depth32FC1,
 }
 
 impl PixelEncoding {
     /// The ROS encoding string.
     pub fn as_str(self) -> &'static str {
-        match self {
-            PixelEncoding::Rgb8 => "rgb8",
-            PixelEncoding::Bgr8 => "bgr8",
-            PixelEncoding::Depth16UC1 => "16UC1",
-            PixelEncoding::Depth32FC1 => "32FC1",
-        }
+        self.into()
     }
 
     /// Bytes per pixel.
@@ -241,9 +242,7 @@ impl PixelEncoding {
 
     /// Parses a ROS encoding string.
     pub fn parse(s: &str) -> Option<Self> {
-        [Self::Rgb8, Self::Bgr8, Self::Depth16UC1, Self::Depth32FC1]
-            .into_iter()
-            .find(|e| e.as_str() == s)
+        crate::named::parse("encoding", s).ok()
     }
 }
 
