@@ -670,9 +670,17 @@ fn whoami<'py>(
 }
 
 /// The native half of `offworld_gym`.
+/// The names of the tasks the controller serves (`env_controller/tasks.toml`),
+/// from which the gymnasium ids are made.
+#[pyfunction]
+fn task_names() -> Vec<String> {
+    offworld_env_controller::Task::names()
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<NativeEnvs>()?;
+    m.add_function(wrap_pyfunction!(task_names, m)?)?;
     m.add_function(wrap_pyfunction!(list_envs, m)?)?;
     m.add_function(wrap_pyfunction!(book, m)?)?;
     m.add_function(wrap_pyfunction!(bookings, m)?)?;

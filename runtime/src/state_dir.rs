@@ -10,9 +10,10 @@ use crate::error::ContractError;
 
 /// `<state dir>/offworld/<component>/<file>`; under systemd's
 /// `StateDirectory=` the unit already names the component's directory, so
-/// `$STATE_DIRECTORY/<file>`. With no location at all (no `HOME`, no
-/// systemd state directory) an error naming `flag`, which sets the path
-/// instead: a component that needs the file must not run without it.
+/// `$STATE_DIRECTORY/<file>`. With no location at all (no systemd state
+/// directory, no `HOME` and no home in the user database) an error naming
+/// `flag`, which sets the path instead: a component that needs the file
+/// must not run without it.
 pub fn state_file(component: &str, file: &str, flag: &str) -> Result<PathBuf, ContractError> {
     let systemd =
         std::env::var_os("STATE_DIRECTORY").map(|dirs| dirs.to_string_lossy().into_owned());

@@ -10,6 +10,9 @@ __version__: str
 # Errors are raised as the classes of `offworld_gym.errors`; Ctrl-C during
 # any call that waits raises KeyboardInterrupt.
 
+def task_names() -> list[str]:
+    """The tasks the controller serves (``env_controller/tasks.toml``)."""
+
 class NativeEnvs:
     """N envs of one task, opened on a deployment (embedded or remote).
 

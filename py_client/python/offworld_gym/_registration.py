@@ -4,20 +4,23 @@ from __future__ import annotations
 
 import gymnasium
 
+from offworld_gym import _native
+
 _ENTRY = "offworld_gym.envs.offworld_monolith:OffWorldMonolithEnv"
 _VECTOR_ENTRY = "offworld_gym.envs.vector:OffWorldMonolithVectorEnv"
 
 
 def _ids() -> dict[str, tuple[str, str]]:
-    ids: dict[str, tuple[str, str]] = {}
-    for world in ("Monolith", "MonolithObstacle"):
-        for action in ("Discrete", "Continuous"):
-            for realm in ("Real", "Sim"):
-                ids[f"OffWorld{world}{action}{realm}-v0"] = (f"{world}{action}", realm.lower())
-    return ids
+    """`OffWorld<task><Realm>-v0` for every task of the controller's table."""
+    return {
+        f"OffWorld{task}{realm.capitalize()}-v0": (task, realm)
+        for task in _native.task_names()
+        for realm in ("real", "sim")
+    }
 
 
-#: id -> (task, realm) for the eight current ids.
+#: id -> (task, realm) for the current ids (eight: two worlds × two action
+#: spaces × real and sim).
 ENV_IDS: dict[str, tuple[str, str]] = _ids()
 
 #: Spellings found in users' scripts of the original OffWorld Gym.
