@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 
 const EXAMPLES: &str = "\
 Examples:
@@ -61,6 +61,15 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if cli.db.is_some() && !matches!(cli.command, Command::Controller(_)) {
+        // Said, not ignored: a site file named for a command that keeps no records.
+        Cli::command()
+            .error(
+                clap::error::ErrorKind::ArgumentConflict,
+                "--db names the gym server's database: it is for serve, users, experiments and leaderboard",
+            )
+            .exit();
+    }
     match cli.command {
         Command::Controller(command) => offworld_env_controller::cli::run_command(cli.db, command),
         Command::Twin(args) => offworld_sim_twin::cli::run(args),
@@ -77,7 +86,6 @@ fn main() -> ExitCode {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use clap::CommandFactory;
     use std::path::Path;
 
     #[test]

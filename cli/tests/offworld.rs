@@ -128,6 +128,15 @@ fn failures_exit_non_zero_with_the_programs_message() {
     assert!(message.starts_with("recorder: "), "{message}");
     assert!(message.contains("no-such-dir"), "{message}");
 
+    // A database named for a command that keeps no records: refused, not ignored.
+    let misplaced = offworld(&["--db", "site.db", "recorder", "info", "x.mcap"]);
+    assert_eq!(misplaced.status.code(), Some(2));
+    let message = text(&misplaced.stderr);
+    assert!(
+        message.contains("--db names the gym server's database"),
+        "{message}"
+    );
+
     // A mistyped subcommand: clap's usage error (status 2) with a suggestion.
     let typo = offworld(&["monitr"]);
     assert_eq!(typo.status.code(), Some(2));

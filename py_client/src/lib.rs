@@ -669,7 +669,6 @@ fn whoami<'py>(
     Ok(dict)
 }
 
-/// The native half of `offworld_gym`.
 /// The names of the tasks the controller serves (`env_controller/tasks.toml`),
 /// from which the gymnasium ids are made.
 #[pyfunction]
@@ -677,6 +676,7 @@ fn task_names() -> Vec<String> {
     offworld_env_controller::Task::names()
 }
 
+/// The native half of `offworld_gym`.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<NativeEnvs>()?;

@@ -122,6 +122,16 @@ pub async fn spawn<H: RobotHardware>(
         .map_err(|e| AgentError::Config(format!("navigation map: {e}")))?;
     let latch = config.estop_latch.clone().map(EStopLatch::new);
     let estops = recall_estops(session, &env, latch.as_ref()).await;
+    if let Some(file) = &latch {
+        // Written now: an agent that could not remember an e-stop must not
+        // run (it would come back released after a restart).
+        file.store(&estops).map_err(|e| {
+            AgentError::Config(format!(
+                "cannot write the e-stop latch {}: {e} (choose a writable file with --estop-latch)",
+                file.path().display()
+            ))
+        })?;
+    }
     let (estop_tx, estop_rx) = watch::channel(estops.clone());
     let (tx, events) = mpsc::channel::<Event>(QUEUE);
     let (pose_tx, poses) = watch::channel(None);

@@ -32,8 +32,9 @@ pub struct Args {
     #[arg(long)]
     watchdog_ms: Option<u64>,
     /// File that remembers an engaged e-stop across restarts (overrides
-    /// the config; default `<env>.estop` in `$STATE_DIRECTORY`, else in
-    /// `offworld/robot_agent/` of `$XDG_STATE_HOME` or `~/.local/state`).
+    /// the config; default `offworld/robot_agent/<env>.estop` in
+    /// `$XDG_STATE_HOME`, else `~/.local/state`, else, without `HOME`,
+    /// `/var/lib`). The agent refuses to start if it cannot write it.
     #[arg(long)]
     estop_latch: Option<PathBuf>,
     /// The site's keys (override the config's `command_key`, `tracker_key`).

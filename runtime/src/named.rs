@@ -27,7 +27,7 @@ fn one_of(names: &[&str]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::keys::{Realm, Topic};
+    use crate::keys::{Component, Realm, Topic};
     use crate::msg::{LearningType, PixelEncoding};
 
     #[test]
@@ -50,7 +50,7 @@ mod tests {
     }
 
     #[test]
-    fn every_topic_has_its_wire_name() {
+    fn every_topic_and_component_has_its_wire_name() {
         // The key chunks are the contract: these never change silently.
         let names: Vec<&str> = Topic::iter().map(Topic::as_str).collect();
         assert_eq!(
@@ -79,6 +79,26 @@ mod tests {
                 "leaderboard",
                 "book",
                 "experiments",
+            ]
+        );
+        let components = [
+            Component::Controller,
+            Component::SimTwin,
+            Component::RobotAgent,
+            Component::TrackerAgent,
+            Component::Monitor,
+            Component::BaseGuard,
+        ]
+        .map(Component::as_str);
+        assert_eq!(
+            components,
+            [
+                "controller",
+                "sim_twin",
+                "robot_agent",
+                "tracker_agent",
+                "monitor",
+                "base_guard"
             ]
         );
     }

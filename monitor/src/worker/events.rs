@@ -1,0 +1,333 @@
+//! Episode events, tracking, status, e-stops, liveliness and the
+//! monitor's own health, as scalars and text logs.
+
+use super::motion::trajectory;
+use super::*;
+
+impl Worker {
+    pub(super) fn on_reward(
+        &mut self,
+        env: &EnvId,
+        sample: &Sample,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let event: EpisodeEvent = codec::decode_payload(sample.payload())?;
+        self.maybe_retry_world(env);
+        self.log_episode_event(env, &event, None, wall)
+    }
+
+    /// An episode's reset or step (`reward`, or a recording's
+    /// `/offworld/step`): reward and return, episode start and end, the
+    /// trajectory restarted at a reset. At the env's current step; on
+    /// `sim_time` too when `stamp` is given (the step's frame).
+    pub fn log_episode_event(
+        &mut self,
+        env: &EnvId,
+        event: &EpisodeEvent,
+        stamp: Option<&Time>,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let view = self.view(env);
+        let step = view.seq;
+        let new_episode = event.step == 0 || view.episode != Some(event.episode_id);
+        view.episode = Some(event.episode_id);
+        if event.step == 0 {
+            // The reset's pose is this episode's first point.
+            view.trajectory.clear();
+            if let Some(p) = view.last_pose {
+                view.trajectory.push([p.x as f32, p.y as f32, p.z as f32]);
+            }
+        }
+        let ended = event.terminated || event.truncated;
+        let strip = (event.step == 0 || (ended && view.trajectory_dirty)).then(|| {
+            view.trajectory_dirty = false;
+            view.trajectory_logged = Some(wall);
+            view.trajectory.clone()
+        });
+        self.set_times(step, stamp, wall);
+        if event.step == 0 {
+            self.anchor_odom(env)?;
+        }
+        if let Some(strip) = strip {
+            self.rec
+                .log(env_path(env, paths::TRAJECTORY), &trajectory(strip))?;
+        }
+        let stamp = Self::stamp(step, stamp, wall);
+        self.columns.push(
+            env_path(env, paths::REWARD),
+            stamp,
+            Row::Scalar(event.reward),
+        );
+        self.columns.push(
+            env_path(env, paths::RETURN),
+            stamp,
+            Row::Scalar(event.episode_return),
+        );
+        if new_episode {
+            let experiment = if event.experiment.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", event.experiment)
+            };
+            self.rec.log(
+                env_path(env, paths::EVENTS),
+                &TextLog::new(format!("episode {} started{experiment}", event.episode_id))
+                    .with_level(rerun::TextLogLevel::INFO),
+            )?;
+        }
+        if ended {
+            self.rec.log(
+                env_path(env, paths::SUCCESS),
+                &Scalars::single(if event.success { 1.0 } else { 0.0 }),
+            )?;
+            self.rec.log(
+                env_path(env, paths::EPISODE_LENGTH),
+                &Scalars::single(f64::from(event.step)),
+            )?;
+            let how = if event.end_reason.is_empty() {
+                if event.truncated {
+                    "truncated"
+                } else {
+                    "terminated"
+                }
+            } else {
+                event.end_reason.as_str()
+            };
+            self.log_end_text(env, event, how)?;
+        }
+        self.count(&self.shared.counters.rewards);
+        Ok(())
+    }
+
+    /// An episode that ended without a terminal step (a reset or a close
+    /// came first, or its recording stopped), as a recording's
+    /// `/offworld/episode_end` tells: the event log only (success and
+    /// length are for episodes that terminated or were truncated). `last`
+    /// is its last step, `how` why it ended.
+    pub fn log_episode_stopped(
+        &mut self,
+        env: &EnvId,
+        last: &EpisodeEvent,
+        how: &str,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let step = self.view(env).seq;
+        self.set_times(step, None, wall);
+        self.log_end_text(env, last, how)
+    }
+
+    /// "episode … ended after … steps" in the env's event log (at the times
+    /// set).
+    pub(super) fn log_end_text(
+        &self,
+        env: &EnvId,
+        last: &EpisodeEvent,
+        how: &str,
+    ) -> Result<(), Skip> {
+        self.rec.log(
+            env_path(env, paths::EVENTS),
+            &TextLog::new(format!(
+                "episode {} ended after {} steps: {how} (return {:.3}{})",
+                last.episode_id,
+                last.step,
+                last.episode_return,
+                if last.success { ", success" } else { "" }
+            ))
+            .with_level(if last.success {
+                rerun::TextLogLevel::INFO
+            } else {
+                rerun::TextLogLevel::WARN
+            }),
+        )?;
+        Ok(())
+    }
+
+    pub(super) fn on_tracking(
+        &mut self,
+        env: &EnvId,
+        sample: &Sample,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let status: TrackingStatus = codec::decode_payload(sample.payload())?;
+        let view = self.view(env);
+        let step = view.seq;
+        if view.tracking == Some(status.tracking) {
+            return Ok(());
+        }
+        view.tracking = Some(status.tracking);
+        self.set_times(step, None, wall);
+        let (text, level) = if status.tracking {
+            ("tracking ok".to_owned(), rerun::TextLogLevel::INFO)
+        } else {
+            (
+                format!("tracking lost: {}", status.reason),
+                rerun::TextLogLevel::WARN,
+            )
+        };
+        self.rec.log(
+            env_path(env, paths::EVENTS),
+            &TextLog::new(text).with_level(level),
+        )?;
+        Ok(())
+    }
+
+    pub(super) fn on_status(
+        &mut self,
+        env: &EnvId,
+        sample: &Sample,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let status: EnvStatus = codec::decode_payload(sample.payload())?;
+        self.count(&self.shared.counters.statuses);
+        self.maybe_retry_world(env);
+        let view = self.view(env);
+        let step = view.seq;
+        let reset = status.last_reset;
+        if reset.measured && view.last_reset_ms != Some(reset.unix_ms) {
+            view.last_reset_ms = Some(reset.unix_ms);
+            self.set_times(step, None, wall);
+            for (path, value) in [
+                (paths::RESET_POSITION_ERROR, reset.position_error_m),
+                (paths::RESET_YAW_ERROR, reset.yaw_error_rad),
+                (paths::RESET_DURATION, reset.duration_s),
+            ] {
+                self.rec.log(env_path(env, path), &Scalars::single(value))?;
+            }
+        }
+        let view = self.view(env);
+        if view
+            .status
+            .as_ref()
+            .is_some_and(|s| same_status_kind(s, &status.state))
+        {
+            return Ok(());
+        }
+        let level = match status.state {
+            EnvState::Free | EnvState::Leased { .. } => rerun::TextLogLevel::INFO,
+            EnvState::Maintenance { .. } | EnvState::Offline { .. } => rerun::TextLogLevel::WARN,
+        };
+        let text = status_text(&status.state);
+        view.status = Some(status.state);
+        self.set_times(step, None, wall);
+        self.rec.log(
+            env_path(env, paths::EVENTS),
+            &TextLog::new(text).with_level(level),
+        )?;
+        Ok(())
+    }
+
+    pub(super) fn estop_log(&self, path: String, stop: &EStop) -> Result<(), Skip> {
+        let (text, level) = if stop.engaged {
+            (
+                format!("e-stop engaged: {}", stop.reason),
+                rerun::TextLogLevel::ERROR,
+            )
+        } else {
+            (
+                format!("e-stop released: {}", stop.reason),
+                rerun::TextLogLevel::INFO,
+            )
+        };
+        self.rec.log(path, &TextLog::new(text).with_level(level))?;
+        Ok(())
+    }
+
+    pub(super) fn on_env_estop(
+        &mut self,
+        env: &EnvId,
+        sample: &Sample,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let stop: EStop = codec::decode_payload(sample.payload())?;
+        let view = self.view(env);
+        let step = view.seq;
+        if view.estop == Some(stop.engaged) {
+            return Ok(());
+        }
+        view.estop = Some(stop.engaged);
+        self.set_times(step, None, wall);
+        self.estop_log(env_path(env, paths::EVENTS), &stop)
+    }
+
+    pub(super) fn on_site_estop(&mut self, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
+        let stop: EStop = codec::decode_payload(sample.payload())?;
+        if self.site_estop == Some(stop.engaged) {
+            return Ok(());
+        }
+        self.site_estop = Some(stop.engaged);
+        self.set_times(None, None, wall);
+        self.estop_log(paths::SITE_EVENTS.to_owned(), &stop)
+    }
+
+    pub(super) fn on_alive(
+        &mut self,
+        key: &str,
+        online: bool,
+        wall: SystemTime,
+    ) -> Result<(), Skip> {
+        let Ok(env) = EnvId::from_key(key) else {
+            return Err(Skip::Decode(format!("`{key}` is not an env key")));
+        };
+        let component = key.splitn(6, '/').nth(5).unwrap_or(key).to_owned();
+        if online && component == "controller" {
+            self.maybe_retry_world(&env);
+        }
+        let step = self.view(&env).seq;
+        self.set_times(step, None, wall);
+        let text = format!("{component} {}", if online { "online" } else { "offline" });
+        let level = if online {
+            rerun::TextLogLevel::DEBUG
+        } else {
+            rerun::TextLogLevel::WARN
+        };
+        self.rec.log(
+            env_path(&env, paths::EVENTS),
+            &TextLog::new(text).with_level(level),
+        )?;
+        Ok(())
+    }
+
+    pub(super) fn log_health(&mut self) {
+        self.last_health = Some(Instant::now());
+        let stats = self.shared.stats();
+        self.set_times(None, None, SystemTime::now());
+        let result = (|| -> Result<(), rerun::RecordingStreamError> {
+            self.rec.log(
+                paths::MONITOR_DROPPED_FRAMES,
+                &Scalars::single(stats.dropped_frames as f64),
+            )?;
+            self.rec.log(
+                paths::MONITOR_DROPPED_MESSAGES,
+                &Scalars::single(stats.dropped_messages as f64),
+            )?;
+            self.rec.log(
+                paths::MONITOR_DECODE_ERRORS,
+                &Scalars::single(stats.decode_errors as f64),
+            )?;
+            Ok(())
+        })();
+        if let Err(e) = result {
+            self.count(&self.shared.counters.log_errors);
+            tracing::debug!("monitor could not log its health: {e}");
+        }
+    }
+}
+
+pub(super) fn status_text(state: &EnvState) -> String {
+    match state {
+        EnvState::Free => "status: free".into(),
+        EnvState::Leased { .. } => "status: leased".into(),
+        EnvState::Maintenance { message, by, .. } => {
+            format!("status: maintenance by {by} ({message})")
+        }
+        EnvState::Offline { reason } => format!("status: offline ({reason})"),
+    }
+}
+
+pub(super) fn same_status_kind(a: &EnvState, b: &EnvState) -> bool {
+    match (a, b) {
+        // A lease renewal is not news.
+        (EnvState::Leased { .. }, EnvState::Leased { .. }) => true,
+        _ => a == b,
+    }
+}
