@@ -1372,6 +1372,34 @@ async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() 
     rig.finish().await;
 }
 
+/// An agent that could not remember an e-stop across a restart refuses to
+/// run: its latch is written at start, and a path it cannot write (here a
+/// directory that is a file) is a configuration error naming the file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_agent_that_cannot_write_its_latch_refuses_to_start() {
+    let file = std::env::temp_dir().join(format!(
+        "offworld-agent-latch-file-{}",
+        offworld_runtime::client::random_id()
+    ));
+    std::fs::write(&file, b"not a directory").expect("a plain file");
+    let config = AgentConfig {
+        estop_latch: Some(file.join("estop")),
+        ..config()
+    };
+    let (_listener, session) = loopback_pair().await.expect("sessions");
+    let env = EnvId::real("latch-unwritable").expect("env");
+    let refused = offworld_robot_agent::spawn(&session, env, config, RecordingRobot::new()).await;
+    let _ = std::fs::remove_file(&file);
+    match refused {
+        Err(AgentError::Config(why)) => {
+            assert!(why.contains("cannot write the e-stop latch"), "{why}");
+            assert!(why.contains("--estop-latch"), "{why}");
+        }
+        Err(other) => panic!("not a configuration error: {other}"),
+        Ok(_) => panic!("an agent without a writable latch started"),
+    }
+}
+
 /// A starting agent without a latch file learns the site latch from the
 /// network: another agent of the site answers `estop_state`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
