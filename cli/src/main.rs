@@ -61,7 +61,12 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    if cli.db.is_some() && !matches!(cli.command, Command::Controller(_)) {
+    let keeps_records = matches!(
+        &cli.command,
+        Command::Controller(command)
+            if !matches!(command, offworld_env_controller::cli::Command::Estop { .. })
+    );
+    if cli.db.is_some() && !keeps_records {
         // Said, not ignored: a site file named for a command that keeps no records.
         Cli::command()
             .error(

@@ -76,11 +76,7 @@ async fn main_async(args: Args) -> anyhow::Result<()> {
     if config.estop_latch.is_none() {
         // Never none: an agent without a latch would forget an e-stop on restart.
         let file = format!("{}.estop", args.env.to_string().replace('/', "+"));
-        config.estop_latch = Some(state_dir::state_file(
-            "robot_agent",
-            &file,
-            "--estop-latch",
-        )?);
+        config.estop_latch = Some(state_dir::state_file("robot_agent", &file));
     }
     if let Some(path) = &config.estop_latch {
         tracing::info!(path = %path.display(), "e-stop latch");

@@ -1394,6 +1394,10 @@ async fn an_agent_that_cannot_write_its_latch_refuses_to_start() {
         Err(AgentError::Config(why)) => {
             assert!(why.contains("cannot write the e-stop latch"), "{why}");
             assert!(why.contains("--estop-latch"), "{why}");
+            assert!(
+                why.contains(&*file.to_string_lossy()),
+                "the file is named: {why}"
+            );
         }
         Err(other) => panic!("not a configuration error: {other}"),
         Ok(_) => panic!("an agent without a writable latch started"),

@@ -1,47 +1,32 @@
 //! Where a component keeps what must outlive it (the robot agent's e-stop
-//! latch), by the platform's convention: the user's state directory
-//! (`dirs`: `$XDG_STATE_HOME`, else `~/.local/state`; the local data
-//! directory where a platform has no state directory), and for a service
-//! started without `HOME` (systemd runs root's services so) the system's,
-//! `/var/lib`.
+//! latch): `$XDG_STATE_HOME`, else `~/.local/state`, else, for a service
+//! started without `HOME` (systemd runs root's services so), the system's
+//! `/var/lib`. Written by hand rather than with `dirs`: these are exactly
+//! the paths the agent has always used, and a latch that moved with an
+//! upgrade would be a latch forgotten (`dirs` ignores a relative
+//! `XDG_STATE_HOME` and asks the user database when `HOME` is unset).
 
-use std::path::{Path, PathBuf};
-
-use crate::error::ContractError;
+use std::ffi::OsString;
+use std::path::PathBuf;
 
 /// The system's state directory, for services without a `HOME`.
 const SYSTEM_STATE: &str = "/var/lib";
 
-/// `<state dir>/offworld/<component>/<file>`. With no location at all (a
-/// `HOME` set but no state directory the platform knows) an error naming
-/// `flag`, which sets the path instead: a component that needs the file
-/// must not run without it.
-pub fn state_file(component: &str, file: &str, flag: &str) -> Result<PathBuf, ContractError> {
-    let has_home = std::env::var_os("HOME").is_some_and(|home| !home.is_empty());
-    let user = has_home
-        .then(|| dirs::state_dir().or_else(dirs::data_local_dir))
-        .flatten();
-    locate(has_home, user, component, file, flag)
+/// `<state dir>/offworld/<component>/<file>`. Never none: a component that
+/// needs the file checks that it can write it (the robot agent refuses to
+/// start otherwise, naming its flag).
+pub fn state_file(component: &str, file: &str) -> PathBuf {
+    locate(std::env::var_os("XDG_STATE_HOME"), std::env::var_os("HOME"))
+        .join("offworld")
+        .join(component)
+        .join(file)
 }
 
-fn locate(
-    has_home: bool,
-    user: Option<PathBuf>,
-    component: &str,
-    file: &str,
-    flag: &str,
-) -> Result<PathBuf, ContractError> {
-    let dir = if has_home {
-        user
-    } else {
-        Some(Path::new(SYSTEM_STATE).to_path_buf())
-    };
-    dir.map(|dir| dir.join("offworld").join(component).join(file))
-        .ok_or_else(|| {
-            ContractError::Config(format!(
-                "no state directory for {component}'s {file} on this platform; pass {flag} PATH"
-            ))
-        })
+fn locate(xdg_state_home: Option<OsString>, home: Option<OsString>) -> PathBuf {
+    xdg_state_home
+        .map(PathBuf::from)
+        .or_else(|| home.map(|home| PathBuf::from(home).join(".local/state")))
+        .unwrap_or_else(|| PathBuf::from(SYSTEM_STATE))
 }
 
 #[cfg(test)]
@@ -49,27 +34,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_user_state_dir_a_service_without_home_var_lib_else_an_error_naming_the_flag() {
-        let at = |has_home, user| {
-            locate(
-                has_home,
-                user,
-                "robot_agent",
-                "real+a.estop",
-                "--estop-latch",
-            )
-        };
+    fn xdg_state_home_then_home_then_var_lib() {
+        let os = |s: &str| Some(OsString::from(s));
         assert_eq!(
-            at(true, Some(PathBuf::from("/home/op/.local/state"))).expect("the user's directory"),
-            PathBuf::from("/home/op/.local/state/offworld/robot_agent/real+a.estop")
+            locate(os("/state"), os("/home/op")),
+            PathBuf::from("/state")
         );
         assert_eq!(
-            at(false, None).expect("the system's directory"),
-            PathBuf::from("/var/lib/offworld/robot_agent/real+a.estop")
+            locate(None, os("/home/op")),
+            PathBuf::from("/home/op/.local/state")
         );
-        let ContractError::Config(why) = at(true, None).expect_err("nowhere") else {
-            panic!("not a config error");
-        };
-        assert!(why.contains("pass --estop-latch PATH"), "{why}");
+        assert_eq!(locate(os("/state"), None), PathBuf::from("/state"));
+        assert_eq!(locate(None, None), PathBuf::from("/var/lib"));
     }
 }
