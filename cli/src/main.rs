@@ -1,7 +1,8 @@
 //! `offworld`: every OffWorld Gym program behind one command, with the
 //! flags each program has on its own (`offworld twin` is `sim_twin`,
-//! `offworld serve` is `env_controller serve`, …): the per-component
-//! binaries stay for site services (systemd units run one each).
+//! `offworld serve` is `env_controller serve` plus in-process twins on
+//! request, …): the per-component binaries stay for site services
+//! (systemd units run one each).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -36,10 +37,16 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Serve envs over Zenoh (`env_controller serve`), with an in-process
+    /// twin for every sim env on request.
+    Serve(offworld_deploy::cli::serve::Args),
     #[command(flatten)]
     Controller(offworld_env_controller::cli::Command),
     /// Serve a simulated enclosure (`sim_twin`).
     Twin(offworld_sim_twin::cli::Args),
+    /// Emulate the enclosure's hardware with a sim twin: the robot's ROS 2
+    /// topics and a raw tracker stream, for the real stack to drive.
+    EmulateHardware(offworld_deploy::cli::hardware::Args),
     /// Serve a real enclosure's robot (`robot_agent`).
     Robot(offworld_robot_agent::cli::Args),
     /// Zero the robot's base when the robot agent dies, freezes or goes
@@ -61,11 +68,13 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let keeps_records = matches!(
-        &cli.command,
-        Command::Controller(command)
-            if !matches!(command, offworld_env_controller::cli::Command::Estop { .. })
-    );
+    let keeps_records = match &cli.command {
+        Command::Serve(_) => true,
+        Command::Controller(command) => {
+            !matches!(command, offworld_env_controller::cli::Command::Estop { .. })
+        }
+        _ => false,
+    };
     if cli.db.is_some() && !keeps_records {
         // Said, not ignored: a site file named for a command that keeps no records.
         Cli::command()
@@ -76,8 +85,10 @@ fn main() -> ExitCode {
             .exit();
     }
     match cli.command {
+        Command::Serve(args) => offworld_deploy::cli::serve::run(cli.db, args),
         Command::Controller(command) => offworld_env_controller::cli::run_command(cli.db, command),
         Command::Twin(args) => offworld_sim_twin::cli::run(args),
+        Command::EmulateHardware(args) => offworld_deploy::cli::hardware::run(args),
         Command::Robot(args) => offworld_robot_agent::cli::run(args),
         Command::Guard(args) => offworld_robot_agent::guard_cli::run(args),
         Command::Tracker(args) => offworld_tracker_agent::cli::run(args),

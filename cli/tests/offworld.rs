@@ -8,13 +8,14 @@ use std::process::{Command, Output};
 use offworld_env_controller::Store;
 use offworld_test_support::ScratchDir;
 
-const SUBCOMMANDS: [&str; 13] = [
+const SUBCOMMANDS: [&str; 14] = [
     "serve",
     "users",
     "experiments",
     "leaderboard",
     "estop",
     "twin",
+    "emulate-hardware",
     "robot",
     "guard",
     "tracker",

@@ -25,7 +25,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;

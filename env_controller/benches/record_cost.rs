@@ -21,7 +21,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use offworld_env_controller::deployment::{connect, Target};
+use offworld_deploy::{connect, Target};
 use offworld_recorder::episode_file::{Channel, Compression, EpisodeFile};
 use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
@@ -59,7 +59,7 @@ async fn steps_per_s(
             resolution: (w, h),
             count: 1,
             record: record.map(Path::to_owned),
-            twin_profile: offworld_sim_twin::TwinProfile::default(),
+            twin_profile: offworld_deploy::TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

@@ -10,7 +10,7 @@
 
 use std::time::{Duration, Instant};
 
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;

@@ -5,7 +5,7 @@
 
 use std::time::Instant;
 
-use offworld_env_controller::deployment::{self, Target};
+use offworld_deploy::Target;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 
@@ -20,13 +20,13 @@ async fn main() -> anyhow::Result<()> {
         _ => (84, 84, 1000),
     };
     let task = "MonolithDiscrete";
-    let connection = deployment::connect(
+    let connection = offworld_deploy::connect(
         Target::Embedded {
             task: task.into(),
             resolution: (w, h),
             count: 1,
             record: None,
-            twin_profile: offworld_sim_twin::TwinProfile::default(),
+            twin_profile: offworld_deploy::TwinProfile::default(),
         },
         task,
     )

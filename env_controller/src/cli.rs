@@ -1,7 +1,7 @@
 //! `env_controller`: the gym server and its record-keeping CLI.
 //!
 //! ```text
-//! env_controller serve --env sim/monolith-0=MonolithDiscrete [--embedded-twins [--twin-profile FILE]]
+//! env_controller serve --env real/monolith-0=MonolithDiscrete
 //! env_controller users add alice [--operator]
 //! env_controller users list | revoke alice | rotate alice
 //! env_controller experiments list
@@ -9,12 +9,14 @@
 //! env_controller estop --env real/monolith-0 --reason "person in the enclosure" [--release]
 //! env_controller estop --site --reason "fire alarm"
 //! ```
+//!
+//! The server links no simulator: `offworld serve --embedded-twins`
+//! (`offworld_deploy`) adds in-process twins to the same [`ServeArgs`].
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 
-use crate::embedded::{Embedded, SimEnv, TwinProfile};
 use crate::link::LinkSeals;
 use crate::store::{self, BookingRules};
 use crate::{Controller, EnvOptions, RequestLimits, Store, Task};
@@ -23,6 +25,7 @@ use clap::{Parser, Subcommand};
 use offworld_runtime::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::seal::{SealArgs, Sealer};
 use offworld_runtime::{CommonArgs, EnvId, Realm};
+use zenoh::Session;
 
 /// The OffWorld gym server.
 #[derive(Parser)]
@@ -33,7 +36,16 @@ pub struct Args {
     #[arg(long, value_name = "FILE")]
     db: Option<PathBuf>,
     #[command(subcommand)]
-    command: Command,
+    command: ServerCommand,
+}
+
+/// `env_controller`'s commands: serving, and the record-keeping ones.
+#[derive(Subcommand)]
+enum ServerCommand {
+    /// Serve envs over Zenoh.
+    Serve(ServeArgs),
+    #[command(flatten)]
+    Records(Command),
 }
 
 /// The site's database, for the commands that keep records: `--db` on the
@@ -57,64 +69,11 @@ impl Database {
     }
 }
 
-/// What `env_controller` (or `offworld`) does: each variant's fields are
-/// its flags, documented in its `--help`.
+/// What `env_controller` (or `offworld`) does besides serving: each
+/// variant's fields are its flags, documented in its `--help`.
 #[allow(missing_docs)] // The flattened groups and subcommands document their own flags.
 #[derive(Subcommand)]
 pub enum Command {
-    /// Serve envs over Zenoh.
-    Serve {
-        /// `ENV=TASK`, repeatable, e.g. `sim/monolith-0=MonolithDiscrete`.
-        #[arg(long = "env", required = true)]
-        envs: Vec<String>,
-        /// Also run an in-process sim twin for every `sim/` env.
-        #[arg(long)]
-        embedded_twins: bool,
-        /// The embedded twins behave like this physical robot (a twin
-        /// profile, docs/twin-profile.md); default: the nominal twin.
-        #[arg(long, value_name = "FILE", requires = "embedded_twins")]
-        twin_profile: Option<PathBuf>,
-        /// Real envs also put the robot's pose and distance to the monolith
-        /// in each step's info (sim envs always do): privileged information.
-        #[arg(long)]
-        share_real_pose: bool,
-        /// Record every episode of every env served as an MCAP file under
-        /// this directory (see docs/recording.md).
-        #[arg(long, value_name = "DIR", env = "OFFWORLD_RECORD")]
-        record: Option<PathBuf>,
-        /// Lease idle timeout, s.
-        #[arg(long, default_value_t = 300)]
-        lease_idle_s: u64,
-        /// Longest booking slot, minutes.
-        #[arg(long, default_value_t = 240)]
-        max_slot_minutes: u32,
-        /// How far ahead a booking may start, days.
-        #[arg(long, default_value_t = 30)]
-        booking_horizon_days: u32,
-        /// Requests queued or running per env (waiting for its state or the
-        /// store); more are answered Busy at once. `status` and `spec`
-        /// never queue.
-        #[arg(long, default_value_t = RequestLimits::default().env_queue)]
-        env_queue: usize,
-        /// Requests one client may have queued or running per env.
-        #[arg(long, default_value_t = RequestLimits::default().client_queue)]
-        client_queue: usize,
-        /// Requests per second one client may send, sustained.
-        #[arg(long, default_value_t = RequestLimits::default().client_rate_per_s)]
-        client_rate: u32,
-        /// Requests one client may send at once above `--client-rate`.
-        #[arg(long, default_value_t = RequestLimits::default().client_burst)]
-        client_burst: u32,
-        /// Largest request accepted, bytes (larger: BadRequest, undecoded).
-        #[arg(long, default_value_t = RequestLimits::default().max_request_bytes)]
-        max_request_bytes: usize,
-        #[command(flatten)]
-        seals: SealArgs,
-        #[command(flatten)]
-        db: Database,
-        #[command(flatten)]
-        common: CommonArgs,
-    },
     /// Manage users.
     Users {
         #[command(flatten)]
@@ -161,6 +120,162 @@ pub enum Command {
         #[command(flatten)]
         common: CommonArgs,
     },
+}
+
+/// `serve`: the envs, the site's policy and limits, how to reach Zenoh.
+#[derive(clap::Args)]
+pub struct ServeArgs {
+    /// `ENV=TASK`, repeatable, e.g. `sim/monolith-0=MonolithDiscrete`.
+    #[arg(long = "env", required = true)]
+    envs: Vec<String>,
+    /// Real envs also put the robot's pose and distance to the monolith
+    /// in each step's info (sim envs always do): privileged information.
+    #[arg(long)]
+    share_real_pose: bool,
+    /// Record every episode of every env served as an MCAP file under
+    /// this directory (see docs/recording.md).
+    #[arg(long, value_name = "DIR", env = "OFFWORLD_RECORD")]
+    record: Option<PathBuf>,
+    /// Lease idle timeout, s.
+    #[arg(long, default_value_t = 300)]
+    lease_idle_s: u64,
+    /// Longest booking slot, minutes.
+    #[arg(long, default_value_t = 240)]
+    max_slot_minutes: u32,
+    /// How far ahead a booking may start, days.
+    #[arg(long, default_value_t = 30)]
+    booking_horizon_days: u32,
+    /// Requests queued or running per env (waiting for its state or the
+    /// store); more are answered Busy at once. `status` and `spec`
+    /// never queue.
+    #[arg(long, default_value_t = RequestLimits::default().env_queue)]
+    env_queue: usize,
+    /// Requests one client may have queued or running per env.
+    #[arg(long, default_value_t = RequestLimits::default().client_queue)]
+    client_queue: usize,
+    /// Requests per second one client may send, sustained.
+    #[arg(long, default_value_t = RequestLimits::default().client_rate_per_s)]
+    client_rate: u32,
+    /// Requests one client may send at once above `--client-rate`.
+    #[arg(long, default_value_t = RequestLimits::default().client_burst)]
+    client_burst: u32,
+    /// Largest request accepted, bytes (larger: BadRequest, undecoded).
+    #[arg(long, default_value_t = RequestLimits::default().max_request_bytes)]
+    max_request_bytes: usize,
+    #[command(flatten)]
+    seals: SealArgs,
+    #[command(flatten)]
+    db: Database,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+/// A site ready to serve: what [`ServeArgs`] named, checked, with the
+/// database and the Zenoh session open.
+pub struct Site {
+    /// The envs to serve and their tasks.
+    pub envs: Vec<(EnvId, Task)>,
+    /// The session every env is served on.
+    pub session: Session,
+    /// Users, experiments, episodes.
+    pub store: Store,
+    /// The site's policy (anonymous access is per env: sim only).
+    pub options: EnvOptions,
+    /// Request limits.
+    pub limits: RequestLimits,
+    /// Keys for commands to, and poses from, real robots.
+    pub seals: LinkSeals,
+    /// Record every episode under this directory.
+    pub record: Option<PathBuf>,
+}
+
+impl ServeArgs {
+    /// Checks everything named and opens the database and the session:
+    /// a mistake is refused here, before any env starts.
+    pub async fn open(self, db_before_command: Option<PathBuf>) -> anyhow::Result<Site> {
+        let db = self.db.resolve(db_before_command);
+        let envs: Vec<(EnvId, Task)> = self
+            .envs
+            .iter()
+            .map(|e| parse_env(e))
+            .collect::<Result<_, _>>()?;
+        let seals = LinkSeals {
+            command: self.seals.command()?.map(|key| Arc::new(Sealer::new(key))),
+            tracker: self.seals.tracker()?,
+        };
+        if envs.iter().any(|(env, _)| env.realm() == Realm::Real) {
+            if seals.command.is_none() {
+                tracing::warn!("commands to real robots are not sealed (no --command-key): the router's access control is their only guard");
+            }
+            if seals.tracker.is_none() {
+                tracing::warn!("tracker poses are believed unsealed (no --tracker-key): the router's access control is their only guard");
+            }
+        }
+        let options = EnvOptions {
+            lease_idle: std::time::Duration::from_secs(self.lease_idle_s),
+            share_real_pose: self.share_real_pose,
+            booking_rules: BookingRules {
+                max_slot_ms: i64::from(self.max_slot_minutes) * 60_000,
+                horizon_ms: i64::from(self.booking_horizon_days) * 86_400_000,
+                ..BookingRules::default()
+            },
+            ..EnvOptions::default()
+        };
+        let limits = RequestLimits {
+            env_queue: self.env_queue,
+            client_queue: self.client_queue,
+            client_rate_per_s: self.client_rate,
+            client_burst: self.client_burst,
+            max_request_bytes: self.max_request_bytes,
+        };
+        // Refused here, before anything starts, rather than per env.
+        options.check()?;
+        limits.check()?;
+        let store = Store::open(&db)?;
+        let session = self.common.server_config().open().await?;
+        Ok(Site {
+            envs,
+            session,
+            store,
+            options,
+            limits,
+            seals,
+            record: self.record,
+        })
+    }
+}
+
+impl Site {
+    /// Serves every env with a controller (the robots or twins that
+    /// embody them run elsewhere, under the same namespaces).
+    pub async fn serve(self) -> anyhow::Result<Controller> {
+        let mut controller = Controller::with_limits(self.session, self.store, self.limits)?;
+        controller.seal_with(self.seals);
+        if let Some(dir) = &self.record {
+            controller.record_into(dir)?;
+            tracing::info!(dir = %dir.display(), "recording every episode");
+        }
+        for (env, task) in self.envs {
+            let options = EnvOptions {
+                allow_anonymous: env.realm() == Realm::Sim,
+                ..self.options
+            };
+            controller.serve(env, task, options).await?;
+        }
+        Ok(controller)
+    }
+}
+
+/// Serves until a stop signal, then calls `stop` with the reason.
+pub async fn until_signalled<F: std::future::Future<Output = ()>>(
+    stop: impl FnOnce(String) -> F,
+) -> anyhow::Result<()> {
+    tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
+    let signal = offworld_runtime::shutdown::signalled().await?;
+    // Robots told to stop, episodes in progress recorded; then the
+    // liveliness tokens go with the deployment.
+    stop(format!("the controller stopped ({signal})")).await;
+    Ok(())
 }
 
 /// `users …`.
@@ -245,12 +360,6 @@ fn users(db: &std::path::Path, command: UsersCommand) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// What `serve` runs.
-enum Running {
-    Embedded(Embedded),
-    Controller(Controller),
-}
-
 fn parse_env(text: &str) -> anyhow::Result<(EnvId, Task)> {
     let (env, task) = text
         .split_once('=')
@@ -260,10 +369,16 @@ fn parse_env(text: &str) -> anyhow::Result<(EnvId, Task)> {
 
 /// Runs `env_controller` with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    run_command(args.db, args.command)
+    match args.command {
+        ServerCommand::Serve(serve) => offworld_runtime::session::run_program(async move {
+            let controller = serve.open(args.db).await?.serve().await?;
+            until_signalled(|reason| async move { controller.shutdown(&reason).await }).await
+        }),
+        ServerCommand::Records(command) => run_command(args.db, command),
+    }
 }
 
-/// Runs one of its commands on the database `db` (also `offworld serve`,
+/// Runs one of its record-keeping commands on the database `db` (also
 /// `offworld users`, …).
 pub fn run_command(db: Option<PathBuf>, command: Command) -> ExitCode {
     offworld_runtime::session::run_program(main_async(db, command))
@@ -271,111 +386,6 @@ pub fn run_command(db: Option<PathBuf>, command: Command) -> ExitCode {
 
 async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Result<()> {
     match command {
-        Command::Serve {
-            envs,
-            embedded_twins,
-            twin_profile,
-            share_real_pose,
-            record,
-            lease_idle_s,
-            max_slot_minutes,
-            booking_horizon_days,
-            env_queue,
-            client_queue,
-            client_rate,
-            client_burst,
-            max_request_bytes,
-            seals,
-            db,
-            common,
-        } => {
-            let db = db.resolve(db_before);
-            let envs: Vec<(EnvId, Task)> = envs
-                .iter()
-                .map(|e| parse_env(e))
-                .collect::<Result<_, _>>()?;
-            // Read before anything starts: a bad file names itself and its field.
-            let twin_profile = match &twin_profile {
-                Some(path) => TwinProfile::load(path)?,
-                None => TwinProfile::default(),
-            };
-            let seals = LinkSeals {
-                command: seals.command()?.map(|key| Arc::new(Sealer::new(key))),
-                tracker: seals.tracker()?,
-            };
-            if envs.iter().any(|(env, _)| env.realm() == Realm::Real) {
-                if seals.command.is_none() {
-                    tracing::warn!("commands to real robots are not sealed (no --command-key): the router's access control is their only guard");
-                }
-                if seals.tracker.is_none() {
-                    tracing::warn!("tracker poses are believed unsealed (no --tracker-key): the router's access control is their only guard");
-                }
-            }
-            let store = Store::open(&db)?;
-            let session = common.server_config().open().await?;
-            let site = EnvOptions {
-                lease_idle: std::time::Duration::from_secs(lease_idle_s),
-                share_real_pose,
-                booking_rules: BookingRules {
-                    max_slot_ms: i64::from(max_slot_minutes) * 60_000,
-                    horizon_ms: i64::from(booking_horizon_days) * 86_400_000,
-                    ..BookingRules::default()
-                },
-                ..EnvOptions::default()
-            };
-            let limits = RequestLimits {
-                env_queue,
-                client_queue,
-                client_rate_per_s: client_rate,
-                client_burst,
-                max_request_bytes,
-            };
-            // Refused here, before anything starts, rather than per env.
-            site.check()?;
-            limits.check()?;
-            let options = |env: &EnvId| EnvOptions {
-                allow_anonymous: env.realm() == Realm::Sim,
-                ..site
-            };
-            // Keep whichever deployment runs alive until a stop signal.
-            let running = if embedded_twins {
-                let sims: Vec<SimEnv> = envs
-                    .iter()
-                    .map(|(env, task)| SimEnv {
-                        env: env.clone(),
-                        task: task.name.clone(),
-                        resolution: None,
-                        seed: 0,
-                        profile: twin_profile,
-                    })
-                    .collect();
-                Running::Embedded(
-                    Embedded::start_with(&session, &sims, store, site, limits, record.as_deref())
-                        .await?,
-                )
-            } else {
-                let mut controller = Controller::with_limits(session.clone(), store, limits)?;
-                controller.seal_with(seals);
-                if let Some(dir) = &record {
-                    controller.record_into(dir)?;
-                    tracing::info!(dir = %dir.display(), "recording every episode");
-                }
-                for (env, task) in envs {
-                    let opts = options(&env);
-                    controller.serve(env, task, opts).await?;
-                }
-                Running::Controller(controller)
-            };
-            tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
-            let signal = offworld_runtime::shutdown::signalled().await?;
-            // Robots told to stop, episodes in progress recorded; then the
-            // liveliness tokens go with the deployment.
-            let reason = format!("the controller stopped ({signal})");
-            match running {
-                Running::Embedded(embedded) => embedded.shutdown(&reason).await,
-                Running::Controller(controller) => controller.shutdown(&reason).await,
-            }
-        }
         Command::Estop {
             env,
             site: _,

@@ -16,12 +16,13 @@
 //! - [`admission`]: request limits (size, per-client rate and queue, per-env
 //!   queue), decided without waiting.
 //! - [`server`]: many envs served over Zenoh.
-//! - [`embedded`]: twins + controller in one process.
+//! - [`cli`]: `env_controller serve | users | experiments | leaderboard | estop`.
+//!
+//! It links no simulator: in-process twins are put beside it by
+//! `offworld_deploy`.
 
 pub mod admission;
 pub mod cli;
-pub mod deployment;
-pub mod embedded;
 pub mod env;
 pub mod episode;
 mod error;

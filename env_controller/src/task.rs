@@ -1,10 +1,10 @@
-//! The tasks as data (`env_controller/tasks.toml` + sim_twin's world files):
+//! The tasks as data (`env_controller/tasks.toml` + `runtime/worlds/`):
 //! action tables, limits, reward geometry. Nothing task-specific is a
 //! constant in code.
 
 use offworld_runtime::msg::{Action, ActionSpace, MotionCommand};
 use offworld_runtime::WireError;
-use offworld_sim_twin::WorldSpec;
+use offworld_runtime::WorldSpec;
 use serde::Deserialize;
 
 use crate::error::ControllerError;

@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
@@ -469,7 +469,7 @@ async fn over_the_rate_size_or_with_a_bad_tag_requests_are_refused_typed() {
 /// (`status`, `spec`, refusals) and on tasks (the rest) reach them too.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn clients_on_the_controllers_own_session_are_answered() {
-    use offworld_env_controller::deployment::{connect, Target};
+    use offworld_deploy::{connect, Target};
     let connection = connect(
         Target::Embedded {
             task: "MonolithDiscrete".into(),

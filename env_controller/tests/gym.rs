@@ -6,7 +6,7 @@ use offworld_test_support::ScratchDir;
 use std::path::Path;
 use std::time::Duration;
 
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
@@ -1321,4 +1321,118 @@ async fn a_long_experiment_is_answered_a_page_at_a_time() {
             (1_000 + i as i64, 2_000 + i as i64)
         );
     }
+}
+
+/// `open_waiting` with every refusal's message sent to `said`.
+fn wait_in_line(
+    session: Session,
+    env: EnvId,
+    token: &'static str,
+    said: tokio::sync::mpsc::UnboundedSender<String>,
+) -> tokio::task::JoinHandle<Result<EnvClient, WireError>> {
+    tokio::spawn(async move {
+        EnvClient::open_waiting(
+            &session,
+            &env,
+            open_request(token, "line", false, AlgorithmMode::Train),
+            ClientTimeouts::default(),
+            Duration::from_secs(60),
+            |busy| {
+                let _ = said.send(busy.message.clone());
+            },
+        )
+        .await
+    })
+}
+
+/// The next refusal a waiter was given (bounded).
+async fn next_said(said: &mut tokio::sync::mpsc::UnboundedReceiver<String>) -> String {
+    tokio::time::timeout(Duration::from_secs(10), said.recv())
+        .await
+        .expect("a refusal within 10 s")
+        .expect("still waiting")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_busy_env_goes_to_its_waiting_line_first_come_first_served() {
+    let dir = ScratchDir::new("gym-line");
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let alice_session = client_session(&d).await;
+    let bob_session = client_session(&d).await;
+    let ops_session = client_session(&d).await;
+    let mut alice = open(&alice_session, &d.env, ALICE, "holder")
+        .await
+        .expect("alice opens");
+
+    // Bob waits, then the operator: each refusal says the place in line.
+    let (bob_said, mut bob_heard) = tokio::sync::mpsc::unbounded_channel();
+    let bob = wait_in_line(bob_session.clone(), d.env.clone(), BOB, bob_said);
+    next_said(&mut bob_heard).await;
+    let bob_second = next_said(&mut bob_heard).await;
+    assert!(
+        bob_second.contains("is leased by another user until")
+            && bob_second.ends_with("; 1st in line"),
+        "{bob_second}"
+    );
+    let (ops_said, mut ops_heard) = tokio::sync::mpsc::unbounded_channel();
+    let ops = wait_in_line(ops_session.clone(), d.env.clone(), OPERATOR, ops_said);
+    next_said(&mut ops_heard).await;
+    let ops_second = next_said(&mut ops_heard).await;
+    assert!(ops_second.ends_with("; 2nd in line"), "{ops_second}");
+
+    // The lease ends: a client that does not wait is refused (the env is
+    // the line's), Bob gets it, the operator moves up.
+    alice.close().await.expect("close");
+    let jumper = open(&alice_session, &d.env, ALICE, "jumper")
+        .await
+        .err()
+        .expect("the line goes first");
+    assert_eq!(jumper.code, ErrorCode::Busy);
+    // (Before Bob asks again: held for two; after: leased, the operator first.)
+    assert!(jumper.message.ends_with(" in line"), "{jumper}");
+    let mut bob = tokio::time::timeout(Duration::from_secs(10), bob)
+        .await
+        .expect("bob's turn within 10 s")
+        .expect("task")
+        .expect("bob opens");
+    assert_eq!(bob.opened().experiment.name, "line");
+    let moved_up = loop {
+        let said = next_said(&mut ops_heard).await;
+        if said.contains("is leased by another user") {
+            break said;
+        }
+    };
+    assert!(moved_up.ends_with("; 1st in line"), "{moved_up}");
+    bob.close().await.expect("close");
+    let mut ops = tokio::time::timeout(Duration::from_secs(10), ops)
+        .await
+        .expect("the operator's turn within 10 s")
+        .expect("task")
+        .expect("the operator opens");
+    assert_eq!(
+        client::status(&bob_session, &d.env, Duration::from_secs(5))
+            .await
+            .expect("status")
+            .state,
+        EnvState::Leased {
+            holder: "ops".into(),
+            until_unix_ms: ops.opened().lease_until_unix_ms,
+        }
+    );
+
+    // Nobody waits for long: a wait that ends returns the last refusal.
+    let refused = EnvClient::open_waiting(
+        &alice_session,
+        &d.env,
+        open_request(ALICE, "late", false, AlgorithmMode::Train),
+        ClientTimeouts::default(),
+        Duration::from_millis(1500),
+        |_| {},
+    )
+    .await
+    .err()
+    .expect("still leased");
+    assert_eq!(refused.code, ErrorCode::Busy);
+    assert!(refused.message.ends_with(" in line"), "{refused}");
+    ops.close().await.expect("close");
 }

@@ -6,7 +6,7 @@ use offworld_test_support::ScratchDir;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use offworld_env_controller::deployment::{connect, Target};
+use offworld_deploy::{connect, Target};
 use offworld_recorder::msg::{EpisodeEnd, Step};
 use offworld_recorder::read;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
@@ -25,15 +25,14 @@ fn scratch(name: &str) -> ScratchDir {
 async fn recording_sim(
     resolution: (u32, u32),
     dir: &std::path::Path,
-) -> Result<offworld_env_controller::deployment::Connection, offworld_env_controller::ControllerError>
-{
+) -> Result<offworld_deploy::Connection, offworld_env_controller::ControllerError> {
     connect(
         Target::Embedded {
             task: "MonolithDiscrete".into(),
             resolution,
             count: 1,
             record: Some(dir.to_owned()),
-            twin_profile: offworld_env_controller::embedded::TwinProfile::default(),
+            twin_profile: offworld_deploy::embedded::TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

@@ -7,7 +7,7 @@
 
 use std::time::{Duration, Instant};
 
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use anyhow::{anyhow, ensure, Context};
-use offworld_env_controller::deployment::{connect, Target};
+use offworld_deploy::{connect, Target};
 use offworld_recorder::episode_file::{partial_path, stamp_ns, Compression, EpisodeFile};
 use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo, Step};
 use offworld_recorder::Channel;
@@ -271,7 +271,7 @@ async fn recorded_episodes_replay_as_the_live_view_at_the_recorded_times() -> an
             resolution: (32, 24),
             count: 1,
             record: Some(dir.clone()),
-            twin_profile: offworld_env_controller::embedded::TwinProfile::default(),
+            twin_profile: offworld_deploy::embedded::TwinProfile::default(),
         },
         "MonolithDiscrete",
     )

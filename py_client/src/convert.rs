@@ -125,6 +125,16 @@ pub fn algorithm_mode(value: &str) -> PyResult<AlgorithmMode> {
     offworld_runtime::named::parse("algorithm_mode", value).map_err(PyValueError::new_err)
 }
 
+/// How long to wait in an env's line, from Python's `wait=` seconds
+/// (finite, not negative; checked again here for direct callers).
+pub fn wait(seconds: f64) -> PyResult<std::time::Duration> {
+    std::time::Duration::try_from_secs_f64(seconds).map_err(|_| {
+        PyValueError::new_err(format!(
+            "wait must be a number of seconds ≥ 0, got {seconds}"
+        ))
+    })
+}
+
 /// A timeout in seconds from Python (finite, positive).
 pub fn timeout(seconds: f64) -> PyResult<std::time::Duration> {
     if seconds.is_finite() && seconds > 0.0 {

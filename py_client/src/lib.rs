@@ -7,12 +7,11 @@ mod errors;
 
 use std::sync::OnceLock;
 
-use offworld_env_controller::deployment::{self, Connection, Target};
+use offworld_deploy::{Connection, Target, TwinProfile};
 use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::{ActionSpace, OpenRequest, Seed};
 use offworld_runtime::{EnvId, SessionConfig, WireError};
-use offworld_sim_twin::TwinProfile;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
@@ -143,7 +142,7 @@ impl NativeEnvs {
     #[new]
     #[pyo3(signature = (task, realm, num_envs, connect, env_ids, token, experiment_name, resume_experiment,
                         learning_type, algorithm_mode, channels, height, width, depth_format,
-                        rerun=None, record=None, twin_profile=None))]
+                        rerun=None, record=None, twin_profile=None, wait_s=0.0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -164,11 +163,13 @@ impl NativeEnvs {
         rerun: Option<String>,
         record: Option<String>,
         twin_profile: Option<String>,
+        wait_s: f64,
     ) -> PyResult<Self> {
         if num_envs == 0 {
             return Err(PyValueError::new_err("num_envs must be at least 1"));
         }
         let obs = convert::obs_options(channels, height, width, depth_format)?;
+        let wait = convert::wait(wait_s)?;
         let sink = rerun
             .map(|s| s.parse::<Sink>())
             .transpose()
@@ -226,8 +227,11 @@ impl NativeEnvs {
             }
         };
         let connection =
-            spawn_interruptibly(py, async move { deployment::connect(target, &task).await })?
-                .map_err(controller_error)?;
+            spawn_interruptibly(
+                py,
+                async move { offworld_deploy::connect(target, &task).await },
+            )?
+            .map_err(controller_error)?;
         // Watching starts before the envs open, so the recording holds every episode.
         let monitor = sink
             .map(|sink| {
@@ -256,10 +260,32 @@ impl NativeEnvs {
                 if connection.envs.len() > 1 && !experiment_name.is_empty() {
                     request.experiment_name = format!("{experiment_name}-{i}");
                 }
-                let client =
-                    EnvClient::open(&connection.session, env, request, ClientTimeouts::default())
-                        .await
-                        .map_err(errors::to_py)?;
+                // Said once per place in line (the holder's lease end,
+                // also in the message, moves at each of their steps).
+                let mut said = String::new();
+                let client = EnvClient::open_waiting(
+                    &connection.session,
+                    env,
+                    request,
+                    ClientTimeouts::default(),
+                    wait,
+                    |refused| {
+                        let place = refused
+                            .message
+                            .rsplit_once("; ")
+                            .map_or(refused.message.as_str(), |(_, place)| place);
+                        if place != said {
+                            eprintln!(
+                                "offworld_gym: {}; waiting (up to {} s)",
+                                refused.message,
+                                wait.as_secs_f64()
+                            );
+                            place.clone_into(&mut said);
+                        }
+                    },
+                )
+                .await
+                .map_err(errors::to_py)?;
                 clients.push(client);
             }
             Ok::<_, PyErr>(clients)

@@ -38,13 +38,13 @@ def _binary(name: str) -> Path:
 
 
 def start_controller(tmp_path: Path, env_id: str, *extra: str) -> tuple[subprocess.Popen, str]:
-    """Starts `env_controller serve` with embedded twins for `env_id` on a free
+    """Starts `offworld serve` with embedded twins for `env_id` on a free
     loopback port; returns the process and its endpoint once it listens."""
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     proc = subprocess.Popen(
         [
-            str(_binary("env_controller")),
+            str(_binary("offworld")),
             "--db",
             str(tmp_path / "gym.db"),
             "serve",
@@ -62,7 +62,7 @@ def start_controller(tmp_path: Path, env_id: str, *extra: str) -> tuple[subproce
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"env_controller exited: {proc.stderr.read().decode() if proc.stderr else ''}")
+            raise RuntimeError(f"offworld serve exited: {proc.stderr.read().decode() if proc.stderr else ''}")
         with socket.socket() as s:
             if s.connect_ex(("127.0.0.1", port)) == 0:
                 return proc, endpoint

@@ -5,10 +5,12 @@ processes, bookings from Python and the CLI."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import subprocess
 import sys
+import threading
 import time
 
 import gymnasium
@@ -108,6 +110,39 @@ def test_discovery_refuses_more_envs_than_are_free(trainer):
     assert "envs reachable here:" in message
     for env_id in trainer:
         assert f"{env_id} (MonolithDiscrete, free)" in message, message
+
+
+def test_a_leased_env_is_waited_for_in_line(trainer, capfd):
+    """`wait=`: instead of Busy at once, the client waits in the env's line
+    (saying its place on stderr) and gets the env when the lease ends."""
+    env_id = trainer[1]
+    make = functools.partial(gymnasium.make, "OffWorldMonolithDiscreteSim-v0", env_id=env_id, resolution=(12, 16))
+    holder = make()  # alice
+    # Another user (anonymous, allowed on sim envs) who does not wait is refused at once.
+    with pytest.raises(errors.Busy, match="is leased by another user until"):
+        make(token="")
+    opened: dict[str, object] = {}
+    waiter = threading.Thread(target=lambda: opened.update(env=make(token="", wait=60)))
+    waiter.start()
+    said = ""
+    deadline = time.monotonic() + 30
+    while "1st in line; waiting (up to 60 s)" not in said:
+        assert time.monotonic() < deadline, f"the waiter never said its place: {said!r}"
+        time.sleep(0.2)
+        said += capfd.readouterr().err
+    assert f"offworld_gym: {env_id} is leased by another user until" in said, said
+    assert waiter.is_alive(), "still waiting while alice holds the env"
+    holder.close()
+    waiter.join(timeout=30)
+    assert not waiter.is_alive(), "the waiter got the env once alice closed hers"
+    env = opened["env"]
+    try:
+        obs, _ = env.reset(seed=1)
+        assert obs.shape == (12, 16, 1)
+        listed = {e["env_id"]: e for e in offworld_gym.list_envs()}
+        assert listed[env_id]["who"] == "anonymous", listed[env_id]
+    finally:
+        env.close()
 
 
 def test_bookings_from_python_and_the_cli(trainer):

@@ -1,6 +1,6 @@
 """`OffWorldMonolithDiscreteReal-v0` through gymnasium against the emulated
 enclosure: env_controller + robot_agent + tracker_agent as processes under
-`real/monolith-0`, driving `sim_twin --emulate-hardware` in real time
+`real/monolith-0`, driving `offworld emulate-hardware` in real time
 (started by the `emulated_enclosure` launcher)."""
 
 from __future__ import annotations

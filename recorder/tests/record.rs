@@ -10,7 +10,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_recorder::msg::{EpisodeEnd, Step};
 use offworld_recorder::read;

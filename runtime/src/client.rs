@@ -55,6 +55,11 @@ pub fn process_tag() -> &'static ClientTag {
     })
 }
 
+/// How often a client waiting in an env's line asks again
+/// ([`EnvClient::open_waiting`]); the controller forgets a waiter that
+/// stops asking for a few of these.
+pub const WAIT_POLL: Duration = Duration::from_secs(1);
+
 /// An open session on one env (holds its lease until closed).
 pub struct EnvClient {
     session: Session,
@@ -74,8 +79,28 @@ impl EnvClient {
     pub async fn open(
         session: &Session,
         env: &EnvId,
+        request: OpenRequest,
+        timeouts: ClientTimeouts,
+    ) -> Result<Self, WireError> {
+        Self::open_waiting(session, env, request, timeouts, Duration::ZERO, |_| {}).await
+    }
+
+    /// [`EnvClient::open`], waiting up to `wait` in the env's line while
+    /// it is `Busy` (leased or booked by someone else, or held for those
+    /// who came first): asks again every [`WAIT_POLL`] with the same client
+    /// id (and liveliness token), so the controller keeps its place, and
+    /// hands every refusal (a `Busy` says the place) to `on_refusal`. While
+    /// waiting, an env that is `Unavailable` (maintenance, robot offline)
+    /// or slow to answer (`Timeout`: a real reset holds it) is asked again
+    /// too. The last refusal is returned when `wait` is over; any other
+    /// error at once.
+    pub async fn open_waiting(
+        session: &Session,
+        env: &EnvId,
         mut request: OpenRequest,
         timeouts: ClientTimeouts,
+        wait: Duration,
+        mut on_refusal: impl FnMut(&WireError),
     ) -> Result<Self, WireError> {
         request.client_id = random_id();
         let alive_key = env
@@ -89,15 +114,30 @@ impl EnvClient {
         let tag = ClientTag {
             client_id: request.client_id.clone(),
         };
-        let reply: OpenReply = wire::request_as(
-            session,
-            &env.key(Topic::Open),
-            &request,
-            timeouts.control,
-            &tag,
-        )
-        .await
-        .map_err(wire::RequestError::into_wire)?;
+        let deadline = tokio::time::Instant::now() + wait;
+        let reply: OpenReply = loop {
+            let opened = wire::request_as(
+                session,
+                &env.key(Topic::Open),
+                &request,
+                timeouts.control,
+                &tag,
+            )
+            .await
+            .map_err(wire::RequestError::into_wire);
+            match opened {
+                Err(e)
+                    if matches!(
+                        e.code,
+                        ErrorCode::Busy | ErrorCode::Unavailable | ErrorCode::Timeout
+                    ) && tokio::time::Instant::now() + WAIT_POLL < deadline =>
+                {
+                    on_refusal(&e);
+                    tokio::time::sleep(WAIT_POLL).await;
+                }
+                opened => break opened?,
+            }
+        };
         Ok(Self {
             session: session.clone(),
             env: env.clone(),

@@ -3,25 +3,20 @@
 //! `sim_twin --env sim/monolith-0 --world monolith_obstacle --clock lockstep`
 //! connects to tcp/127.0.0.1:7447 unless endpoints are given.
 //!
-//! `sim_twin --emulate-hardware --tracker-listen 127.0.0.1:7600` instead
-//! behaves like the physical enclosure: the robot's ROS 2 topics and a raw
-//! tracker stream, for robot_agent + tracker_agent to drive.
-//!
-//! `--profile FILE` makes either behave like one physical robot (a twin
-//! profile, docs/twin-profile.md): the served twin, or the emulated
-//! "physical" robot.
+//! `--profile FILE` makes it behave like one physical robot (a twin
+//! profile, docs/twin-profile.md). The same twin flags ([`TwinArgs`])
+//! shape the emulated hardware of `offworld emulate-hardware`
+//! (`offworld_deploy`).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::tracker::TrackerConfig;
 use crate::{
-    Clock, EmulatedEnclosure, EnclosureConfig, PlanarPose, Randomization, SimTwin, TwinConfig,
-    TwinNode, TwinProfile, WorldSpec,
+    Clock, PlanarPose, Randomization, SimTwin, TwinConfig, TwinNode, TwinProfile, WorldSpec,
 };
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
-use offworld_runtime::ros2::{KeyStyle, RosGraph};
 use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{CommonArgs, EnvId};
 
@@ -40,15 +35,24 @@ pub struct Args {
     /// Env id to serve (must be under `sim/`).
     #[arg(long, default_value = "sim/monolith-0")]
     env: EnvId,
-    /// Built-in world name or path to a world TOML file.
-    #[arg(long, default_value = "monolith")]
-    world: String,
     /// Clock.
     #[arg(long, value_enum, default_value_t = ClockArg::Lockstep)]
     clock: ClockArg,
     /// Rendered resolution WIDTHxHEIGHT (the native view resampled).
     #[arg(long, default_value = "320x240")]
     resolution: String,
+    #[command(flatten)]
+    twin: TwinArgs,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+/// What the twin simulates: its world, noise, randomisation and profile.
+#[derive(clap::Args)]
+pub struct TwinArgs {
+    /// Built-in world name or path to a world TOML file.
+    #[arg(long, default_value = "monolith")]
+    world: String,
     /// Tracker position noise (std dev), m.
     #[arg(long, default_value_t = 0.0)]
     tracker_noise: f32,
@@ -76,41 +80,49 @@ pub struct Args {
     /// Seed of noise and randomisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Behave like the hardware (ROS 2 topics + tracker line stream) instead
-    /// of serving `--env`.
-    #[arg(long)]
-    emulate_hardware: bool,
-    /// Emulated robot's ROS 2 domain id (rmw_zenoh keys).
-    #[arg(long, default_value_t = 0)]
-    ros_domain: u32,
-    /// Emulated robot's ROS 2 namespace.
-    #[arg(long, default_value = "")]
-    ros_namespace: String,
-    /// Stream the emulated site's overhead camera under this env
-    /// (`offworld/@v1/<env>/overhead/top`).
-    #[arg(long)]
-    overhead_env: Option<EnvId>,
-    /// Emulated camera frame rate, Hz (an Astra runs at 30).
-    #[arg(long, default_value_t = 30.0)]
-    camera_hz: f64,
-    /// Emulated camera resolution WIDTHxHEIGHT (default: the world camera's
-    /// own). A smaller camera keeps a pitched profile's per-pixel renderer
-    /// affordable in real time.
-    #[arg(long, value_name = "WxH", requires = "emulate_hardware")]
-    camera_resolution: Option<String>,
-    /// The emulated base stops when no velocity command came for this long,
-    /// ms (a base with ros2_control's `cmd_vel_timeout`); 0 holds the last
-    /// velocity forever (the worst case, the default).
-    #[arg(long, default_value_t = 0)]
-    base_cmd_timeout_ms: u64,
-    /// Where the emulated tracker streams its line protocol (TCP server).
-    #[arg(long, default_value = "127.0.0.1:7600")]
-    tracker_listen: std::net::SocketAddr,
-    #[command(flatten)]
-    common: CommonArgs,
 }
 
-fn parse_resolution(text: &str) -> anyhow::Result<(u32, u32)> {
+impl TwinArgs {
+    /// The twin these flags describe, rendering at `resolution` (`None`:
+    /// the world camera's own); reads the world and profile files.
+    pub fn config(&self, resolution: Option<(u32, u32)>) -> anyhow::Result<TwinConfig> {
+        let world = if self.world.ends_with(".toml") {
+            WorldSpec::load(&PathBuf::from(&self.world))?
+        } else {
+            WorldSpec::builtin(&self.world)?
+        };
+        let profile = match &self.profile {
+            Some(path) => TwinProfile::load(path)?,
+            None => TwinProfile::default(),
+        };
+        Ok(TwinConfig {
+            world,
+            resolution,
+            tracker: TrackerConfig {
+                position_noise_m: self.tracker_noise,
+                seed: self.seed,
+                ..TrackerConfig::default()
+            },
+            randomization: Randomization {
+                seed: self.seed,
+                depth_noise: self.depth_noise,
+                depth_dropout: self.depth_dropout,
+                light_jitter: self.light_jitter,
+                albedo_jitter: self.albedo_jitter,
+                max_slip: self.max_slip,
+            },
+            start: PlanarPose {
+                x: -1.0,
+                y: 0.5,
+                yaw: 0.0,
+            },
+            profile,
+        })
+    }
+}
+
+/// `WIDTHxHEIGHT` (e.g. `320x240`) as (width, height).
+pub fn parse_resolution(text: &str) -> anyhow::Result<(u32, u32)> {
     let (w, h) = text
         .split_once('x')
         .context("resolution must look like 320x240")?;
@@ -125,72 +137,14 @@ pub fn run(args: Args) -> ExitCode {
 async fn main_async(args: Args) -> anyhow::Result<()> {
     let mut signals = ShutdownSignals::install()?;
     anyhow::ensure!(
-        args.emulate_hardware || args.env.realm() == offworld_runtime::Realm::Sim,
-        "a sim twin serves only `sim/…` envs, not {}",
+        args.env.realm() == offworld_runtime::Realm::Sim,
+        "a sim twin serves only `sim/…` envs, not {} (the real stack drives \
+         emulated hardware: `offworld emulate-hardware`)",
         args.env
     );
-    let world = if args.world.ends_with(".toml") {
-        WorldSpec::load(&PathBuf::from(&args.world))?
-    } else {
-        WorldSpec::builtin(&args.world)?
-    };
-    let profile = match &args.profile {
-        Some(path) => TwinProfile::load(path)?,
-        None => TwinProfile::default(),
-    };
-    let config = TwinConfig {
-        world,
-        resolution: Some(parse_resolution(&args.resolution)?),
-        tracker: TrackerConfig {
-            position_noise_m: args.tracker_noise,
-            seed: args.seed,
-            ..TrackerConfig::default()
-        },
-        randomization: Randomization {
-            seed: args.seed,
-            depth_noise: args.depth_noise,
-            depth_dropout: args.depth_dropout,
-            light_jitter: args.light_jitter,
-            albedo_jitter: args.albedo_jitter,
-            max_slip: args.max_slip,
-        },
-        start: PlanarPose {
-            x: -1.0,
-            y: 0.5,
-            yaw: 0.0,
-        },
-        profile,
-    };
-    if args.emulate_hardware {
-        let resolution = match &args.camera_resolution {
-            Some(text) => Some(parse_resolution(text)?),
-            None => None,
-        };
-        let twin = SimTwin::new(TwinConfig {
-            resolution,
-            ..config
-        })?;
-        let mut enclosure = EnclosureConfig::rosbot(args.tracker_listen)?;
-        enclosure.ros = RosGraph::new(
-            KeyStyle::RmwZenoh {
-                domain_id: args.ros_domain,
-            },
-            &args.ros_namespace,
-        )?;
-        enclosure.camera_hz = args.camera_hz;
-        enclosure.overhead_key = match &args.overhead_env {
-            Some(env) => Some(env.overhead_key(crate::node::OVERHEAD_CAMERA)?),
-            None => None,
-        };
-        enclosure.cmd_timeout = (args.base_cmd_timeout_ms > 0)
-            .then(|| std::time::Duration::from_millis(args.base_cmd_timeout_ms));
-        let session = args.common.client_config().open().await?;
-        let emulator = EmulatedEnclosure::spawn(&session, twin, enclosure)?;
-        tracing::info!(tracker = %emulator.tracker_addr(), "emulating the enclosure hardware; Ctrl-C, SIGTERM or SIGHUP to stop");
-        signals.recv().await;
-        drop(emulator);
-        return Ok(());
-    }
+    let config = args
+        .twin
+        .config(Some(parse_resolution(&args.resolution)?))?;
     let clock = match args.clock {
         ClockArg::Lockstep => Clock::Lockstep,
         ClockArg::Realtime => Clock::RealTime,

@@ -15,12 +15,12 @@
 //! - [`overhead`]: the enclosure's overhead camera (top-down view for spectators).
 //! - [`ros_out`]: twin state as the ROS messages a real robot publishes.
 //! - [`node`]: the twin served over Zenoh (lockstep or real time).
-//! - [`enclosure`]: the twin behaving like the hardware (ROS 2 topics and a
-//!   raw tracker stream) for the real stack to run against.
+//!
+//! The twin behaving like the hardware (ROS 2 topics and a raw tracker
+//! stream) for the real stack to run against is `offworld_deploy::hardware`.
 
 pub mod camera;
 pub mod cli;
-pub mod enclosure;
 mod error;
 pub mod frame_payload;
 pub mod node;
@@ -33,7 +33,6 @@ pub mod terrain;
 pub mod tracker;
 pub mod twin;
 
-pub use enclosure::{EmulatedEnclosure, EnclosureConfig};
 pub use error::SimError;
 pub use node::{Clock, TwinNode, TwinStats};
 /// World definitions live in the contract (shared with the controller and agents).

@@ -5,7 +5,7 @@
 //! peer, in one run, in two layouts:
 //! - "twin processes": N `sim_twin` processes (84×84, lockstep) behind one
 //!   `env_controller` process — camera frames cross the router;
-//! - "controller per twin": N `env_controller --embedded-twins` processes —
+//! - "controller per twin": N `offworld serve --embedded-twins` processes —
 //!   only the gym's queries and replies cross the router.
 //!
 //! `cargo bench -p offworld-tests --bench farm_throughput`
@@ -169,7 +169,7 @@ fn print_row(n: usize, routed: &anyhow::Result<f64>, direct: &anyhow::Result<f64
     );
 }
 
-/// N `env_controller --embedded-twins` processes, one env each.
+/// N `offworld serve --embedded-twins` processes, one env each.
 async fn per_twin(
     site: Option<&RouterSite>,
     dir: &std::path::Path,
@@ -191,7 +191,7 @@ async fn per_twin(
                 endpoints.push(endpoint);
             }
         }
-        processes.push(spawn("env_controller", &args)?);
+        processes.push(spawn("offworld", &args)?);
     }
     let trainer = match site {
         Some(site) => site.session(Role::Trainer).open().await?,

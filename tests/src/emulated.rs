@@ -1,6 +1,6 @@
 //! The emulated enclosure deployment: the real stack (env_controller,
 //! robot_agent, base_guard, tracker_agent) as separate processes under a
-//! `real/…` namespace, driving `sim_twin --emulate-hardware` as if it were
+//! `real/…` namespace, driving `offworld emulate-hardware` as if it were
 //! the physical robot and lighthouse tracker. Used by the launcher binary
 //! `emulated_enclosure`, the end-to-end tests and the fault matrix.
 //!
@@ -22,13 +22,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use offworld_deploy::hardware::default_world_from_tracking;
 use offworld_runtime::client;
 use offworld_runtime::codec;
 use offworld_runtime::msg::{EnvState, TrackingStatus};
 use offworld_runtime::seal::SealKey;
 use offworld_runtime::session::{free_loopback_port, loopback_endpoint, Mode};
 use offworld_runtime::{EnvId, SessionConfig, Topic};
-use offworld_sim_twin::enclosure::default_world_from_tracking;
 
 use crate::link::ImpairedLink;
 use crate::netns::RobotNamespace;
@@ -76,11 +76,11 @@ pub struct Options {
     /// (`serve --record`).
     pub record: Option<std::path::PathBuf>,
     /// The emulated "physical" robot behaves per this twin profile
-    /// (`sim_twin --emulate-hardware --profile`, `docs/twin-profile.md`):
+    /// (`offworld emulate-hardware --profile`, `docs/twin-profile.md`):
     /// how a test perturbs the hardware away from the nominal twin.
     pub hardware_profile: Option<std::path::PathBuf>,
     /// The emulated camera's resolution (width, height); default the world
-    /// camera's own (`sim_twin --camera-resolution`).
+    /// camera's own (`offworld emulate-hardware --camera-resolution`).
     pub hardware_camera: Option<(u32, u32)>,
 }
 
@@ -320,7 +320,7 @@ impl EmulatedEnclosure {
                 "zenohd"
             }
             Part::Hardware => {
-                push(&["--emulate-hardware", "--world", options.world()]);
+                push(&["emulate-hardware", "--world", options.world()]);
                 push(&[
                     "--tracker-listen",
                     &self.tracker_listen,
@@ -339,7 +339,7 @@ impl EmulatedEnclosure {
                 }
                 push(&["--mode", "peer", "--connect", robot]);
                 push(&["--listen", &self.hardware_endpoint]);
-                "sim_twin"
+                "offworld"
             }
             Part::Controller => {
                 let db = self.dir.join("gym.db");

@@ -268,7 +268,7 @@ async fn every_completed_episode_survives_kill_9_at_random_points() {
     let mut started = 0u64;
     const KILLS: usize = 4;
     for round in 0..=KILLS {
-        let controller = Process::spawn("env_controller", &serve).expect("controller");
+        let controller = Process::spawn("offworld", &serve).expect("controller");
         let deadline = std::time::Instant::now() + Duration::from_secs(30);
         let mut gym = loop {
             match EnvClient::open(

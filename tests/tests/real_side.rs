@@ -1,6 +1,6 @@
 //! The real stack end to end on the emulated enclosure: env_controller,
 //! robot_agent and tracker_agent as separate processes under `real/…`,
-//! driving `sim_twin --emulate-hardware` in real time over its ROS 2 topics
+//! driving `offworld emulate-hardware` in real time over its ROS 2 topics
 //! and raw tracker stream. This test process plays the researcher (a gym
 //! client with a token) and, separately, an observer of the robot's
 //! `cmd_vel` (what the motors were told).

@@ -1,5 +1,5 @@
 """Fixtures of the web page's end-to-end tests: a deployment with two sim
-envs (`env_controller serve --embedded-twins`) and `lab_web` in front of
+envs (`offworld serve --embedded-twins`) and `lab_web` in front of
 it, each a separate process on free loopback ports; the emulated enclosure
 (`emulated_enclosure`: controller, robot agent, tracker agent and the
 emulated hardware as processes) with `lab_web` in front of it; and a
@@ -132,12 +132,12 @@ def web_in_front_of(endpoints: list[str], ready: str, is_ready, owners: list[sub
 
 @contextlib.contextmanager
 def serving(db: Path, envs: list[str]):
-    """Runs `env_controller serve` on `db` with `envs` (serve arguments);
+    """Runs `offworld serve` on `db` with `envs` (serve arguments);
     yields (its Zenoh endpoint, the process) once it listens."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     controller = subprocess.Popen(
-        [str(binary("env_controller")), "--db", str(db), "serve", *envs, "--listen", endpoint],
+        [str(binary("offworld")), "--db", str(db), "serve", *envs, "--listen", endpoint],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
@@ -147,7 +147,7 @@ def serving(db: Path, envs: list[str]):
             with socket.socket() as s:
                 return s.connect_ex(("127.0.0.1", port)) == 0
 
-        wait_until("env_controller listens", listening, controller)
+        wait_until("offworld serve listens", listening, controller)
         yield endpoint, controller
     finally:
         stop(controller)
@@ -155,7 +155,7 @@ def serving(db: Path, envs: list[str]):
 
 @contextlib.contextmanager
 def running_lab(db: Path, envs: list[str], ready: str, is_ready):
-    """Runs `env_controller serve` on `db` with `envs` (serve arguments) and
+    """Runs `offworld serve` on `db` with `envs` (serve arguments) and
     `lab_web` in front of it; yields (Zenoh endpoint, page URL) once
     `is_ready(listing)` holds for the page's `/api/envs` (named `ready`)."""
     with serving(db, envs) as (endpoint, controller):

@@ -21,7 +21,7 @@ use hyper::{Method, Request, StatusCode};
 use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::keys::EnvId;

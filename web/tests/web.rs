@@ -16,7 +16,7 @@ use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
-use offworld_env_controller::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::keys::EnvId;
@@ -589,11 +589,14 @@ async fn thumbnails_show_a_stepping_envs_views_and_say_why_an_idle_one_has_none(
         let stop = stop.clone();
         tokio::spawn(async move {
             client.reset(Seed::Fixed(1)).await.expect("reset");
-            // Bounded: until told to stop, at most 20,000 steps.
+            // Bounded: until told to stop, at most 20,000 steps, paced
+            // below the controller's per-client rate (an 8×6 twin steps
+            // faster than the 2,000 requests/s it allows one client).
             for _ in 0..20_000 {
                 if stop.load(std::sync::atomic::Ordering::Relaxed) {
                     break;
                 }
+                tokio::time::sleep(std::time::Duration::from_millis(1)).await;
                 let reply = client
                     .step(offworld_runtime::msg::Action::Discrete(1))
                     .await

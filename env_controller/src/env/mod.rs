@@ -3,6 +3,7 @@
 //! serialised (the state lock).
 //!
 //! - [`sessions`]: tokens, leases, `open`/`close`, clients that vanish.
+//! - [`waiting`]: the line of clients waiting for a leased env.
 //! - [`episodes`]: `reset`/`step`, judged, published and recorded.
 //! - [`bookings`]: booked slots and the `book` queryable.
 //! - [`admin`]: maintenance and lease revocation.
@@ -47,9 +48,11 @@ mod bookings;
 mod episodes;
 mod records;
 mod sessions;
+mod waiting;
 
 pub use admin::MAX_OPERATOR_TEXT;
 use records::experiment_info;
+use waiting::WaitingLine;
 
 /// Per-env policy.
 #[derive(Debug, Clone, Copy)]
@@ -261,6 +264,9 @@ pub struct EnvServer {
     /// The last booking answer, valid until its `until_ms`: a step never
     /// queries the database. Cleared when this env's bookings change.
     slots: Mutex<Option<SlotAt>>,
+    /// Clients waiting for the env, in order: kept apart from the state,
+    /// so a request waiting for the state still counts as its sender there.
+    line: Mutex<WaitingLine>,
     /// Records every episode as an MCAP file, when asked to.
     recorder: Option<EnvRecorder>,
 }
@@ -330,6 +336,7 @@ impl EnvServer {
             estops,
             store,
             slots: Mutex::new(None),
+            line: Mutex::new(WaitingLine::default()),
             state: AsyncMutex::new(State {
                 lease: None,
                 maintenance: None,
@@ -342,6 +349,11 @@ impl EnvServer {
             posted: watch::Sender::new(Posted::default()),
             published: AsyncMutex::new(None),
         })
+    }
+
+    /// The env's waiting line (never held across an await).
+    fn line(&self) -> std::sync::MutexGuard<'_, WaitingLine> {
+        self.line.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     /// The env served.

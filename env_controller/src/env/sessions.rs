@@ -66,6 +66,9 @@ impl EnvServer {
         };
         validate_experiment_name(&name)?;
         let user = self.authenticate(&req.token)?;
+        // Before waiting for the state (a real reset holds it for seconds):
+        // the request arrived, so its sender still waits.
+        self.line().touch(&req.client_id, Instant::now());
         let mut state = self.state.lock().await;
         if let Some(maintenance) = &state.maintenance {
             return Err(maintenance.refusal(&self.env));
@@ -79,38 +82,61 @@ impl EnvServer {
         let now = Instant::now();
         let env_id = self.env.to_string();
         let slot = self.slot_at(now_ms())?;
+        let mut refusal = None;
         let booked_until_unix_ms = match &slot {
             Some((booking, holder)) if *holder != user.id => {
-                return Err(WireError::busy(format!(
+                refusal = Some(format!(
                     "{} is booked by {} until {}",
                     self.env,
                     booking.user,
                     format_unix_ms(booking.end_unix_ms)
-                )));
+                ));
+                None
             }
             Some((booking, _)) => Some(booking.end_unix_ms),
             None => None,
         };
-        if let Some(lease) = &state.lease {
-            let live = lease.expires > now;
-            // A slot's holder takes the lease over from a first-come user.
-            if live && lease.user.id != user.id && booked_until_unix_ms.is_some() {
+        // A booked slot's holder, and the lease holder's own (identified)
+        // user, take the lease over; everyone else goes through the line.
+        let mut takes_over = booked_until_unix_ms.is_some();
+        if let Some(lease) = state.lease.as_ref().filter(|l| l.expires > now) {
+            if lease.user.id != user.id && booked_until_unix_ms.is_some() {
                 tracing::info!(env = %self.env, user = %user.name, "booked slot: lease taken over");
-            } else if live && lease.user.id != user.id {
-                return Err(WireError::busy(format!(
-                    "{} is leased by another user until {}",
-                    self.env,
-                    format_unix_ms(lease.expires_unix_ms)
-                )));
-            }
-            if live && lease.user.id == user.id && user.name == ANONYMOUS && !lease.disconnected {
-                return Err(WireError::busy(format!(
-                    "{} is in use by another anonymous session until {}",
-                    self.env,
-                    format_unix_ms(lease.expires_unix_ms)
-                )));
+            } else if lease.user.id != user.id {
+                refusal.get_or_insert_with(|| {
+                    format!(
+                        "{} is leased by another user until {}",
+                        self.env,
+                        format_unix_ms(lease.expires_unix_ms)
+                    )
+                });
+            } else if user.name != ANONYMOUS {
+                takes_over = true;
+            } else if !lease.disconnected {
+                refusal.get_or_insert_with(|| {
+                    format!(
+                        "{} is in use by another anonymous session until {}",
+                        self.env,
+                        format_unix_ms(lease.expires_unix_ms)
+                    )
+                });
             }
         }
+        if refusal.is_none() && !takes_over {
+            let ahead = self.line().ahead_of(&req.client_id, now);
+            if ahead > 0 {
+                let waiting = if ahead == 1 { "client" } else { "clients" };
+                refusal = Some(format!(
+                    "{} is held for the {ahead} {waiting} waiting before you",
+                    self.env
+                ));
+            }
+        }
+        if let Some(refusal) = refusal {
+            let place = self.line().keep(&req.client_id, user.id, now);
+            return Err(WireError::busy(format!("{refusal}{}", place.said())));
+        }
+        self.line().leave(&req.client_id);
         // The same user reconnecting takes the lease over; the old
         // session's unfinished episode is recorded as aborted.
         self.abort_episode(&mut state, "session replaced").await;
@@ -178,6 +204,8 @@ impl EnvServer {
     /// The holder's client vanished: stop the robot, record the episode as
     /// aborted, keep the lease for the reconnect grace period.
     pub async fn client_disconnected(&self, client_id: &str) {
+        // A waiter that gave up (or died) leaves the line at once.
+        self.line().leave(client_id);
         let mut state = self.state.lock().await;
         let holder = state
             .lease

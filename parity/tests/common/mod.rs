@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use offworld_env_controller::deployment::{connect, Target};
+use offworld_deploy::{connect, Target};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::{Action, Channels, DepthFormat, ObsOptions, OpenRequest, Seed};

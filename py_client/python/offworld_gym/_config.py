@@ -58,6 +58,7 @@ def resolve(
     rerun: str | os.PathLike[str] | None = None,
     record: str | os.PathLike[str] | None = None,
     twin_profile: str | os.PathLike[str] | None = None,
+    wait: float | None = None,
 ) -> Resolved:
     """Checks and resolves keyword arguments (environment variables fill gaps).
 
@@ -73,8 +74,16 @@ def resolve(
     ``twin_profile``: a twin profile file (``docs/twin-profile.md``) the
     embedded sim twins are built with, so they behave like one physical
     robot; a bad file raises ``BadRequest`` naming the file and the field.
+
+    ``wait``: seconds to wait in line when an env is leased by someone
+    else, instead of raising ``Busy`` at once (each refusal says the place
+    in line, on stderr); first come, first served. A booked slot's holder
+    still goes first.
     """
     channels = Channels(channel_type)
+    wait_s = 0.0 if wait is None else wait
+    if isinstance(wait_s, bool) or not isinstance(wait_s, numbers.Real) or not 0 <= wait_s < float("inf"):
+        raise ConfigurationError(f"wait must be a number of seconds ≥ 0, got {wait!r}")
     if len(resolution) != 2:
         raise ConfigurationError(f"resolution must be (height, width), got {resolution!r}")
     # A whole number of pixels, not silently truncated: (84.5, 84) is a mistake.
@@ -143,6 +152,7 @@ def resolve(
             rerun=rerun,
             record=record,
             twin_profile=os.fspath(twin_profile) if twin_profile is not None else None,
+            wait_s=float(wait_s),
         ),
         channels=channels,
         render_extra_rgb=render_extra_rgb,

@@ -38,6 +38,7 @@ class NativeEnvs:
         rerun: str | None = None,
         record: str | None = None,
         twin_profile: str | None = None,
+        wait_s: float = 0.0,
     ) -> None: ...
     @property
     def spec(self) -> dict[str, Any]: ...

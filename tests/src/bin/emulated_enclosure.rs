@@ -1,6 +1,6 @@
 //! `emulated_enclosure`: the whole real-side deployment on one machine —
 //! env_controller, robot_agent and tracker_agent as separate processes
-//! under `real/<world>-0`, driving `sim_twin --emulate-hardware` as if it
+//! under `real/<world>-0`, driving `offworld emulate-hardware` as if it
 //! were the robot and the lighthouse tracker.
 //!
 //! ```text

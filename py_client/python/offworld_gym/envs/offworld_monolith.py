@@ -41,7 +41,8 @@ class OffWorldMonolithEnv(gymnasium.Env):
     ) -> None:
         """``options``: ``channel_type``, ``resolution``, ``depth_format``,
         ``experiment_name``, ``resume_experiment``, ``learning_type``,
-        ``algorithm_mode``, ``connect``, ``env_id``, ``token``, ``rerun`` (see
+        ``algorithm_mode``, ``connect``, ``env_id``, ``token``, ``rerun``,
+        ``record``, ``twin_profile``, ``wait`` (see
         :func:`offworld_gym._config.resolve`)."""
         self._resolved = _config.resolve(task, realm, 1, render_mode=render_mode, **options)
         self._native = NativeEnvs(**self._resolved.native_kwargs)

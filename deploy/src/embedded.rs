@@ -11,12 +11,9 @@ pub use offworld_sim_twin::TwinProfile;
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
 use zenoh::Session;
 
-use crate::admission::RequestLimits;
-use crate::env::{EnvOptions, EnvServer};
-use crate::error::ControllerError;
-use crate::server::Controller;
-use crate::store::Store;
-use crate::task::Task;
+use offworld_env_controller::{
+    Controller, ControllerError, EnvOptions, EnvServer, RequestLimits, Store, Task,
+};
 
 /// One simulated env to start.
 #[derive(Debug, Clone)]

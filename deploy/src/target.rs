@@ -6,11 +6,9 @@ use offworld_runtime::keys::EnvId;
 use offworld_runtime::{client, SessionConfig};
 use zenoh::Session;
 
-use crate::admission::RequestLimits;
+use offworld_env_controller::{ControllerError, EnvOptions, RequestLimits, Store};
+
 use crate::embedded::{Embedded, SimEnv, TwinProfile};
-use crate::env::EnvOptions;
-use crate::error::ControllerError;
-use crate::store::Store;
 
 /// What to connect to.
 #[derive(Debug, Clone)]

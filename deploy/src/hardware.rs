@@ -1,6 +1,7 @@
-//! The emulated enclosure: the twin behaving like the hardware instead of
-//! like the twin, so the real stack (robot_agent + tracker_agent +
-//! env_controller under a `real/…` namespace) runs against it unchanged.
+//! The enclosure's hardware emulated by a sim twin: the twin behaving like
+//! the hardware instead of like the twin, so the real stack (robot_agent +
+//! tracker_agent + env_controller under a `real/…` namespace) runs against
+//! it unchanged. The physics crate knows nothing of it.
 //!
 //! In real time it:
 //! - takes `geometry_msgs/Twist` on the robot's velocity topic and either
@@ -10,7 +11,7 @@
 //!   configured base: ros2_control's `cmd_vel_timeout`); a twist takes
 //!   effect the twin profile's `motion.latency_s` after it arrives (the
 //!   physics holds it in its time-ordered target queue,
-//!   [`RobotPhysics::set_targets`](crate::physics::RobotPhysics::set_targets));
+//!   [`RobotPhysics::set_targets`](offworld_sim_twin::physics::RobotPhysics::set_targets));
 //! - publishes colour (`rgb8`), depth (`16UC1` mm, like an Astra driver) and
 //!   `nav_msgs/Odometry` on the robot's ROS 2 topics, with rmw_zenoh keys
 //!   and attachments;
@@ -46,15 +47,13 @@ use zenoh::sample::Sample;
 use zenoh::session::SessionPutBuilder;
 use zenoh::{Session, Wait};
 
-use crate::error::SimError;
-use crate::overhead::OverheadStream;
-use crate::physics::DT;
-use crate::ros_out;
-use crate::twin::SimTwin;
+use offworld_sim_twin::overhead::OverheadStream;
+use offworld_sim_twin::physics::DT;
+use offworld_sim_twin::{ros_out, SimError, SimTwin};
 
 /// How the emulated hardware presents itself.
 #[derive(Debug, Clone)]
-pub struct EnclosureConfig {
+pub struct HardwareConfig {
     /// The robot's ROS 2 graph (key style, namespace).
     pub ros: RosGraph,
     /// The robot's topic names.
@@ -82,7 +81,7 @@ pub struct EnclosureConfig {
     pub cmd_timeout: Option<Duration>,
 }
 
-impl EnclosureConfig {
+impl HardwareConfig {
     /// A ROSbot on rmw_zenoh (domain 0, root namespace), 30 Hz camera and
     /// odometry, 60 Hz tracker on `listen`, with the default lighthouse
     /// placement [`default_world_from_tracking`].
@@ -118,7 +117,7 @@ enum Event {
 }
 
 /// A running emulated enclosure; stops when dropped.
-pub struct EmulatedEnclosure {
+pub struct EmulatedHardware {
     events: SyncSender<Event>,
     thread: Option<JoinHandle<()>>,
     output: Option<JoinHandle<()>>,
@@ -128,12 +127,12 @@ pub struct EmulatedEnclosure {
     _cmd_vel: Subscriber<()>,
 }
 
-impl EmulatedEnclosure {
+impl EmulatedHardware {
     /// Starts emulating `twin` as hardware on `session`.
     pub fn spawn(
         session: &Session,
         twin: SimTwin,
-        config: EnclosureConfig,
+        config: HardwareConfig,
     ) -> Result<Self, SimError> {
         let key = |topic: &str, ty: RosType, publish: bool| {
             let k = if publish {
@@ -231,7 +230,7 @@ impl EmulatedEnclosure {
     }
 }
 
-impl Drop for EmulatedEnclosure {
+impl Drop for EmulatedHardware {
     fn drop(&mut self) {
         let _ = self.events.send(Event::Shutdown);
         self.stop_accepting.store(true, Ordering::SeqCst);
@@ -281,7 +280,7 @@ const OUTPUT_QUEUE: usize = 8;
 /// The emulation thread's state.
 struct Hardware {
     twin: SimTwin,
-    config: EnclosureConfig,
+    config: HardwareConfig,
     clients: Arc<Mutex<Vec<TcpStream>>>,
     /// Depth bytes converted from the render's metres (reused).
     depth_scratch: Vec<u8>,

@@ -1,0 +1,26 @@
+//! How OffWorld Gym's pieces are put together.
+//!
+//! The components (controller, twin, robot and tracker agents) each do one
+//! job and meet only on Zenoh keys; this crate assembles them:
+//!
+//! - [`embedded`]: sim twins and a controller in one process, still
+//!   talking only through Zenoh keys.
+//! - [`target`]: where a client's envs live (embedded, named remote envs,
+//!   or discovered free ones) and connecting to them.
+//! - [`hardware`]: a twin behaving like the enclosure's hardware (the
+//!   robot's ROS 2 topics, a raw tracker line stream) for the real stack
+//!   to drive.
+//! - [`cli`]: `offworld serve`, the gym server with optional in-process
+//!   twins (`env_controller serve` is the same server without a
+//!   simulator), and `offworld emulate-hardware`.
+//!
+//! The site's files (router configs, access roles, certificates, systemd
+//! units) live beside this crate, in `deploy/`.
+
+pub mod cli;
+pub mod embedded;
+pub mod hardware;
+pub mod target;
+
+pub use embedded::{Embedded, SimEnv, TwinProfile};
+pub use target::{connect, Connection, Target};
