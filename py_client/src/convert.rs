@@ -130,7 +130,7 @@ pub fn algorithm_mode(value: &str) -> PyResult<AlgorithmMode> {
 pub fn wait(seconds: f64) -> PyResult<std::time::Duration> {
     std::time::Duration::try_from_secs_f64(seconds).map_err(|_| {
         PyValueError::new_err(format!(
-            "wait must be a number of seconds ≥ 0, got {seconds}"
+            "wait must be a number of seconds from 0 to a year, got {seconds}"
         ))
     })
 }

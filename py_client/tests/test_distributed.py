@@ -118,23 +118,33 @@ def test_a_leased_env_is_waited_for_in_line(trainer, capfd):
     env_id = trainer[1]
     make = functools.partial(gymnasium.make, "OffWorldMonolithDiscreteSim-v0", env_id=env_id, resolution=(12, 16))
     holder = make()  # alice
-    # Another user (anonymous, allowed on sim envs) who does not wait is refused at once.
-    with pytest.raises(errors.Busy, match="is leased by another user until"):
-        make(token="")
     opened: dict[str, object] = {}
-    waiter = threading.Thread(target=lambda: opened.update(env=make(token="", wait=60)))
-    waiter.start()
-    said = ""
-    deadline = time.monotonic() + 30
-    while "1st in line; waiting (up to 60 s)" not in said:
-        assert time.monotonic() < deadline, f"the waiter never said its place: {said!r}"
-        time.sleep(0.2)
-        said += capfd.readouterr().err
-    assert f"offworld_gym: {env_id} is leased by another user until" in said, said
-    assert waiter.is_alive(), "still waiting while alice holds the env"
-    holder.close()
+
+    def wait_in_line() -> None:
+        try:
+            opened["env"] = make(token="", wait=60)
+        except Exception as e:  # noqa: BLE001 - reported by the test below
+            opened["error"] = e
+
+    waiter = threading.Thread(target=wait_in_line, daemon=True)
+    try:
+        # Another user (anonymous, allowed on sim envs) who does not wait is refused at once.
+        with pytest.raises(errors.Busy, match="is leased by another user until"):
+            make(token="")
+        waiter.start()
+        said = ""
+        deadline = time.monotonic() + 30
+        while "1st in line; waiting (up to 60 s)" not in said:
+            assert time.monotonic() < deadline, f"the waiter never said its place: {said!r} {opened}"
+            time.sleep(0.2)
+            said += capfd.readouterr().err
+        assert f"offworld_gym: {env_id} is leased by another user until" in said, said
+        assert waiter.is_alive(), "still waiting while alice holds the env"
+    finally:
+        holder.close()
     waiter.join(timeout=30)
     assert not waiter.is_alive(), "the waiter got the env once alice closed hers"
+    assert "error" not in opened, opened
     env = opened["env"]
     try:
         obs, _ = env.reset(seed=1)

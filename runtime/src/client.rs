@@ -60,6 +60,9 @@ pub fn process_tag() -> &'static ClientTag {
 /// stops asking for a few of these.
 pub const WAIT_POLL: Duration = Duration::from_secs(1);
 
+/// [`EnvClient::open_waiting`] waits at most this long (a year).
+pub const LONGEST_WAIT: Duration = Duration::from_secs(365 * 86_400);
+
 /// An open session on one env (holds its lease until closed).
 pub struct EnvClient {
     session: Session,
@@ -92,8 +95,9 @@ impl EnvClient {
     /// hands every refusal (a `Busy` says the place) to `on_refusal`. While
     /// waiting, an env that is `Unavailable` (maintenance, robot offline)
     /// or slow to answer (`Timeout`: a real reset holds it) is asked again
-    /// too. The last refusal is returned when `wait` is over; any other
-    /// error at once.
+    /// too (an `open` that was granted after its reply timed out is
+    /// answered with the same lease). The last refusal is returned when
+    /// `wait` (at most [`LONGEST_WAIT`]) is over; any other error at once.
     pub async fn open_waiting(
         session: &Session,
         env: &EnvId,
@@ -114,7 +118,8 @@ impl EnvClient {
         let tag = ClientTag {
             client_id: request.client_id.clone(),
         };
-        let deadline = tokio::time::Instant::now() + wait;
+        // Any wait a person means fits; a larger one would overflow the clock.
+        let deadline = tokio::time::Instant::now() + wait.min(LONGEST_WAIT);
         let reply: OpenReply = loop {
             let opened = wire::request_as(
                 session,

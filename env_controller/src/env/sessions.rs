@@ -68,7 +68,7 @@ impl EnvServer {
         let user = self.authenticate(&req.token)?;
         // Before waiting for the state (a real reset holds it for seconds):
         // the request arrived, so its sender still waits.
-        self.line().touch(&req.client_id, Instant::now());
+        self.line().touch(&req.client_id, user.id, Instant::now());
         let mut state = self.state.lock().await;
         if let Some(maintenance) = &state.maintenance {
             return Err(maintenance.refusal(&self.env));
@@ -96,10 +96,24 @@ impl EnvServer {
             Some((booking, _)) => Some(booking.end_unix_ms),
             None => None,
         };
-        // A booked slot's holder, and the lease holder's own (identified)
-        // user, take the lease over; everyone else goes through the line.
-        let mut takes_over = booked_until_unix_ms.is_some();
-        if let Some(lease) = state.lease.as_ref().filter(|l| l.expires > now) {
+        let live = state.lease.as_ref().filter(|l| l.expires > now);
+        let own_again = |l: &&Lease| {
+            !l.disconnected
+                && !req.client_id.is_empty()
+                && l.client_id == req.client_id
+                && l.user.id == user.id
+        };
+        if let Some(lease) = live.filter(own_again).filter(|_| refusal.is_none()) {
+            // This client's own open again (a wait's retry after its reply
+            // was lost, e.g. a timeout behind a reset): the lease it holds.
+            return Ok(OpenReply {
+                session_id: lease.session_id.clone(),
+                lease_until_unix_ms: lease.expires_unix_ms,
+                spec: self.spec(),
+                experiment: experiment_info(&lease.experiment),
+            });
+        }
+        if let Some(lease) = live {
             if lease.user.id != user.id && booked_until_unix_ms.is_some() {
                 tracing::info!(env = %self.env, user = %user.name, "booked slot: lease taken over");
             } else if lease.user.id != user.id {
@@ -110,9 +124,7 @@ impl EnvServer {
                         format_unix_ms(lease.expires_unix_ms)
                     )
                 });
-            } else if user.name != ANONYMOUS {
-                takes_over = true;
-            } else if !lease.disconnected {
+            } else if user.name == ANONYMOUS && !lease.disconnected {
                 refusal.get_or_insert_with(|| {
                     format!(
                         "{} is in use by another anonymous session until {}",
@@ -122,8 +134,10 @@ impl EnvServer {
                 });
             }
         }
-        if refusal.is_none() && !takes_over {
-            let ahead = self.line().ahead_of(&req.client_id, now);
+        // A free env goes to the first in line; a booked slot's holder, or
+        // the lease holder's own user taking it over, does not queue.
+        if refusal.is_none() && live.is_none() && booked_until_unix_ms.is_none() {
+            let ahead = self.line().ahead_of(&req.client_id, user.id, now);
             if ahead > 0 {
                 let waiting = if ahead == 1 { "client" } else { "clients" };
                 refusal = Some(format!(
@@ -136,7 +150,7 @@ impl EnvServer {
             let place = self.line().keep(&req.client_id, user.id, now);
             return Err(WireError::busy(format!("{refusal}{}", place.said())));
         }
-        self.line().leave(&req.client_id);
+        self.line().leave(&req.client_id, user.id);
         // The same user reconnecting takes the lease over; the old
         // session's unfinished episode is recorded as aborted.
         self.abort_episode(&mut state, "session replaced").await;
@@ -204,8 +218,6 @@ impl EnvServer {
     /// The holder's client vanished: stop the robot, record the episode as
     /// aborted, keep the lease for the reconnect grace period.
     pub async fn client_disconnected(&self, client_id: &str) {
-        // A waiter that gave up (or died) leaves the line at once.
-        self.line().leave(client_id);
         let mut state = self.state.lock().await;
         let holder = state
             .lease

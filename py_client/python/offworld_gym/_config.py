@@ -25,6 +25,8 @@ DISCOVER = "discover"
 RERUN_ENV = "OFFWORLD_GYM_RERUN"
 #: Records embedded envs' episodes without touching code (same as ``record=``).
 RECORD_ENV = "OFFWORLD_GYM_RECORD"
+#: The longest ``wait=`` (a year; the client's ``LONGEST_WAIT``).
+LONGEST_WAIT_S = 365 * 86_400
 
 
 @dataclass
@@ -82,8 +84,8 @@ def resolve(
     """
     channels = Channels(channel_type)
     wait_s = 0.0 if wait is None else wait
-    if isinstance(wait_s, bool) or not isinstance(wait_s, numbers.Real) or not 0 <= wait_s < float("inf"):
-        raise ConfigurationError(f"wait must be a number of seconds ≥ 0, got {wait!r}")
+    if isinstance(wait_s, bool) or not isinstance(wait_s, numbers.Real) or not 0 <= wait_s <= LONGEST_WAIT_S:
+        raise ConfigurationError(f"wait must be a number of seconds from 0 to {LONGEST_WAIT_S} (a year), got {wait!r}")
     if len(resolution) != 2:
         raise ConfigurationError(f"resolution must be (height, width), got {resolution!r}")
     # A whole number of pixels, not silently truncated: (84.5, 84) is a mistake.
