@@ -1444,3 +1444,74 @@ async fn a_busy_env_goes_to_its_waiting_line_first_come_first_served() {
     assert!(refused.message.ends_with(" in line"), "{refused}");
     ops.close().await.expect("close");
 }
+
+/// A raw `open` with a chosen client id.
+async fn open_as(
+    session: &Session,
+    env: &EnvId,
+    token: &str,
+    client_id: &str,
+) -> Result<OpenReply, WireError> {
+    let mut request = open_request(token, "same-client", false, AlgorithmMode::Train);
+    request.client_id = client_id.into();
+    wire::request(
+        session,
+        &env.key(Topic::Open),
+        &request,
+        Duration::from_secs(5),
+    )
+    .await
+    .map_err(|e| e.into_wire())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_open_repeated_by_the_leases_own_client_gets_that_lease_never_anothers() {
+    let dir = ScratchDir::new("gym-again");
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    // An identified user's client asks again (its reply was lost): the same lease.
+    let first = open_as(&session, &d.env, ALICE, "alice-client")
+        .await
+        .expect("open");
+    let again = open_as(&session, &d.env, ALICE, "alice-client")
+        .await
+        .expect("again");
+    assert_eq!(again.session_id, first.session_id);
+    assert_eq!(again.experiment.id, first.experiment.id);
+    // Another user sending that client id is someone else.
+    let other = open_as(&session, &d.env, BOB, "alice-client")
+        .await
+        .expect_err("bob is not alice");
+    assert_eq!(other.code, ErrorCode::Busy);
+    assert!(
+        other.message.contains("is leased by another user"),
+        "{other}"
+    );
+    let closed: CloseReply = wire::request(
+        &session,
+        &d.env.key(Topic::Close),
+        &CloseRequest {
+            session_id: first.session_id.clone(),
+        },
+        Duration::from_secs(5),
+    )
+    .await
+    .expect("close");
+    assert_eq!(closed.experiment.id, first.experiment.id);
+    // Anonymous users share one user, and a client id is no secret: a
+    // second anonymous session is refused, whatever client id it sends.
+    let held = open_as(&session, &d.env, "", "anon-client")
+        .await
+        .expect("open");
+    let hijack = open_as(&session, &d.env, "", "anon-client")
+        .await
+        .expect_err("not the holder's lease");
+    assert_eq!(hijack.code, ErrorCode::Busy);
+    assert!(
+        hijack
+            .message
+            .contains("is in use by another anonymous session"),
+        "{hijack}"
+    );
+    assert_ne!(held.session_id, "");
+}

@@ -142,7 +142,7 @@ def test_a_leased_env_is_waited_for_in_line(trainer, capfd):
         assert waiter.is_alive(), "still waiting while alice holds the env"
     finally:
         holder.close()
-    waiter.join(timeout=30)
+        waiter.join(timeout=30)
     assert not waiter.is_alive(), "the waiter got the env once alice closed hers"
     assert "error" not in opened, opened
     env = opened["env"]

@@ -97,11 +97,14 @@ impl EnvServer {
             None => None,
         };
         let live = state.lease.as_ref().filter(|l| l.expires > now);
+        // Not for anonymous users: they share one user, and a client id
+        // is no secret (it names the client's liveliness token).
         let own_again = |l: &&Lease| {
             !l.disconnected
                 && !req.client_id.is_empty()
                 && l.client_id == req.client_id
                 && l.user.id == user.id
+                && user.name != ANONYMOUS
         };
         if let Some(lease) = live.filter(own_again).filter(|_| refusal.is_none()) {
             // This client's own open again (a wait's retry after its reply
