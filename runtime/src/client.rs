@@ -63,6 +63,16 @@ pub const WAIT_POLL: Duration = Duration::from_secs(1);
 /// [`EnvClient::open_waiting`] waits at most this long (a year).
 pub const LONGEST_WAIT: Duration = Duration::from_secs(365 * 86_400);
 
+/// When an `open` is asked again.
+struct Retry {
+    /// For at most this long.
+    within: Duration,
+    /// This long after each refusal.
+    every: Duration,
+    /// After a refusal with one of these codes.
+    on: &'static [ErrorCode],
+}
+
 /// An open session on one env (holds its lease until closed).
 pub struct EnvClient {
     session: Session,
@@ -101,9 +111,50 @@ impl EnvClient {
     pub async fn open_waiting(
         session: &Session,
         env: &EnvId,
-        mut request: OpenRequest,
+        request: OpenRequest,
         timeouts: ClientTimeouts,
         wait: Duration,
+        on_refusal: impl FnMut(&WireError),
+    ) -> Result<Self, WireError> {
+        let retry = Retry {
+            within: wait,
+            every: WAIT_POLL,
+            on: &[ErrorCode::Busy, ErrorCode::Unavailable, ErrorCode::Timeout],
+        };
+        Self::open_retrying(session, env, request, timeouts, retry, on_refusal).await
+    }
+
+    /// [`EnvClient::open`], asked again (as one client) every 100 ms for up
+    /// to `wait` while the deployment is still coming up (the typed "not
+    /// yet" answers: `Unavailable`, `NotFound`, `Timeout`). Any other
+    /// error, or the last one when `wait` is over, is returned.
+    pub async fn open_when_ready(
+        session: &Session,
+        env: &EnvId,
+        request: OpenRequest,
+        timeouts: ClientTimeouts,
+        wait: Duration,
+    ) -> Result<Self, WireError> {
+        let retry = Retry {
+            within: wait,
+            every: Duration::from_millis(100),
+            on: &[
+                ErrorCode::Unavailable,
+                ErrorCode::NotFound,
+                ErrorCode::Timeout,
+            ],
+        };
+        Self::open_retrying(session, env, request, timeouts, retry, |_| {}).await
+    }
+
+    /// Opens as one client (one id, one liveliness token) however often
+    /// `retry` asks again; hands each retried refusal to `on_refusal`.
+    async fn open_retrying(
+        session: &Session,
+        env: &EnvId,
+        mut request: OpenRequest,
+        timeouts: ClientTimeouts,
+        retry: Retry,
         mut on_refusal: impl FnMut(&WireError),
     ) -> Result<Self, WireError> {
         request.client_id = random_id();
@@ -119,7 +170,7 @@ impl EnvClient {
             client_id: request.client_id.clone(),
         };
         // Any wait a person means fits; a larger one would overflow the clock.
-        let deadline = tokio::time::Instant::now() + wait.min(LONGEST_WAIT);
+        let deadline = tokio::time::Instant::now() + retry.within.min(LONGEST_WAIT);
         let reply: OpenReply = loop {
             let opened = wire::request_as(
                 session,
@@ -132,13 +183,11 @@ impl EnvClient {
             .map_err(wire::RequestError::into_wire);
             match opened {
                 Err(e)
-                    if matches!(
-                        e.code,
-                        ErrorCode::Busy | ErrorCode::Unavailable | ErrorCode::Timeout
-                    ) && tokio::time::Instant::now() + WAIT_POLL < deadline =>
+                    if retry.on.contains(&e.code)
+                        && tokio::time::Instant::now() + retry.every < deadline =>
                 {
                     on_refusal(&e);
-                    tokio::time::sleep(WAIT_POLL).await;
+                    tokio::time::sleep(retry.every).await;
                 }
                 opened => break opened?,
             }
@@ -153,33 +202,6 @@ impl EnvClient {
             tag,
             _alive: alive,
         })
-    }
-
-    /// [`EnvClient::open`], retried every 100 ms for up to `wait` while the
-    /// deployment is still coming up (the typed "not yet" answers:
-    /// `Unavailable`, `NotFound`, `Timeout`). Any other error, or the last
-    /// one when `wait` is over, is returned.
-    pub async fn open_when_ready(
-        session: &Session,
-        env: &EnvId,
-        request: OpenRequest,
-        timeouts: ClientTimeouts,
-        wait: Duration,
-    ) -> Result<Self, WireError> {
-        let deadline = tokio::time::Instant::now() + wait;
-        loop {
-            match Self::open(session, env, request.clone(), timeouts).await {
-                Err(e)
-                    if matches!(
-                        e.code,
-                        ErrorCode::Unavailable | ErrorCode::NotFound | ErrorCode::Timeout
-                    ) && tokio::time::Instant::now() < deadline =>
-                {
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
-                result => return result,
-            }
-        }
     }
 
     /// The env's spec as returned by `open`.
