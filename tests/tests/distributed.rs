@@ -602,7 +602,10 @@ async fn press_as(
         engaged,
         reason,
         Duration::from_secs(10),
-        Duration::from_secs(5),
+        // Generous: the press repeats itself while the twin is silent, and
+        // this suite runs routers and twins of parallel tests on 2 cores
+        // (CI saw a release unacknowledged after 5 s).
+        Duration::from_secs(15),
     )
     .await
     .map_err(|e| anyhow::anyhow!("press {reason}: {e}"))
