@@ -410,7 +410,10 @@ async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Res
             let verb = if release { "released" } else { "engaged" };
             let report = match &pressed {
                 Ok(report) => report,
-                Err(PressError::Unacknowledged { report, .. }) => report,
+                Err(
+                    PressError::Unacknowledged { report, .. }
+                    | PressError::Overtaken { report, .. },
+                ) => report,
                 Err(_) => return Ok(pressed.map(drop)?),
             };
             println!("e-stop {verb} on {}", scope.key());

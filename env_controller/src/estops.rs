@@ -6,9 +6,10 @@
 //! them from the network), and on start learns them the same way (asking
 //! again for a few seconds: a fresh session may not reach everyone yet).
 
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
-use offworld_runtime::estop::{self, Latch};
+use offworld_runtime::estop::{self, Latch, Pressed, RecentPresses};
 use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
 use offworld_runtime::msg::{EStopState, Time};
 use offworld_runtime::WireError;
@@ -46,15 +47,22 @@ impl EnvEStops {
             tx.clone(),
             RECALL,
         ));
+        // One record of presses for both latches, as an obeyer keeps: the
+        // controller applies each press by the same rule.
+        let presses = Arc::new(Mutex::new(RecentPresses::default()));
         let subscribe = |key: String, latch: Latch| {
-            let tx = tx.clone();
-            let env = env.clone();
+            let (tx, env, presses) = (tx.clone(), env.clone(), presses.clone());
             session.declare_subscriber(key).callback(move |s: Sample| {
                 let stop = estop::decode(s.payload());
-                tx.send_modify(|state| {
-                    state.apply(latch, &stop, Time::now());
+                let mut pressed = Pressed::Repeated;
+                tx.send_if_modified(|state| {
+                    let mut presses = presses.lock().unwrap_or_else(PoisonError::into_inner);
+                    pressed = presses.apply(state, latch, &stop, Time::now());
+                    pressed == Pressed::Applied
                 });
-                tracing::warn!(%env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, "e-stop");
+                if pressed == Pressed::Applied {
+                    tracing::warn!(%env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, "e-stop");
+                }
             })
         };
         let env_sub = subscribe(env.key(Topic::EStop), Latch::Env)

@@ -279,9 +279,10 @@ async fn the_cli_prints_who_acknowledged_and_fails_when_someone_did_not() {
     );
 }
 
-/// A copy of a press arriving again (an engage repeated while another
+/// A copy of a press arriving again (a press repeated while another
 /// obeyer was silent, a duplicated delivery) is acknowledged but never
-/// re-applied: a late copy does not undo a press made in between by
+/// re-applied, and a release applies only when pressed after the latch's
+/// last change: a late copy does not undo a press made in between by
 /// someone else.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_repeated_release_never_undoes_a_later_engage() {
@@ -336,4 +337,40 @@ async fn a_repeated_release_never_undoes_a_later_engage() {
     let late = ack_of(11).await;
     assert_eq!(late.state.summary(), "env", "Bob's engage stands: {late:?}");
     assert_eq!(late.state.env.reason, "press 12");
+    // A release pressed before Bob's engage whose first copy arrives after
+    // it (its earlier copies lost) is refused too: outdated.
+    press(false, 10).await;
+    let outdated = ack_of(10).await;
+    assert_eq!(outdated.state.env.reason, "press 12", "{outdated:?}");
+
+    // Carol's clock is 3 s ahead: her engage is the latch's newest change,
+    // so a release pressed now is refused, and the operator is told why.
+    let ahead = offworld_runtime::msg::Time::now_unix_nanos() + 3_000_000_000;
+    press(true, ahead).await;
+    ack_of(ahead).await;
+    let scope = EStopScope::Env(env.clone());
+    let refused = press_estop(&operator, &scope, false, "all clear", PRESENCE, ACK)
+        .await
+        .expect_err("the release was overtaken");
+    match refused {
+        PressError::Overtaken { message, report } => {
+            assert_eq!(
+                message,
+                format!(
+                    "the release on {} was refused: the env latch was engaged again after it \
+                     was pressed, and holds at sim_twin of sim/estop-repeat (press {ahead})",
+                    env.key(Topic::EStop)
+                )
+            );
+            assert_eq!(report.acknowledged.len(), 1);
+            assert!(report.silent.is_empty());
+        }
+        other => panic!("expected Overtaken, got {other:?}"),
+    }
+    // Once her press's time has passed, a release applies.
+    tokio::time::sleep(Duration::from_millis(3100)).await;
+    let released = press_estop(&operator, &scope, false, "all clear", PRESENCE, ACK)
+        .await
+        .expect("released");
+    assert_eq!(released.acknowledged[0].state.summary(), "none");
 }

@@ -10,7 +10,7 @@
 use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
-use offworld_runtime::estop::{self, Latch, RecentPresses};
+use offworld_runtime::estop::{self, Latch, Pressed, RecentPresses};
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault,
@@ -662,15 +662,22 @@ impl<H: RobotHardware> Agent<H> {
     /// Applies an e-stop to its latch: stops the robot first, then
     /// remembers the latches on disk, then acknowledges.
     async fn estop(&mut self, latch: Latch, stop: EStop) {
-        if self.presses.first_time(stop.press_id) {
-            self.estops.apply(latch, &stop, Time::now());
-            if stop.engaged {
+        match self
+            .presses
+            .apply(&mut self.estops, latch, &stop, Time::now())
+        {
+            Pressed::Applied if stop.engaged => {
                 tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, "E-STOP engaged");
                 self.halt(&format!("e-stop: {}", stop.reason), OnHalt::Abandon)
                     .await;
-            } else {
+            }
+            Pressed::Applied => {
                 tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, still = self.estops.summary(), "e-stop released");
             }
+            Pressed::Outdated => {
+                tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, still = self.estops.summary(), "an outdated e-stop release ignored: the latch changed after it was pressed");
+            }
+            Pressed::Repeated => {}
         }
         // Every copy stores the latches again: a write that failed for the
         // first is retried.

@@ -105,10 +105,47 @@ impl EStopState {
     }
 }
 
-/// The presses an obeyer applied lately. An operator repeats an engage
-/// while someone is still silent (`operator::press_estop`; a release is
-/// never repeated): every copy is acknowledged, only the first applied, so
-/// a late copy of an engage does not re-engage a latch released since.
+/// What an obeyer did with one e-stop publication ([`RecentPresses::apply`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pressed {
+    /// Applied to its latch.
+    Applied,
+    /// A copy of a press applied already: acknowledged, not applied again.
+    Repeated,
+    /// A release pressed before the latch's last change (a late copy of
+    /// it, or an operator's clock behind): refused, the latch stands.
+    Outdated,
+}
+
+/// How far ahead of this host's clock a press may be stamped: a press id
+/// further in the future (a wrong clock) counts as pressed that far ahead,
+/// so it cannot hold off every later release for long.
+const AHEAD_AT_MOST: Duration = Duration::from_secs(5);
+
+/// A new press id: the operator's wall clock in nanoseconds since the
+/// epoch, strictly increasing within this process. Obeyers order releases
+/// by it ([`RecentPresses::apply`]), so an operator can publish a press
+/// again, engage or release, while an obeyer is silent.
+pub fn new_press_id() -> u64 {
+    static LAST: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let now = Time::now_unix_nanos().max(1);
+    let previous = LAST
+        .fetch_update(
+            std::sync::atomic::Ordering::AcqRel,
+            std::sync::atomic::Ordering::Acquire,
+            |last| Some(now.max(last + 1)),
+        )
+        .unwrap_or(0);
+    now.max(previous + 1)
+}
+
+/// The presses an obeyer applied lately, and the rule every obeyer (robot
+/// agent, twin) and the controller apply a press by. An operator publishes
+/// a press again while an obeyer is silent (`operator::press_estop`):
+/// every copy is acknowledged, only the first applied, so a late copy of
+/// an engage does not re-engage a latch released since; a release applies
+/// only when pressed after the latch's last change, so a late copy of a
+/// release never undoes an engage pressed in between.
 #[derive(Debug, Default)]
 pub struct RecentPresses(std::collections::VecDeque<u64>);
 
@@ -116,9 +153,42 @@ impl RecentPresses {
     /// How many press ids are remembered: far more than can be in flight.
     const KEPT: usize = 64;
 
+    /// Applies `stop` to `latch` of `state`, this host's clock reading
+    /// `now`. A press is stamped with its id's time (a publication naming
+    /// no press, id 0, with `now`), an engage always applies (safety first,
+    /// whatever the clocks say) and becomes the latch's newest report; a
+    /// release applies only when stamped after the latch's last change.
+    pub fn apply(
+        &mut self,
+        state: &mut EStopState,
+        latch: Latch,
+        stop: &EStop,
+        now: Time,
+    ) -> Pressed {
+        if !self.first_time(stop.press_id) {
+            return Pressed::Repeated;
+        }
+        let last = state.latch(latch).changed.as_unix_nanos();
+        let pressed = if stop.press_id == 0 {
+            now.as_unix_nanos()
+        } else {
+            let ahead = AHEAD_AT_MOST.as_nanos() as u64;
+            stop.press_id.min(now.as_unix_nanos().saturating_add(ahead))
+        };
+        if !stop.engaged && stop.press_id != 0 && pressed <= last {
+            return Pressed::Outdated;
+        }
+        state.apply(
+            latch,
+            stop,
+            Time::from_unix_nanos(pressed.max(last.saturating_add(1))),
+        );
+        Pressed::Applied
+    }
+
     /// Whether the press `press_id` is new here (remembering it). Id 0 (a
     /// publication that names no press) is always new.
-    pub fn first_time(&mut self, press_id: u64) -> bool {
+    fn first_time(&mut self, press_id: u64) -> bool {
         if press_id == 0 {
             return true;
         }
@@ -269,30 +339,133 @@ fn fold_reply(state: &mut EStopState, env: &EnvId, reply: &Reply) {
 
 #[cfg(test)]
 mod tests {
-    /// A press is applied once however often it arrives; id 0 always; the
-    /// oldest ids are forgotten past the bound.
-    #[test]
-    fn a_repeated_press_is_applied_once() {
-        let mut recent = RecentPresses::default();
-        assert!(recent.first_time(7));
-        assert!(!recent.first_time(7));
-        assert!(recent.first_time(8));
-        assert!(
-            !recent.first_time(7),
-            "still remembered after another press"
-        );
-        assert!(recent.first_time(0));
-        assert!(recent.first_time(0));
-        for id in 100..100 + RecentPresses::KEPT as u64 {
-            assert!(recent.first_time(id));
-        }
-        assert!(recent.first_time(7), "forgotten past the bound");
-    }
-
     use super::*;
 
     fn at(sec: i32) -> Time {
         Time { sec, nanosec: 0 }
+    }
+
+    fn press(engaged: bool, press_id: u64) -> EStop {
+        EStop {
+            engaged,
+            reason: format!("press {press_id}"),
+            press_id,
+        }
+    }
+
+    const SECOND: u64 = 1_000_000_000;
+
+    /// A press is applied once however often it arrives, stamped with its
+    /// id's time; id 0 always applies; the oldest ids are forgotten past
+    /// the bound.
+    #[test]
+    fn a_repeated_press_is_applied_once() {
+        let (mut recent, mut state) = (RecentPresses::default(), EStopState::default());
+        let now = at(100);
+        let apply = |recent: &mut RecentPresses, state: &mut EStopState, stop| {
+            recent.apply(state, Latch::Env, &stop, now)
+        };
+        assert_eq!(
+            apply(&mut recent, &mut state, press(true, 7 * SECOND)),
+            Pressed::Applied
+        );
+        assert_eq!(state.env.changed, at(7));
+        assert_eq!(
+            apply(&mut recent, &mut state, press(false, 8 * SECOND)),
+            Pressed::Applied
+        );
+        assert_eq!(
+            apply(&mut recent, &mut state, press(true, 7 * SECOND)),
+            Pressed::Repeated,
+            "a late copy of the engage"
+        );
+        assert!(!state.engaged());
+        assert_eq!(
+            apply(&mut recent, &mut state, EStop::new(true, "no id")),
+            Pressed::Applied
+        );
+        assert_eq!(state.env.changed, now);
+        assert_eq!(
+            apply(&mut recent, &mut state, EStop::new(false, "no id")),
+            Pressed::Applied
+        );
+        assert_eq!(state.env.changed, Time::from_unix_nanos(100 * SECOND + 1));
+        for id in 1000..1000 + RecentPresses::KEPT as u64 {
+            recent.apply(&mut state, Latch::Site, &press(true, id), now);
+        }
+        assert!(recent.first_time(7 * SECOND), "forgotten past the bound");
+    }
+
+    /// A release applies only when pressed after the latch's last change: a
+    /// late copy of one never undoes an engage pressed in between. An
+    /// engage always applies, even stamped before (a clock behind), and
+    /// becomes the newest report.
+    #[test]
+    fn a_release_applies_only_after_the_latchs_last_change() {
+        let (mut recent, mut state) = (RecentPresses::default(), EStopState::default());
+        let now = at(100);
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(true, 12 * SECOND), now),
+            Pressed::Applied
+        );
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(false, 11 * SECOND), now),
+            Pressed::Outdated
+        );
+        assert!(state.env.engaged, "the later engage stands");
+        assert_eq!(state.env.reason, format!("press {}", 12 * SECOND));
+        // Bob's clock is behind: his engage still applies, stamped after
+        // the release it follows.
+        recent.apply(&mut state, Latch::Env, &press(false, 20 * SECOND), now);
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(true, 15 * SECOND), now),
+            Pressed::Applied
+        );
+        assert!(state.env.engaged);
+        assert_eq!(state.env.changed, Time::from_unix_nanos(20 * SECOND + 1));
+        // The other latch is another story.
+        assert_eq!(
+            recent.apply(&mut state, Latch::Site, &press(false, 16 * SECOND), now),
+            Pressed::Applied
+        );
+        // A press stamped far ahead counts as pressed 5 s ahead of the
+        // obeyer's clock: it holds off releases for 5 s, not for years.
+        recent.apply(&mut state, Latch::Env, &press(true, u64::MAX), now);
+        assert_eq!(state.env.changed, at(105));
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(false, 104 * SECOND), at(104)),
+            Pressed::Outdated
+        );
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(false, 106 * SECOND), at(106)),
+            Pressed::Applied
+        );
+    }
+
+    /// Press ids are the wall clock in nanoseconds, strictly increasing.
+    #[test]
+    fn press_ids_are_times_that_only_grow() {
+        let before = Time::now_unix_nanos();
+        let ids: Vec<u64> = (0..1000).map(|_| new_press_id()).collect();
+        assert!(ids.windows(2).all(|w| w[0] < w[1]), "strictly increasing");
+        assert!(ids[0] >= before);
+        assert!(ids[999] - ids[0] < 60 * SECOND);
+    }
+
+    #[test]
+    fn times_convert_to_nanoseconds_exactly() {
+        let t = Time::from_unix_nanos(1_764_211_200_123_456_789);
+        assert_eq!((t.sec, t.nanosec), (1_764_211_200, 123_456_789));
+        assert_eq!(t.as_unix_nanos(), 1_764_211_200_123_456_789);
+        assert_eq!(Time::from_unix_nanos(u64::MAX).sec, i32::MAX);
+        assert_eq!(
+            Time {
+                sec: -1,
+                nanosec: 5
+            }
+            .as_unix_nanos(),
+            5
+        );
     }
 
     #[test]

@@ -2,10 +2,10 @@
 //! and release the e-stops (one env's, or the whole site's), and learn who
 //! obeyed.
 //!
-//! A press is published (never dropped, at control priority; an engage
-//! again while someone is silent, a release once); every
-//! robot agent and twin that receives it stops first, then acknowledges on
-//! its env's `estop_ack` with the press's id and the latches now in force.
+//! A press is published (never dropped, at control priority; again while
+//! someone is silent); every robot agent and twin that receives it stops
+//! first, then acknowledges on its env's `estop_ack` with the press's id
+//! and the latches now in force.
 //! The operator waits for an acknowledgement from every robot agent and
 //! twin that declared itself under the scope, and a press that one of them
 //! did not acknowledge in time (dropped by a router's ACL, a cut link, a
@@ -14,13 +14,13 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use rand::Rng;
 use tokio::sync::mpsc;
 use zenoh::bytes::Encoding;
 use zenoh::sample::Sample;
 use zenoh::Session;
 
 use crate::codec;
+use crate::estop::{self, Latch};
 use crate::keys::{
     all_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
 };
@@ -45,6 +45,16 @@ pub enum PressError {
         /// Who did acknowledge, and who not.
         report: PressReport,
     },
+    /// A release every obeyer acknowledged, but some still hold the latch:
+    /// it was engaged again after this release was pressed (by someone
+    /// else, or by an operator whose clock is ahead of this one's).
+    #[error("{message}")]
+    Overtaken {
+        /// What to tell the operator.
+        message: String,
+        /// Who acknowledged, with the latches they hold.
+        report: PressReport,
+    },
 }
 
 impl From<PressError> for WireError {
@@ -53,6 +63,7 @@ impl From<PressError> for WireError {
             PressError::NotFound(m) => WireError::not_found(m),
             PressError::Zenoh(m) => WireError::internal(format!("zenoh: {m}")),
             PressError::Unacknowledged { message, .. } => WireError::unavailable(message),
+            PressError::Overtaken { message, .. } => WireError::invalid_state(message),
         }
     }
 }
@@ -80,6 +91,14 @@ impl EStopScope {
         match self {
             Self::Env(env) => format!("{}/alive/*", env.prefix()),
             Self::Site => all_alive_selector(),
+        }
+    }
+
+    /// The latch this scope's e-stop sets.
+    fn latch(&self) -> Latch {
+        match self {
+            Self::Env(_) => Latch::Env,
+            Self::Site => Latch::Site,
         }
     }
 
@@ -122,7 +141,9 @@ pub struct PressReport {
 /// or a twin is present there (its liveliness token; waits at most
 /// `presence` for one: a press nobody obeys is `NotFound`), then waits at
 /// most `ack_within` for every one of them to acknowledge. Returns the
-/// report when all did; `Unavailable` naming the silent ones otherwise.
+/// report when all did; `Unacknowledged` naming the silent ones otherwise,
+/// and `Overtaken` for a release some of them refused (the latch engaged
+/// again after it was pressed).
 pub async fn press_estop(
     session: &Session,
     scope: &EStopScope,
@@ -147,8 +168,8 @@ pub async fn press_estop(
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
-    // Nonzero: 0 means "nobody waits for acknowledgements".
-    let press_id = rand::rng().random_range(1..u64::MAX);
+    // The press's time: obeyers order releases by it.
+    let press_id = estop::new_press_id();
     let (tx, mut acks) = mpsc::unbounded_channel();
     let _ack_sub = session
         .declare_subscriber(scope.acks())
@@ -176,38 +197,34 @@ pub async fn press_estop(
         .priority(wire::CONTROL_PRIORITY)
         .await
         .map_err(|e| zerr(e.to_string()))?;
+    let ack_deadline = tokio::time::Instant::now() + ack_within;
     // A new session learns the robots' subscriptions from the router a
     // moment after it sees their presence, and a client drops a put that
-    // matches no subscription it knows of: wait (within the presence
-    // deadline) until one matches, then publish (regardless: the
-    // acknowledgements tell the truth).
+    // matches no subscription it knows of: wait (within the time for the
+    // acknowledgements, whatever the presence wait took) until one
+    // matches, then publish (regardless: the acknowledgements tell the
+    // truth).
     while !publisher
         .matching_status()
         .await
         .map_err(|e| zerr(e.to_string()))?
         .matching()
-        && tokio::time::Instant::now() < deadline
+        && tokio::time::Instant::now() < ack_deadline
     {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     let sent = Instant::now();
     let mut waiting: BTreeSet<Obeyer> = expected.into_iter().collect();
     let mut report = PressReport::default();
-    let ack_deadline = tokio::time::Instant::now() + ack_within;
-    // An engage is published again while someone is still silent: a put or
+    // A press is published again while someone is still silent: a put or
     // an acknowledgement can be lost while the sessions learn each other's
     // subscriptions through the router (the acknowledgement's subscriber
-    // above is moments old). A release is published once: a copy of it
-    // arriving late (its first lost, or the obeyer restarted) would undo
-    // an engage pressed in between, so a silent obeyer of a release fails
-    // the press and the operator presses again. An obeyer applies a press
-    // once and acknowledges every copy ([`crate::estop::RecentPresses`]);
-    // each obeyer counts once here.
-    let mut republish_in = if engaged {
-        Duration::from_millis(250)
-    } else {
-        ack_within
-    };
+    // above is moments old). Every copy is safe: an obeyer applies a press
+    // once and acknowledges every copy, and applies a release only when it
+    // was pressed after the latch's last change, so a late copy never
+    // undoes an engage pressed in between ([`estop::RecentPresses`]); each
+    // obeyer counts once here.
+    let mut republish_in = Duration::from_millis(250);
     loop {
         publisher
             .put(bytes.clone())
@@ -242,8 +259,32 @@ pub async fn press_estop(
         }
     }
     report.silent = waiting.into_iter().collect();
-    if report.silent.is_empty() {
+    let latch = scope.latch();
+    let holding: Vec<String> = report
+        .acknowledged
+        .iter()
+        .filter(|a| !engaged && a.state.latch(latch).engaged)
+        .map(|a| {
+            format!(
+                "{} of {} ({})",
+                a.component,
+                a.env,
+                a.state.latch(latch).reason
+            )
+        })
+        .collect();
+    if report.silent.is_empty() && holding.is_empty() {
         Ok(report)
+    } else if report.silent.is_empty() {
+        Err(PressError::Overtaken {
+            message: format!(
+                "the release on {key} was refused: the {} latch was engaged again after it \
+                 was pressed, and holds at {}",
+                latch.as_str(),
+                holding.join(", ")
+            ),
+            report,
+        })
     } else {
         let names: Vec<String> = report
             .silent

@@ -691,11 +691,19 @@ impl Worker {
     /// Applies an e-stop to its latch and acknowledges it.
     fn estop(&mut self, latch: Latch, sample: &Sample) {
         let stop = estop::decode(sample.payload());
-        // A repeated copy of a press is acknowledged, not applied again.
-        if self.presses.first_time(stop.press_id) {
-            self.estops.apply(latch, &stop, Time::now());
-            tracing::warn!(env = %self.env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, now = self.estops.summary(), "e-stop");
-            self.shared_estops.send_replace(self.estops.clone());
+        // A copy of a press, or an outdated release, is acknowledged, not applied.
+        match self
+            .presses
+            .apply(&mut self.estops, latch, &stop, Time::now())
+        {
+            estop::Pressed::Applied => {
+                tracing::warn!(env = %self.env, latch = latch.as_str(), engaged = stop.engaged, reason = %stop.reason, now = self.estops.summary(), "e-stop");
+                self.shared_estops.send_replace(self.estops.clone());
+            }
+            estop::Pressed::Outdated => {
+                tracing::warn!(env = %self.env, latch = latch.as_str(), reason = %stop.reason, now = self.estops.summary(), "an outdated e-stop release ignored: the latch changed after it was pressed");
+            }
+            estop::Pressed::Repeated => {}
         }
         let ack = EStopAck {
             press_id: stop.press_id,

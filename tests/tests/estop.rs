@@ -217,7 +217,16 @@ impl Rig {
                 .expect("estop_state query");
             let mut answers = 0;
             while let Ok(reply) = replies.recv_async().await {
-                let sample = reply.result().expect("an estop_state answer");
+                // A queryable that did not answer within the query's time
+                // is an error reply (`Timeout`): right after a restart the
+                // router may still route to the killed process's
+                // declarations or the new one's session may be starting.
+                let sample = reply.result().map_err(|e| {
+                    format!(
+                        "{when}: an estop_state query of {env} got an error reply: {}",
+                        e.payload().try_to_string().unwrap_or_default()
+                    )
+                })?;
                 let state: EStopState =
                     codec::decode_payload(sample.payload()).expect("an EStopState");
                 model.check_state(&state, &format!("{when}: estop_state of {env}"))?;

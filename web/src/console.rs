@@ -252,6 +252,16 @@ pub async fn estop(State(state): State<AppState>, request: Request) -> Response 
                 Some(&report),
             )
         }
+        Err(PressError::Overtaken { message, report }) => {
+            tracing::error!(operator = %session.user, %what, engage, "{message}");
+            render(
+                &state,
+                &session,
+                StatusCode::CONFLICT,
+                Notice::Refused(format!("Not {verb} on {what}: {message}.")),
+                Some(&report),
+            )
+        }
         Err(e @ PressError::NotFound(_)) => {
             tracing::error!(operator = %session.user, %what, engage, "not pressed: {e}");
             refused(StatusCode::NOT_FOUND, format!("Not {verb}: {e}."))

@@ -27,15 +27,43 @@ impl Time {
 
     /// Wall-clock now.
     pub fn now() -> Self {
-        let since = std::time::SystemTime::now()
+        Self::from_unix_nanos(Self::now_unix_nanos())
+    }
+
+    /// Wall-clock now in nanoseconds since the epoch (0 before it).
+    pub fn now_unix_nanos() -> u64 {
+        std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
-            .unwrap_or_default();
-        Self::from_secs_f64(since.as_secs_f64())
+            .map_or(0, |since| {
+                u64::try_from(since.as_nanos()).unwrap_or(u64::MAX)
+            })
     }
 
     /// Seconds as a float.
     pub fn as_secs_f64(&self) -> f64 {
         self.sec as f64 + self.nanosec as f64 * 1e-9
+    }
+
+    /// Builds a time from nanoseconds since the epoch, exactly (a float
+    /// keeps only about a quarter of a microsecond); past `i32::MAX`
+    /// seconds it clamps there.
+    pub fn from_unix_nanos(nanos: u64) -> Self {
+        let sec = nanos / 1_000_000_000;
+        if sec > i32::MAX as u64 {
+            return Self {
+                sec: i32::MAX,
+                nanosec: 999_999_999,
+            };
+        }
+        Self {
+            sec: sec as i32,
+            nanosec: (nanos % 1_000_000_000) as u32,
+        }
+    }
+
+    /// Nanoseconds since the epoch (a negative time is 0).
+    pub fn as_unix_nanos(&self) -> u64 {
+        u64::try_from(self.sec).unwrap_or(0) * 1_000_000_000 + u64::from(self.nanosec)
     }
 }
 
