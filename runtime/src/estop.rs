@@ -117,26 +117,24 @@ pub enum Pressed {
     Outdated,
 }
 
-/// How far ahead of this host's clock a press may be stamped: a press id
-/// further in the future (a wrong clock) counts as pressed that far ahead,
-/// so it cannot hold off every later release for long.
-const AHEAD_AT_MOST: Duration = Duration::from_secs(5);
-
 /// A new press id: the operator's wall clock in nanoseconds since the
-/// epoch, strictly increasing within this process. Obeyers order releases
+/// epoch, strictly increasing within this process (a clock before the
+/// epoch gives a random id: ids must still differ). Obeyers order releases
 /// by it ([`RecentPresses::apply`]), so an operator can publish a press
 /// again, engage or release, while an obeyer is silent.
 pub fn new_press_id() -> u64 {
-    static LAST: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let now = Time::now_unix_nanos().max(1);
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static LAST: AtomicU64 = AtomicU64::new(0);
+    let now = match Time::now_unix_nanos() {
+        0 => rand::random_range(1..u64::MAX / 2),
+        now => now,
+    };
     let previous = LAST
-        .fetch_update(
-            std::sync::atomic::Ordering::AcqRel,
-            std::sync::atomic::Ordering::Acquire,
-            |last| Some(now.max(last + 1)),
-        )
+        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |last| {
+            Some(now.max(last.saturating_add(1)))
+        })
         .unwrap_or(0);
-    now.max(previous + 1)
+    now.max(previous.saturating_add(1))
 }
 
 /// The presses an obeyer applied lately, and the rule every obeyer (robot
@@ -154,10 +152,16 @@ impl RecentPresses {
     const KEPT: usize = 64;
 
     /// Applies `stop` to `latch` of `state`, this host's clock reading
-    /// `now`. A press is stamped with its id's time (a publication naming
-    /// no press, id 0, with `now`), an engage always applies (safety first,
-    /// whatever the clocks say) and becomes the latch's newest report; a
-    /// release applies only when stamped after the latch's last change.
+    /// `now`. An engage always applies (safety first, whatever the clocks
+    /// say), stamped when it arrived here (after the latch's last change):
+    /// the latch's newest report. A release applies only when pressed after
+    /// the latch's last change, its press time read from its id and never
+    /// later than `now` — so a late copy of a release pressed before an
+    /// engage arrived never undoes it (up to how far the releaser's clock
+    /// runs ahead of this one: sites keep clocks in sync). A latch stamped
+    /// in this host's future (its clock stepped back) cannot order presses:
+    /// a release then applies, as a publication naming no press (id 0)
+    /// always does.
     pub fn apply(
         &mut self,
         state: &mut EStopState,
@@ -168,21 +172,20 @@ impl RecentPresses {
         if !self.first_time(stop.press_id) {
             return Pressed::Repeated;
         }
-        let last = state.latch(latch).changed.as_unix_nanos();
-        let pressed = if stop.press_id == 0 {
-            now.as_unix_nanos()
-        } else {
-            let ahead = AHEAD_AT_MOST.as_nanos() as u64;
-            stop.press_id.min(now.as_unix_nanos().saturating_add(ahead))
-        };
-        if !stop.engaged && stop.press_id != 0 && pressed <= last {
-            return Pressed::Outdated;
-        }
-        state.apply(
-            latch,
-            stop,
-            Time::from_unix_nanos(pressed.max(last.saturating_add(1))),
+        let (last, now) = (
+            state.latch(latch).changed.as_unix_nanos(),
+            now.as_unix_nanos(),
         );
+        let stamp = if stop.engaged || stop.press_id == 0 || last > now {
+            now.max(last.saturating_add(1))
+        } else {
+            let pressed = stop.press_id.min(now);
+            if pressed <= last {
+                return Pressed::Outdated;
+            }
+            pressed
+        };
+        state.apply(latch, stop, Time::from_unix_nanos(stamp));
         Pressed::Applied
     }
 
@@ -355,41 +358,30 @@ mod tests {
 
     const SECOND: u64 = 1_000_000_000;
 
-    /// A press is applied once however often it arrives, stamped with its
-    /// id's time; id 0 always applies; the oldest ids are forgotten past
-    /// the bound.
+    fn millis(ms: u64) -> Time {
+        Time::from_unix_nanos(ms * 1_000_000)
+    }
+
+    /// A press is applied once however often it arrives; id 0 always
+    /// applies; the oldest ids are forgotten past the bound.
     #[test]
     fn a_repeated_press_is_applied_once() {
         let (mut recent, mut state) = (RecentPresses::default(), EStopState::default());
-        let now = at(100);
-        let apply = |recent: &mut RecentPresses, state: &mut EStopState, stop| {
-            recent.apply(state, Latch::Env, &stop, now)
-        };
+        let mut apply = |stop, now| recent.apply(&mut state, Latch::Env, &stop, now);
+        assert_eq!(apply(press(true, 7 * SECOND), at(100)), Pressed::Applied);
+        assert_eq!(apply(press(false, 103 * SECOND), at(102)), Pressed::Applied);
         assert_eq!(
-            apply(&mut recent, &mut state, press(true, 7 * SECOND)),
-            Pressed::Applied
-        );
-        assert_eq!(state.env.changed, at(7));
-        assert_eq!(
-            apply(&mut recent, &mut state, press(false, 8 * SECOND)),
-            Pressed::Applied
-        );
-        assert_eq!(
-            apply(&mut recent, &mut state, press(true, 7 * SECOND)),
+            apply(press(true, 7 * SECOND), at(104)),
             Pressed::Repeated,
-            "a late copy of the engage"
+            "a late copy"
         );
+        assert_eq!(apply(EStop::new(true, "no id"), at(90)), Pressed::Applied);
+        assert_eq!(apply(EStop::new(false, "no id"), at(90)), Pressed::Applied);
         assert!(!state.engaged());
-        assert_eq!(
-            apply(&mut recent, &mut state, EStop::new(true, "no id")),
-            Pressed::Applied
-        );
-        assert_eq!(state.env.changed, now);
-        assert_eq!(
-            apply(&mut recent, &mut state, EStop::new(false, "no id")),
-            Pressed::Applied
-        );
-        assert_eq!(state.env.changed, Time::from_unix_nanos(100 * SECOND + 1));
+        // An engage is stamped on arrival, a release never ahead of the
+        // clock, and each change after the last.
+        assert_eq!(state.env.changed, Time::from_unix_nanos(102 * SECOND + 2));
+        let now = at(100);
         for id in 1000..1000 + RecentPresses::KEPT as u64 {
             recent.apply(&mut state, Latch::Site, &press(true, id), now);
         }
@@ -397,49 +389,71 @@ mod tests {
     }
 
     /// A release applies only when pressed after the latch's last change: a
-    /// late copy of one never undoes an engage pressed in between. An
-    /// engage always applies, even stamped before (a clock behind), and
-    /// becomes the newest report.
+    /// late copy of one never undoes an engage that arrived in between,
+    /// even from an operator whose clock is behind. An engage always
+    /// applies.
     #[test]
     fn a_release_applies_only_after_the_latchs_last_change() {
         let (mut recent, mut state) = (RecentPresses::default(), EStopState::default());
-        let now = at(100);
+        // Bob's clock is 2 s behind: his engage pressed at 100.5 reads
+        // 98.5, and arrives at 100.6.
         assert_eq!(
-            recent.apply(&mut state, Latch::Env, &press(true, 12 * SECOND), now),
+            recent.apply(
+                &mut state,
+                Latch::Env,
+                &press(true, 98_500_000_000),
+                millis(100_600)
+            ),
             Pressed::Applied
         );
+        // Alice pressed a release at 100.0; its first copies were lost and
+        // a later copy arrives at 100.75.
         assert_eq!(
-            recent.apply(&mut state, Latch::Env, &press(false, 11 * SECOND), now),
+            recent.apply(
+                &mut state,
+                Latch::Env,
+                &press(false, 100 * SECOND),
+                millis(100_750)
+            ),
             Pressed::Outdated
         );
-        assert!(state.env.engaged, "the later engage stands");
-        assert_eq!(state.env.reason, format!("press {}", 12 * SECOND));
-        // Bob's clock is behind: his engage still applies, stamped after
-        // the release it follows.
-        recent.apply(&mut state, Latch::Env, &press(false, 20 * SECOND), now);
+        assert!(state.env.engaged, "Bob's engage stands");
+        assert_eq!(state.env.reason, "press 98500000000");
+        // A release pressed after it applies; the other latch is another story.
         assert_eq!(
-            recent.apply(&mut state, Latch::Env, &press(true, 15 * SECOND), now),
+            recent.apply(
+                &mut state,
+                Latch::Env,
+                &press(false, 101 * SECOND),
+                millis(101_010)
+            ),
             Pressed::Applied
         );
-        assert!(state.env.engaged);
-        assert_eq!(state.env.changed, Time::from_unix_nanos(20 * SECOND + 1));
-        // The other latch is another story.
+        assert_eq!(state.env.changed, at(101));
         assert_eq!(
-            recent.apply(&mut state, Latch::Site, &press(false, 16 * SECOND), now),
+            recent.apply(&mut state, Latch::Site, &press(false, 16 * SECOND), at(200)),
             Pressed::Applied
         );
-        // A press stamped far ahead counts as pressed 5 s ahead of the
-        // obeyer's clock: it holds off releases for 5 s, not for years.
-        recent.apply(&mut state, Latch::Env, &press(true, u64::MAX), now);
-        assert_eq!(state.env.changed, at(105));
+        // A release stamped far ahead counts as pressed now.
+        recent.apply(&mut state, Latch::Env, &press(true, 0x7000), at(300));
         assert_eq!(
-            recent.apply(&mut state, Latch::Env, &press(false, 104 * SECOND), at(104)),
-            Pressed::Outdated
+            recent.apply(&mut state, Latch::Env, &press(false, u64::MAX), at(300)),
+            Pressed::Outdated,
+            "not after the engage that arrived at 300"
         );
         assert_eq!(
-            recent.apply(&mut state, Latch::Env, &press(false, 106 * SECOND), at(106)),
+            recent.apply(&mut state, Latch::Env, &press(false, u64::MAX - 1), at(301)),
             Pressed::Applied
         );
+        assert_eq!(state.env.changed, at(301));
+        // This host's clock stepped back below the latch's stamp: time
+        // cannot order presses, a release applies.
+        recent.apply(&mut state, Latch::Env, &press(true, 0x7001), at(400));
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(false, 350 * SECOND), at(350)),
+            Pressed::Applied
+        );
+        assert_eq!(state.env.changed, Time::from_unix_nanos(400 * SECOND + 1));
     }
 
     /// Press ids are the wall clock in nanoseconds, strictly increasing.

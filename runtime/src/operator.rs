@@ -45,9 +45,10 @@ pub enum PressError {
         /// Who did acknowledge, and who not.
         report: PressReport,
     },
-    /// A release every obeyer acknowledged, but some still hold the latch:
-    /// it was engaged again after this release was pressed (by someone
-    /// else, or by an operator whose clock is ahead of this one's).
+    /// A press every obeyer acknowledged, but some hold the latch the other
+    /// way: a release whose latch was engaged again after it was pressed
+    /// (by someone else's press that arrived first), or an engage released
+    /// since by a later press.
     #[error("{message}")]
     Overtaken {
         /// What to tell the operator.
@@ -142,8 +143,8 @@ pub struct PressReport {
 /// `presence` for one: a press nobody obeys is `NotFound`), then waits at
 /// most `ack_within` for every one of them to acknowledge. Returns the
 /// report when all did; `Unacknowledged` naming the silent ones otherwise,
-/// and `Overtaken` for a release some of them refused (the latch engaged
-/// again after it was pressed).
+/// and `Overtaken` when some of them hold the latch the other way (a
+/// release pressed before an engage that reached them first).
 pub async fn press_estop(
     session: &Session,
     scope: &EStopScope,
@@ -263,7 +264,7 @@ pub async fn press_estop(
     let holding: Vec<String> = report
         .acknowledged
         .iter()
-        .filter(|a| !engaged && a.state.latch(latch).engaged)
+        .filter(|a| a.state.latch(latch).engaged != engaged)
         .map(|a| {
             format!(
                 "{} of {} ({})",
@@ -276,15 +277,21 @@ pub async fn press_estop(
     if report.silent.is_empty() && holding.is_empty() {
         Ok(report)
     } else if report.silent.is_empty() {
-        Err(PressError::Overtaken {
-            message: format!(
+        let message = if engaged {
+            format!(
+                "the e-stop on {key} is not in force at {}: a later press released the {} latch",
+                holding.join(", "),
+                latch.as_str()
+            )
+        } else {
+            format!(
                 "the release on {key} was refused: the {} latch was engaged again after it \
                  was pressed, and holds at {}",
                 latch.as_str(),
                 holding.join(", ")
-            ),
-            report,
-        })
+            )
+        };
+        Err(PressError::Overtaken { message, report })
     } else {
         let names: Vec<String> = report
             .silent

@@ -241,7 +241,7 @@ impl Worker {
         let stop: EStop = codec::decode_payload(sample.payload())?;
         let view = self.view(env);
         let step = view.seq;
-        if view.estop == Some(stop.engaged) {
+        if !view.env_latch.applies(Latch::Env, &stop, wall) || view.estop == Some(stop.engaged) {
             return Ok(());
         }
         view.estop = Some(stop.engaged);
@@ -251,7 +251,9 @@ impl Worker {
 
     pub(super) fn on_site_estop(&mut self, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
         let stop: EStop = codec::decode_payload(sample.payload())?;
-        if self.site_estop == Some(stop.engaged) {
+        if !self.site_latch.applies(Latch::Site, &stop, wall)
+            || self.site_estop == Some(stop.engaged)
+        {
             return Ok(());
         }
         self.site_estop = Some(stop.engaged);

@@ -14,10 +14,11 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
+use offworld_runtime::estop::{Latch, Pressed, RecentPresses};
 use offworld_runtime::keys::global_estop_key;
 use offworld_runtime::msg::{
-    CameraFrame, EStop, EnvState, EnvStatus, EpisodeEvent, Image, ImageError, MotionCommand,
-    Odometry, PixelEncoding, PoseStamped, SeqTag, Time, TrackingStatus,
+    CameraFrame, EStop, EStopState, EnvState, EnvStatus, EpisodeEvent, Image, ImageError,
+    MotionCommand, Odometry, PixelEncoding, PoseStamped, SeqTag, Time, TrackingStatus,
 };
 use offworld_runtime::world::WorldSpec;
 use offworld_runtime::{codec, wire, EnvId};
@@ -183,6 +184,9 @@ struct EnvView {
     tracking: Option<bool>,
     status: Option<EnvState>,
     estop: Option<bool>,
+    /// The env latch as its obeyers apply presses (a refused or repeated
+    /// copy changes nothing here either).
+    env_latch: Obeyed,
     /// When the last reset logged ended (Unix ms).
     last_reset_ms: Option<i64>,
 }
@@ -206,7 +210,27 @@ pub(crate) struct Worker {
     order: Vec<EnvId>,
     last_health: Option<Instant>,
     site_estop: Option<bool>,
+    site_latch: Obeyed,
     columns: Columns,
+}
+
+/// A latch followed by the obeyers' rule ([`RecentPresses::apply`]).
+#[derive(Debug, Default)]
+pub(super) struct Obeyed {
+    latches: EStopState,
+    presses: RecentPresses,
+}
+
+impl Obeyed {
+    /// Whether `stop`, received at `wall` (the recording's time in a
+    /// replay), changed `latch` as an obeyer would apply it.
+    pub(super) fn applies(&mut self, latch: Latch, stop: &EStop, wall: SystemTime) -> bool {
+        let now = Time::from_unix_nanos(
+            wall.duration_since(SystemTime::UNIX_EPOCH)
+                .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)),
+        );
+        self.presses.apply(&mut self.latches, latch, stop, now) == Pressed::Applied
+    }
 }
 
 /// Why a message was skipped.
@@ -263,6 +287,7 @@ impl Worker {
             order: Vec::new(),
             last_health: None,
             site_estop: None,
+            site_latch: Obeyed::default(),
             columns: Columns::new(COLUMN_PERIOD, COLUMN_MAX_BYTES),
         }
     }
@@ -457,5 +482,37 @@ impl Worker {
             // Heartbeats and anything newer than this monitor: not drawn.
             _ => Ok(()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The monitor shows a latch as its obeyers hold it: a repeated copy or
+    /// a release overtaken by an engage changes nothing; in a replay the
+    /// recording's times order the presses.
+    #[test]
+    fn a_latch_is_followed_as_its_obeyers_apply_presses() {
+        let at = |ms: u64| SystemTime::UNIX_EPOCH + Duration::from_millis(ms);
+        let press = |engaged: bool, ms: u64| EStop {
+            engaged,
+            reason: format!("at {ms}"),
+            press_id: ms * 1_000_000,
+        };
+        let mut latch = Obeyed::default();
+        assert!(latch.applies(Latch::Env, &press(true, 1_000), at(1_010)));
+        assert!(
+            !latch.applies(Latch::Env, &press(true, 1_000), at(1_300)),
+            "a copy"
+        );
+        assert!(latch.applies(Latch::Env, &press(false, 2_000), at(2_010)));
+        assert!(latch.applies(Latch::Env, &press(true, 3_000), at(3_010)));
+        assert!(
+            !latch.applies(Latch::Env, &press(false, 2_900), at(3_020)),
+            "pressed before the engage arrived"
+        );
+        assert!(latch.latches.env.engaged);
+        assert_eq!(latch.latches.env.reason, "at 3000");
     }
 }
