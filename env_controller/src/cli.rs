@@ -438,11 +438,16 @@ async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Res
         } => {
             let db = db.resolve(db_before);
             let store = Store::open_existing(&db)?;
+            let experiments = store.experiments()?;
+            if experiments.is_empty() {
+                println!("no experiments yet in {}", db.display());
+                return Ok(());
+            }
             println!(
                 "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
                 "id", "user", "env", "experiment", "type", "mode", "episodes", "steps"
             );
-            for e in store.experiments()? {
+            for e in experiments {
                 println!(
                     "{:<5} {:<12} {:<20} {:<28} {:<10} {:<6} {:>8} {:>8}",
                     e.id,
@@ -458,12 +463,17 @@ async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Res
         }
         Command::Leaderboard { env, db } => {
             let store = Store::open_existing(&db.resolve(db_before))?;
+            let board = store.leaderboard(&env.to_string())?;
+            if board.is_empty() {
+                println!("no test-mode experiments on {env} yet: its leaderboard is empty");
+                return Ok(());
+            }
             println!("leaderboard of {env} (test-mode experiments)");
             println!(
                 "{:<4} {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",
                 "rank", "experiment", "user", "type", "episodes", "success", "return"
             );
-            for (i, e) in store.leaderboard(&env.to_string())?.iter().enumerate() {
+            for (i, e) in board.iter().enumerate() {
                 println!(
                     "{:<4} {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
                     i + 1,
