@@ -383,14 +383,10 @@ impl Rig {
             .expect("put estop");
     }
 
-    /// Presses `stop` with `press_id` and returns its acknowledgement.
-    async fn estop_acked(
-        &mut self,
-        key: &str,
-        engaged: bool,
-        reason: &str,
-        press_id: u64,
-    ) -> EStopAck {
+    /// Presses `stop` as an operator does (a new press id: the clock) and
+    /// returns its acknowledgement.
+    async fn estop_acked(&mut self, key: &str, engaged: bool, reason: &str) -> EStopAck {
+        let press_id = offworld_runtime::estop::new_press_id();
         let stop = EStop {
             engaged,
             reason: reason.to_owned(),
@@ -1325,7 +1321,7 @@ async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() 
     rig.cmd(80, CRUISE, 0.0, 5.0).await;
     rig.until_driving_at(cruise).await;
     let engaged = Instant::now();
-    let ack = rig.estop_acked(&site_key, true, "fire alarm", 501).await;
+    let ack = rig.estop_acked(&site_key, true, "fire alarm").await;
     assert_eq!(
         (ack.component.as_str(), ack.env.as_str()),
         ("robot_agent", "real/estop-scopes")
@@ -1343,10 +1339,10 @@ async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() 
         "motion stopped before the command's end: e-stop: fire alarm"
     );
 
-    let ack = rig.estop_acked(&env_key, true, "person inside", 502).await;
+    let ack = rig.estop_acked(&env_key, true, "person inside").await;
     assert_eq!(ack.state.summary(), "site+env");
     // The env release leaves the site latch: still refused.
-    let ack = rig.estop_acked(&env_key, false, "person out", 503).await;
+    let ack = rig.estop_acked(&env_key, false, "person out").await;
     assert_eq!(ack.state.summary(), "site");
     rig.cmd(81, CRUISE, 0.0, 0.5).await;
     assert_eq!(
@@ -1354,8 +1350,8 @@ async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() 
         "motion refused: e-stop engaged: site (fire alarm)"
     );
     // Engage the env again, release the site: still refused, by the env.
-    rig.estop_acked(&env_key, true, "maintenance", 504).await;
-    let ack = rig.estop_acked(&site_key, false, "all clear", 505).await;
+    rig.estop_acked(&env_key, true, "maintenance").await;
+    let ack = rig.estop_acked(&site_key, false, "all clear").await;
     assert_eq!(ack.state.summary(), "env");
     rig.cmd(82, CRUISE, 0.0, 0.5).await;
     assert_eq!(
@@ -1366,7 +1362,7 @@ async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() 
         &rig.robot.sent_since(engaged + Duration::from_millis(500))
     ));
     // Both released: motion again.
-    let ack = rig.estop_acked(&env_key, false, "done", 506).await;
+    let ack = rig.estop_acked(&env_key, false, "done").await;
     assert_eq!(ack.state.summary(), "none");
     rig.until_motion_allowed().await;
     rig.finish().await;
@@ -1409,9 +1405,7 @@ async fn an_agent_that_cannot_write_its_latch_refuses_to_start() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_starting_agent_learns_the_site_estop_from_the_network() {
     let mut first = Rig::start("estop-net-a", config()).await;
-    first
-        .estop_acked(&global_estop_key(), true, "drill", 601)
-        .await;
+    first.estop_acked(&global_estop_key(), true, "drill").await;
     // A second agent on the first one's network (its session), no latch.
     let env = EnvId::real("estop-net-b").expect("env");
     let robot = RecordingRobot::new();

@@ -67,13 +67,19 @@ impl EStopState {
     }
 
     /// Takes, per latch, `other`'s report where it is newer than ours.
-    /// Returns whether anything engaged or released.
+    /// Returns whether anything engaged or released. A report stamped in
+    /// this host's future (another host's clock ahead) counts as made now:
+    /// it must not outrank every press this host applies later.
     pub fn merge(&mut self, other: &EStopState) -> bool {
+        let now = Time::now();
         let mut changed = false;
         for (ours, theirs) in [(&mut self.site, &other.site), (&mut self.env, &other.env)] {
             if newer(&theirs.changed, &ours.changed) {
                 changed |= ours.engaged != theirs.engaged;
                 *ours = theirs.clone();
+                if newer(&ours.changed, &now) {
+                    ours.changed = now;
+                }
             }
         }
         changed
@@ -117,6 +123,10 @@ pub enum Pressed {
     Outdated,
 }
 
+/// How far a latch's stamp may run ahead of this host's clock before it
+/// counts as this clock having stepped back (and no longer orders presses).
+pub const CLOCK_STEP: Duration = Duration::from_secs(60);
+
 /// A new press id: the operator's wall clock in nanoseconds since the
 /// epoch, strictly increasing within this process (a clock before the
 /// epoch gives a random id: ids must still differ). Obeyers order releases
@@ -159,9 +169,11 @@ impl RecentPresses {
     /// later than `now` — so a late copy of a release pressed before an
     /// engage arrived never undoes it (up to how far the releaser's clock
     /// runs ahead of this one: sites keep clocks in sync). A latch stamped
-    /// in this host's future (its clock stepped back) cannot order presses:
+    /// more than [`CLOCK_STEP`] in this host's future (its clock stepped
+    /// back; merged reports are never stamped ahead) cannot order presses:
     /// a release then applies, as a publication naming no press (id 0)
-    /// always does.
+    /// always does; a smaller step holds releases until the clock passes
+    /// the stamp.
     pub fn apply(
         &mut self,
         state: &mut EStopState,
@@ -176,7 +188,8 @@ impl RecentPresses {
             state.latch(latch).changed.as_unix_nanos(),
             now.as_unix_nanos(),
         );
-        let stamp = if stop.engaged || stop.press_id == 0 || last > now {
+        let clock_stepped_back = last > now.saturating_add(CLOCK_STEP.as_nanos() as u64);
+        let stamp = if stop.engaged || stop.press_id == 0 || clock_stepped_back {
             now.max(last.saturating_add(1))
         } else {
             let pressed = stop.press_id.min(now);
@@ -446,11 +459,16 @@ mod tests {
             Pressed::Applied
         );
         assert_eq!(state.env.changed, at(301));
-        // This host's clock stepped back below the latch's stamp: time
-        // cannot order presses, a release applies.
+        // This host's clock stepped back by 10 s: releases wait until it
+        // passes the latch's stamp; by more than a minute: time cannot
+        // order presses, a release applies.
         recent.apply(&mut state, Latch::Env, &press(true, 0x7001), at(400));
         assert_eq!(
-            recent.apply(&mut state, Latch::Env, &press(false, 350 * SECOND), at(350)),
+            recent.apply(&mut state, Latch::Env, &press(false, 390 * SECOND), at(390)),
+            Pressed::Outdated
+        );
+        assert_eq!(
+            recent.apply(&mut state, Latch::Env, &press(false, 339 * SECOND), at(339)),
             Pressed::Applied
         );
         assert_eq!(state.env.changed, Time::from_unix_nanos(400 * SECOND + 1));
@@ -512,6 +530,14 @@ mod tests {
         assert!(ours.merge(&theirs));
         assert!(!ours.site.engaged);
         assert_eq!(ours.env.reason, "maintenance");
+        // A report stamped in this host's future counts as made now.
+        let mut ahead = EStopState::default();
+        let far = Time::from_unix_nanos(Time::now_unix_nanos() + 3600 * SECOND);
+        ahead.apply(Latch::Site, &EStop::new(true, "clock ahead"), far);
+        let mut here = EStopState::default();
+        assert!(here.merge(&ahead));
+        assert!(here.site.engaged);
+        assert!(here.site.changed.as_unix_nanos() <= Time::now_unix_nanos());
         // An older report changes nothing.
         let mut stale = EStopState::default();
         stale.apply(Latch::Env, &EStop::new(false, "old"), at(5));

@@ -1,6 +1,7 @@
 //! The twin node over real Zenoh sessions on loopback: commands in, frames
 //! and poses out with matching sequence numbers; goto; e-stop; bad input.
 
+use offworld_runtime::Resolution;
 use std::time::Duration;
 
 use offworld_runtime::codec;
@@ -104,13 +105,13 @@ async fn tagged(
     }
 }
 
-async fn setup(world: &str, res: (u32, u32)) -> (TwinNode, Client, Session) {
+async fn setup(world: &str, res: Resolution) -> (TwinNode, Client, Session) {
     setup_with_clock(world, res, Clock::Lockstep).await
 }
 
 async fn setup_with_clock(
     world: &str,
-    res: (u32, u32),
+    res: Resolution,
     clock: Clock,
 ) -> (TwinNode, Client, Session) {
     let (server, client) = loopback_pair().await.expect("loopback sessions");
@@ -142,7 +143,7 @@ fn planar(p: &PoseStamped) -> (f64, f64, f64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn commands_in_frames_and_poses_out_with_matching_seq() {
-    let (node, client, _server) = setup("monolith", (64, 48)).await;
+    let (node, client, _server) = setup("monolith", Resolution::new(64, 48)).await;
     let (frame, pose0, _) = client.connect().await;
     let connected = node.stats();
     assert_eq!((frame.color.width, frame.color.height), (64, 48));
@@ -181,7 +182,7 @@ async fn commands_in_frames_and_poses_out_with_matching_seq() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_overhead_view_is_streamed_for_spectators() {
-    let (_node, client, _server) = setup("monolith", (64, 48)).await;
+    let (_node, client, _server) = setup("monolith", Resolution::new(64, 48)).await;
     let key = client
         .env
         .overhead_key(offworld_sim_twin::node::OVERHEAD_CAMERA)
@@ -206,7 +207,7 @@ async fn an_overhead_view_is_streamed_for_spectators() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
-    let (node, client, _server) = setup("monolith_obstacle", (32, 24)).await;
+    let (node, client, _server) = setup("monolith_obstacle", Resolution::new(32, 24)).await;
     client.connect().await;
     let connected = node.stats();
     let goto_key = client.env.key(Topic::Goto);
@@ -284,7 +285,7 @@ async fn goto_teleports_and_bad_input_is_rejected_without_stopping_the_node() {
 /// e-stop is acknowledged; site and env latches are independent.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn estop_refuses_motion_and_liveliness_is_declared() {
-    let (_node, client, _server) = setup("monolith", (32, 24)).await;
+    let (_node, client, _server) = setup("monolith", Resolution::new(32, 24)).await;
     let (_, before, _) = client.connect().await;
     let alive = client
         .session
@@ -303,9 +304,11 @@ async fn estop_refuses_motion_and_liveliness_is_declared() {
         .declare_subscriber(client.env.key(Topic::EStopAck))
         .await
         .expect("ack subscriber");
-    let press = |key: String, engaged: bool, reason: &'static str, press_id: u64| {
+    // As an operator presses: a new press id (the clock) each time.
+    let press = |key: String, engaged: bool, reason: &'static str| {
         let session = client.session.clone();
         let acks = &acks;
+        let press_id = offworld_runtime::estop::new_press_id();
         async move {
             let stop = EStop {
                 engaged,
@@ -331,17 +334,15 @@ async fn estop_refuses_motion_and_liveliness_is_declared() {
     };
     let (env_key, site_key) = (client.env.key(Topic::EStop), global_estop_key());
     assert_eq!(
-        press(site_key.clone(), true, "fire alarm", 1)
-            .await
-            .summary(),
+        press(site_key.clone(), true, "fire alarm").await.summary(),
         "site"
     );
     assert_eq!(
-        press(env_key.clone(), true, "test", 2).await.summary(),
+        press(env_key.clone(), true, "test").await.summary(),
         "site+env"
     );
     assert_eq!(
-        press(env_key.clone(), false, "clear", 3).await.summary(),
+        press(env_key.clone(), false, "clear").await.summary(),
         "site"
     );
 
@@ -386,10 +387,7 @@ async fn estop_refuses_motion_and_liveliness_is_declared() {
         "robot moved under e-stop"
     );
 
-    assert_eq!(
-        press(site_key, false, "all clear", 4).await.summary(),
-        "none"
-    );
+    assert_eq!(press(site_key, false, "all clear").await.summary(), "none");
     client.command(22, 0.5, 0.0, 1.0).await;
     let (_, pose, _) = client.answer(22).await.expect("answer");
     assert!(
@@ -400,7 +398,8 @@ async fn estop_refuses_motion_and_liveliness_is_declared() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn real_time_clock_streams_tracker_poses_and_answers_commands() {
-    let (_node, client, _server) = setup_with_clock("monolith", (32, 24), Clock::RealTime).await;
+    let (_node, client, _server) =
+        setup_with_clock("monolith", Resolution::new(32, 24), Clock::RealTime).await;
     // Like a tracker, the real-time twin streams untagged poses unasked.
     let mut untagged = 0;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
@@ -444,7 +443,7 @@ async fn a_stuck_simulation_thread_withdraws_its_twin() {
     let (server, client) = loopback_pair().await.expect("loopback sessions");
     let env = EnvId::sim("stuck-test").expect("env");
     let mut config = TwinConfig::builtin("monolith").expect("world");
-    config.resolution = Some((2048, 2048));
+    config.resolution = Some(Resolution::new(2048, 2048));
     config.profile.camera.pitch_deg = 2.0;
     let node = TwinNode::spawn_watched(
         &server,

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
+import signal
+import socket
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -61,17 +61,26 @@ def newcomer_env() -> dict[str, str]:
 
 def run(command: str, cwd: Path, timeout: float) -> str:
     """Runs one README line through bash, as a newcomer pastes it; fails
-    with its output unless it exits 0."""
-    done = subprocess.run(
+    with its output unless it exits 0. On a timeout its whole process group
+    is killed (cargo, maturin, Python: nothing keeps running or holds
+    cargo's lock)."""
+    process = subprocess.Popen(
         ["bash", "-c", command],
         cwd=cwd,
         env=newcomer_env(),
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=timeout,
+        start_new_session=True,
     )
-    assert done.returncode == 0, f"`{command}` exited {done.returncode}:\n{done.stdout}\n{done.stderr}"
-    return done.stdout
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        stdout, stderr = process.communicate()
+        raise AssertionError(f"`{command}` ran past {timeout} s:\n{stdout}\n{stderr}") from None
+    assert process.returncode == 0, f"`{command}` exited {process.returncode}:\n{stdout}\n{stderr}"
+    return stdout
 
 
 def test_the_two_commands_are_the_demo_and_the_tests_and_the_demo_prints_what_it_says():
@@ -82,16 +91,19 @@ def test_the_two_commands_are_the_demo_and_the_tests_and_the_demo_prints_what_it
     documented = block[block.index("It ends with:") :]
     assert "first observation (240, 320, 1) uint8" in documented
     out = run("bash .ci/demo", REPO, timeout=3600)
-    assert re.search(
-        r"^OffWorldMonolithDiscreteSim-v0: first observation \(240, 320, 1\) uint8 after \d+ ms$", out, re.M
-    ), out
-    episodes = re.findall(
-        r"^episode (\d): return -?\d+ in \d+ steps \((?:time limit|reached the monolith|left the arena)\)$",
-        out,
-        re.M,
-    )
-    assert episodes == ["0", "1", "2"], out
-    assert re.search(r"^\d+ steps in [\d.]+ s \(\d+ steps/s\)$", out, re.M), out
+    # It ends with these lines, in this order.
+    ending = [
+        r"OffWorldMonolithDiscreteSim-v0: first observation \(240, 320, 1\) uint8 after \d+ ms",
+        *(
+            rf"episode {i}: return -?\d+ in \d+ steps \((?:time limit|reached the monolith|left the arena)\)"
+            for i in range(3)
+        ),
+        r"\d+ steps in [\d.]+ s \(\d+ steps/s\)",
+    ]
+    last = out.strip().splitlines()[-len(ending) :]
+    assert len(last) == len(ending), out
+    for line, pattern in zip(last, ending):
+        assert re.fullmatch(pattern, line), f"{line!r} is not {pattern!r}:\n{out}"
 
 
 def test_the_python_quickstart_runs_as_written(tmp_path: Path):
@@ -101,7 +113,7 @@ def test_the_python_quickstart_runs_as_written(tmp_path: Path):
     check += "print('quickstart ok', reward, terminated, truncated, sorted(info))\n"
     script = tmp_path / "quickstart.py"
     script.write_text(quickstart + check)
-    out = run(f"{sys.executable} {script}", tmp_path, timeout=300)
+    out = run(f"python3 {script}", tmp_path, timeout=300)
     assert out.startswith("quickstart ok "), out
     assert "'is_success'" in out and "'step'" in out, out
 
@@ -152,6 +164,9 @@ def test_the_pieces_run_as_processes_as_written(tmp_path: Path):
     # Not run: the alternative to --embedded-twins (the same env twice).
     assert twin.startswith("offworld twin --env sim/monolith-0")
     assert "listening on tcp/127.0.0.1:7447" in block
+    with socket.socket() as probe:
+        taken = probe.connect_ex(("127.0.0.1", 7447)) == 0
+    assert not taken, "something already listens on 127.0.0.1:7447, the README's port: stop it and run again"
     server = Serving(serve, tmp_path)
     try:
         server.wait_ready(within=120)
@@ -167,16 +182,20 @@ def test_the_pieces_run_as_processes_as_written(tmp_path: Path):
     finally:
         server.stop()
     assert any("listen=[\"tcp/127.0.0.1:7447\"]" in line for line in server.log), "".join(server.log)
-    # A developer's line: the example renders into out/ of the checkout.
+    # A developer's line: the example renders into out/ of the checkout
+    # (with --exact, the exact renderer's pair too). What it made is
+    # removed after; what was there before stays.
     assert "writes out/rgb.png and out/depth.png" in block
     out = REPO / "out"
-    existed = out.exists()
+    made = [out / n for n in ("rgb.png", "depth.png", "rgb_exact.png", "depth_exact.png")]
+    existed = {path for path in [out, *made] if path.exists()}
     try:
         run(render, REPO, timeout=1800)
-        for name in ("rgb.png", "depth.png"):
-            assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+        for path in made:
+            assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", path
     finally:
-        for name in ("rgb.png", "depth.png"):
-            (out / name).unlink(missing_ok=True)
-        if not existed and out.exists() and not any(out.iterdir()):
-            shutil.rmtree(out)
+        for path in made:
+            if path not in existed:
+                path.unlink(missing_ok=True)
+        if out not in existed and out.exists() and not any(out.iterdir()):
+            out.rmdir()
