@@ -5,6 +5,7 @@
 use std::time::Duration;
 
 use offworld_runtime::keys::EnvId;
+use offworld_runtime::Resolution;
 /// The twin profile an embedded env's twin is built with (re-exported so
 /// front ends need not depend on the twin crate).
 pub use offworld_sim_twin::TwinProfile;
@@ -23,7 +24,7 @@ pub struct SimEnv {
     /// Task name (`MonolithDiscrete`, …).
     pub task: String,
     /// Rendered resolution (render at the observation size: fastest).
-    pub resolution: Option<(u32, u32)>,
+    pub resolution: Option<Resolution>,
     /// Spawn sampler seed before any `reset(seed)`.
     pub seed: u64,
     /// The physical robot the twin behaves like (`docs/twin-profile.md`);

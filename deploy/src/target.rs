@@ -3,7 +3,7 @@
 //! Zenoh. Shared by the Python package and any other front end.
 
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::{client, SessionConfig};
+use offworld_runtime::{client, Resolution, SessionConfig};
 use zenoh::Session;
 
 use offworld_env_controller::{ControllerError, EnvOptions, RequestLimits, Store};
@@ -18,7 +18,7 @@ pub enum Target {
         /// Task name.
         task: String,
         /// Observation (and render) resolution (width, height).
-        resolution: (u32, u32),
+        resolution: Resolution,
         /// Number of envs.
         count: usize,
         /// Record every episode under this directory (`docs/recording.md`).

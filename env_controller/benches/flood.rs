@@ -18,6 +18,7 @@
 //! `FLOOD_QUERIES` (10000), `FLOOD_CLIENTS` (100), `FLOOD_DRIVE_MS` (3000),
 //! `FLOOD_IDLE_STEPS` (300); `ZENOHD` names the router binary.
 
+use offworld_runtime::Resolution;
 use std::collections::BTreeMap;
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -138,7 +139,7 @@ async fn main() -> anyhow::Result<()> {
     let sim = SimEnv {
         env: env_b.clone(),
         task: "MonolithDiscrete".into(),
-        resolution: Some((84, 84)),
+        resolution: Some(Resolution::new(84, 84)),
         seed: 0,
         profile: TwinProfile::default(),
     };

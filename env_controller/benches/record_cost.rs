@@ -18,6 +18,7 @@
 //! [`FEW_STEPS`] and [`STEPS`] + [`FEW_STEPS`] steps: the difference of the
 //! two counts is 1,000 steps' work on every thread, without the setup.
 
+use offworld_runtime::Resolution;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -56,7 +57,7 @@ async fn steps_per_s(
     let connection = connect(
         Target::Embedded {
             task: "MonolithDiscrete".into(),
-            resolution: (w, h),
+            resolution: Resolution::new(w, h),
             count: 1,
             record: record.map(Path::to_owned),
             twin_profile: offworld_deploy::TwinProfile::default(),

@@ -8,6 +8,7 @@
 //! µs above the floor are also taken per step against the floor run just
 //! before it. Run: `cargo bench -p offworld-env-controller --bench step_overhead`
 
+use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
@@ -74,7 +75,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     let sim = SimEnv {
         env: env.clone(),
         task: "MonolithDiscrete".into(),
-        resolution: Some((w, h)),
+        resolution: Some(Resolution::new(w, h)),
         seed: 0,
         profile: TwinProfile::default(),
     };

@@ -3,6 +3,7 @@
 //!
 //! `cargo run --release -p offworld-env-controller --example client_steps -- 84 84 1000`
 
+use offworld_runtime::Resolution;
 use std::time::Instant;
 
 use offworld_deploy::Target;
@@ -23,7 +24,7 @@ async fn main() -> anyhow::Result<()> {
     let connection = offworld_deploy::connect(
         Target::Embedded {
             task: task.into(),
-            resolution: (w, h),
+            resolution: Resolution::new(w, h),
             count: 1,
             record: None,
             twin_profile: offworld_deploy::TwinProfile::default(),

@@ -8,6 +8,7 @@
 //! malformed client tag are refused typed. Behaviour only: no assertion on
 //! how long anything took (waits are bounded, never measured).
 
+use offworld_runtime::Resolution;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -69,7 +70,7 @@ async fn site(tag: &str, limits: RequestLimits) -> Site {
     let sim = SimEnv {
         env: env_b.clone(),
         task: "MonolithDiscrete".into(),
-        resolution: Some((32, 32)),
+        resolution: Some(Resolution::new(32, 32)),
         seed: 0,
         profile: TwinProfile::default(),
     };
@@ -473,7 +474,7 @@ async fn clients_on_the_controllers_own_session_are_answered() {
     let connection = connect(
         Target::Embedded {
             task: "MonolithDiscrete".into(),
-            resolution: (32, 32),
+            resolution: Resolution::new(32, 32),
             count: 1,
             record: None,
             twin_profile: TwinProfile::default(),

@@ -2,6 +2,7 @@
 //! embedded sim twin: full episodes, determinism, every bad input, leases,
 //! disconnects, maintenance, persistence across restarts, the leaderboard.
 
+use offworld_runtime::Resolution;
 use offworld_test_support::ScratchDir;
 use std::path::Path;
 use std::time::Duration;
@@ -37,7 +38,7 @@ async fn deploy(db: &Path, task: &str, token_users: &[(&str, &str, bool)]) -> De
     let sim = SimEnv {
         env: env.clone(),
         task: task.into(),
-        resolution: Some((84, 84)),
+        resolution: Some(Resolution::new(84, 84)),
         seed: 0,
         profile: TwinProfile::default(),
     };

@@ -5,6 +5,7 @@
 //! drops the press) fails the press naming it; a press nobody can hear is
 //! a typed error.
 
+use offworld_runtime::Resolution;
 use std::time::Duration;
 
 use offworld_runtime::keys::{Component, EnvId, Topic};
@@ -19,7 +20,7 @@ const ACK: Duration = Duration::from_secs(5);
 
 fn twin(session: &Session, name: &str) -> TwinNode {
     let mut config = TwinConfig::builtin("monolith").expect("world");
-    config.resolution = Some((8, 6));
+    config.resolution = Some(Resolution::new(8, 6));
     TwinNode::spawn(
         session,
         EnvId::sim(name).expect("env"),

@@ -2,6 +2,7 @@
 //! with `record`, stepped by a real client; every file read back and
 //! compared with what the client was answered.
 
+use offworld_runtime::Resolution;
 use offworld_test_support::ScratchDir;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -23,7 +24,7 @@ fn scratch(name: &str) -> ScratchDir {
 /// An embedded MonolithDiscrete env rendering `resolution` (w, h),
 /// recording into `dir`.
 async fn recording_sim(
-    resolution: (u32, u32),
+    resolution: Resolution,
     dir: &std::path::Path,
 ) -> Result<offworld_deploy::Connection, offworld_env_controller::ControllerError> {
     connect(
@@ -53,7 +54,7 @@ fn messages<T: serde::de::DeserializeOwned>(path: &std::path::Path, topic: &str)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_step_the_client_was_answered_is_in_the_episode_file() {
     let dir = scratch("embedded");
-    let connection = recording_sim((16, 12), &dir)
+    let connection = recording_sim(Resolution::new(16, 12), &dir)
         .await
         .expect("embedded with recording");
     let env = connection.envs[0].clone();
@@ -217,7 +218,7 @@ async fn an_unwritable_record_directory_is_refused_before_serving() {
     let dir = scratch("unwritable");
     let file = dir.join("not-a-dir");
     std::fs::write(&file, b"x").expect("file");
-    let err = recording_sim((16, 12), &file.join("runs"))
+    let err = recording_sim(Resolution::new(16, 12), &file.join("runs"))
         .await
         .err()
         .expect("refused");
@@ -258,7 +259,7 @@ async fn a_full_disk_stops_the_recording_and_never_the_episodes() {
     );
     // Unmounted before the scratch directory goes (dropped first).
     let _tmpfs = Tmpfs(dir.to_path_buf());
-    let connection = recording_sim((64, 48), &dir)
+    let connection = recording_sim(Resolution::new(64, 48), &dir)
         .await
         .expect("the directory is writable at the start");
     let mut client = EnvClient::open(

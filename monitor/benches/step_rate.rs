@@ -5,6 +5,7 @@
 //! alternate off/on and the medians are compared. Run:
 //! `cargo bench -p offworld-monitor --bench step_rate`
 
+use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
@@ -83,7 +84,7 @@ async fn main() -> anyhow::Result<()> {
     let sim = SimEnv {
         env: env.clone(),
         task: "MonolithDiscrete".into(),
-        resolution: Some((W, H)),
+        resolution: Some(Resolution::new(W, H)),
         seed: 0,
         profile: TwinProfile::default(),
     };

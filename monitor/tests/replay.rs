@@ -6,6 +6,7 @@
 //! step under the live monitor's entity paths, at the recorded times.
 //! Broken files fail with a message naming them.
 
+use offworld_runtime::Resolution;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -268,7 +269,7 @@ async fn recorded_episodes_replay_as_the_live_view_at_the_recorded_times() -> an
     let connection = connect(
         Target::Embedded {
             task: "MonolithDiscrete".into(),
-            resolution: (32, 24),
+            resolution: Resolution::new(32, 24),
             count: 1,
             record: Some(dir.clone()),
             twin_profile: offworld_deploy::embedded::TwinProfile::default(),

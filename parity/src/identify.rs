@@ -21,6 +21,7 @@
 //! agent streams its odometry); else they are kept from the starting
 //! profile. The motion gains are then fitted with the fitted servo.
 
+use offworld_runtime::Resolution;
 use std::cell::RefCell;
 
 use argmin::core::{CostFunction, Error as ArgminError, Executor, State};
@@ -234,7 +235,7 @@ fn check(episodes: &[RecordedEpisode]) -> Result<Vec<Transition>, ParityError> {
 fn twin_for(
     episode: &RecordedEpisode,
     profile: TwinProfile,
-    resolution: (u32, u32),
+    resolution: Resolution,
 ) -> Result<SimTwin, ParityError> {
     let mut config = TwinConfig::builtin(&episode.info.world).map_err(|e| ParityError::Twin {
         path: episode.path.clone(),
@@ -333,7 +334,7 @@ struct DepthView<'a> {
     episode: &'a RecordedEpisode,
     pose: Pose2D,
     metres: &'a [f32],
-    resolution: (u32, u32),
+    resolution: Resolution,
 }
 
 /// The depth error of `profile`'s camera at recorded poses.
@@ -537,7 +538,7 @@ pub fn identify(
         twins: RefCell::new(
             episodes
                 .iter()
-                .map(|e| twin_for(e, timed, (4, 3)))
+                .map(|e| twin_for(e, timed, Resolution::new(4, 3)))
                 .collect::<Result<_, _>>()?,
         ),
     };
@@ -582,7 +583,7 @@ pub fn identify(
                         episode: e,
                         pose: s.pose,
                         metres: &d.metres,
-                        resolution: (d.width, d.height),
+                        resolution: Resolution::new(d.width, d.height),
                     })
             })
         })

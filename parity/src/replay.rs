@@ -15,6 +15,7 @@
 use offworld_env_controller::episode::judge;
 use offworld_env_controller::Task;
 use offworld_runtime::msg::Pose2D;
+use offworld_runtime::Resolution;
 use offworld_sim_twin::camera::RgbdFrame;
 use offworld_sim_twin::{PlanarPose, SimTwin, TwinConfig, TwinProfile};
 
@@ -139,12 +140,16 @@ pub fn color_gap(twin: &[u8], robot: &[u8]) -> f64 {
 }
 
 /// The image size the episode's camera recorded (depth first, else colour).
-fn resolution(episode: &RecordedEpisode) -> Option<(u32, u32)> {
+fn resolution(episode: &RecordedEpisode) -> Option<Resolution> {
     episode.steps.iter().find_map(|s| {
         s.depth
             .as_ref()
-            .map(|d: &DepthImage| (d.width, d.height))
-            .or_else(|| s.color.as_ref().map(|c: &ColorImage| (c.width, c.height)))
+            .map(|d: &DepthImage| Resolution::new(d.width, d.height))
+            .or_else(|| {
+                s.color
+                    .as_ref()
+                    .map(|c: &ColorImage| Resolution::new(c.width, c.height))
+            })
     })
 }
 

@@ -4,6 +4,7 @@
 
 mod common;
 
+use offworld_runtime::Resolution;
 use std::path::Path;
 
 use common::{episodes, record, Recording, Scratch};
@@ -17,7 +18,7 @@ use offworld_sim_twin::TwinProfile;
 fn depth(task: &'static str, episodes: u64, steps: u32) -> Recording<'static> {
     Recording {
         task,
-        resolution: (48, 36),
+        resolution: Resolution::new(48, 36),
         channels: Channels::DepthOnly,
         episodes,
         steps,

@@ -6,6 +6,7 @@
 
 mod common;
 
+use offworld_runtime::Resolution;
 use std::path::{Path, PathBuf};
 
 use common::{episodes, record, Recording, Scratch};
@@ -27,7 +28,7 @@ fn slippery() -> TwinProfile {
 fn recording() -> Recording<'static> {
     Recording {
         task: "MonolithObstacleDiscrete",
-        resolution: (48, 36),
+        resolution: Resolution::new(48, 36),
         channels: Channels::Rgbd,
         episodes: 3,
         steps: 12,

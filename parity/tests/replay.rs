@@ -4,6 +4,7 @@
 
 mod common;
 
+use offworld_runtime::Resolution;
 use std::path::Path;
 
 use common::{episodes, record, Recording, Scratch};
@@ -18,7 +19,7 @@ use offworld_sim_twin::TwinProfile;
 fn rgbd(episodes: u64, steps: u32) -> Recording<'static> {
     Recording {
         task: "MonolithDiscrete",
-        resolution: (32, 24),
+        resolution: Resolution::new(32, 24),
         channels: Channels::Rgbd,
         episodes,
         steps,

@@ -11,7 +11,7 @@ use offworld_deploy::{Connection, Target, TwinProfile};
 use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::{ActionSpace, OpenRequest, Seed};
-use offworld_runtime::{EnvId, SessionConfig, WireError};
+use offworld_runtime::{EnvId, Resolution, SessionConfig, WireError};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
@@ -137,38 +137,59 @@ struct NativeEnvs {
     connection: Connection,
 }
 
+/// What `NativeEnvs(options)` reads from the Python layer's
+/// `NativeOptions` (`_config.py`), by attribute name: one typed value
+/// instead of a long positional list that could drift between the layers.
+#[derive(FromPyObject)]
+struct OpenOptions {
+    task: String,
+    realm: String,
+    num_envs: usize,
+    connect: Option<String>,
+    env_ids: Option<Vec<String>>,
+    token: String,
+    experiment_name: String,
+    resume_experiment: bool,
+    learning_type: String,
+    algorithm_mode: String,
+    channels: String,
+    height: i64,
+    width: i64,
+    depth_format: String,
+    rerun: Option<String>,
+    record: Option<String>,
+    twin_profile: Option<String>,
+    wait_s: f64,
+}
+
 #[pymethods]
 impl NativeEnvs {
     #[new]
-    #[pyo3(signature = (task, realm, num_envs, connect, env_ids, token, experiment_name, resume_experiment,
-                        learning_type, algorithm_mode, channels, height, width, depth_format,
-                        rerun=None, record=None, twin_profile=None, wait_s=0.0))]
-    #[allow(clippy::too_many_arguments)]
-    fn new(
-        py: Python<'_>,
-        task: String,
-        realm: &str,
-        num_envs: usize,
-        connect: Option<String>,
-        env_ids: Option<Vec<String>>,
-        token: String,
-        experiment_name: String,
-        resume_experiment: bool,
-        learning_type: &str,
-        algorithm_mode: &str,
-        channels: &str,
-        height: i64,
-        width: i64,
-        depth_format: &str,
-        rerun: Option<String>,
-        record: Option<String>,
-        twin_profile: Option<String>,
-        wait_s: f64,
-    ) -> PyResult<Self> {
+    fn new(py: Python<'_>, options: OpenOptions) -> PyResult<Self> {
+        let OpenOptions {
+            task,
+            realm,
+            num_envs,
+            connect,
+            env_ids,
+            token,
+            experiment_name,
+            resume_experiment,
+            learning_type,
+            algorithm_mode,
+            channels,
+            height,
+            width,
+            depth_format,
+            rerun,
+            record,
+            twin_profile,
+            wait_s,
+        } = options;
         if num_envs == 0 {
             return Err(PyValueError::new_err("num_envs must be at least 1"));
         }
-        let obs = convert::obs_options(channels, height, width, depth_format)?;
+        let obs = convert::obs_options(&channels, height, width, &depth_format)?;
         let wait = convert::wait(wait_s)?;
         let sink = rerun
             .map(|s| s.parse::<Sink>())
@@ -179,8 +200,8 @@ impl NativeEnvs {
             client_id: String::new(),
             experiment_name: experiment_name.clone(),
             resume_experiment,
-            learning_type: convert::learning_type(learning_type)?,
-            algorithm_mode: convert::algorithm_mode(algorithm_mode)?,
+            learning_type: convert::learning_type(&learning_type)?,
+            algorithm_mode: convert::algorithm_mode(&algorithm_mode)?,
             obs,
         };
         let embedded = connect.is_none() && env_ids.is_none() && realm == "sim";
@@ -198,7 +219,7 @@ impl NativeEnvs {
         let target = match (connect, env_ids) {
             (None, None) if embedded => Target::Embedded {
                 task: task.clone(),
-                resolution: (obs.width, obs.height),
+                resolution: Resolution::new(obs.width, obs.height),
                 count: num_envs,
                 record: record.map(std::path::PathBuf::from),
                 twin_profile,

@@ -3,6 +3,7 @@
 //! TCP on loopback, while a real client steps two episodes: every step the
 //! client was answered is in the subscriber's files, with its observation.
 
+use offworld_runtime::Resolution;
 use offworld_test_support::ScratchDir;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -241,7 +242,7 @@ async fn a_subscriber_records_every_step_the_client_was_answered() {
     let sim = SimEnv {
         env: env.clone(),
         task: "MonolithDiscrete".into(),
-        resolution: Some((16, 12)),
+        resolution: Some(Resolution::new(16, 12)),
         seed: 0,
         profile: TwinProfile::default(),
     };

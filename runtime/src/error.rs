@@ -173,6 +173,9 @@ pub enum ContractError {
     /// A ROS 2 topic name or namespace is not valid.
     #[error("invalid ROS name {0}")]
     InvalidRosName(String),
+    /// An image size is not `WIDTHxHEIGHT`.
+    #[error("invalid resolution {0}")]
+    InvalidResolution(String),
     /// A Zenoh configuration could not be built.
     #[error("invalid zenoh configuration: {0}")]
     Config(String),

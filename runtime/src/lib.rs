@@ -30,6 +30,7 @@ pub mod named;
 pub mod operator;
 pub mod pool;
 pub mod priority;
+mod resolution;
 pub mod ros2;
 pub mod seal;
 pub mod session;
@@ -40,6 +41,7 @@ pub mod world;
 
 pub use error::{ContractError, DecodeError, EncodeError, ErrorCode, WireError};
 pub use keys::{Component, EnvId, Realm, Topic};
+pub use resolution::Resolution;
 pub use session::{CommonArgs, SessionConfig};
 pub use wire::RequestError;
 pub use world::{WorldError, WorldSpec};

@@ -9,6 +9,7 @@ use std::time::Instant;
 
 use offworld_runtime::codec;
 use offworld_runtime::msg::{CameraFrameView, PixelEncoding, Time};
+use offworld_runtime::Resolution;
 use offworld_sim_twin::frame_payload::FramePayloads;
 use offworld_sim_twin::ros_out::frame_images;
 use offworld_sim_twin::{CameraProfile, PlanarPose, SimTwin, TwinConfig, TwinProfile};
@@ -21,11 +22,11 @@ const ACTIONS: [(f64, f64, f64); 4] = [
     (-0.1, 0.0, 0.6),
 ];
 
-fn twin(world: &str, res: (u32, u32)) -> SimTwin {
+fn twin(world: &str, res: Resolution) -> SimTwin {
     profiled(world, res, TwinProfile::default())
 }
 
-fn profiled(world: &str, res: (u32, u32), profile: TwinProfile) -> SimTwin {
+fn profiled(world: &str, res: Resolution, profile: TwinProfile) -> SimTwin {
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);
     config.profile = profile;
@@ -82,10 +83,10 @@ fn main() {
         .unwrap_or_else(|| "monolith_obstacle".into());
     println!("sim_twin bench, world `{world}`, single thread, median of 5 runs");
     let rss_before = rss_mb();
-    let mut full = twin(&world, (320, 240));
+    let mut full = twin(&world, Resolution::new(320, 240));
     let rss_after = rss_mb();
     let steps_full = rate(5, 400, |i| env_step(&mut full, i));
-    let mut small = twin(&world, (84, 84));
+    let mut small = twin(&world, Resolution::new(84, 84));
     let steps_small = rate(5, 1000, |i| env_step(&mut small, i));
     let render_full = rate(5, 400, |_| {
         full.render();
@@ -125,11 +126,11 @@ fn main() {
         },
         ..TwinProfile::default()
     };
-    let mut tilted_full = profiled(&world, (320, 240), tilted);
+    let mut tilted_full = profiled(&world, Resolution::new(320, 240), tilted);
     let tilted_render_full = rate(5, 10, |_| {
         tilted_full.render();
     });
-    let mut tilted_small = profiled(&world, (84, 84), tilted);
+    let mut tilted_small = profiled(&world, Resolution::new(84, 84), tilted);
     let tilted_render_small = rate(5, 50, |_| {
         tilted_small.render();
     });

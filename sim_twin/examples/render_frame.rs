@@ -3,6 +3,7 @@
 //!
 //! `cargo run --release -p offworld-sim-twin --example render_frame -- --x -1 --y 0.3 --yaw -0.3 --out out`
 
+use offworld_runtime::Resolution;
 use std::path::PathBuf;
 
 use clap::Parser;
@@ -40,7 +41,7 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let mut config = TwinConfig::builtin(&args.world)?;
-    config.resolution = Some((args.width, args.height));
+    config.resolution = Some(Resolution::new(args.width, args.height));
     config.start = PlanarPose {
         x: args.x,
         y: args.y,

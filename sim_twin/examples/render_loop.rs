@@ -1,5 +1,6 @@
 //! Renders frames in a loop (for profilers): `render_loop [WIDTH HEIGHT FRAMES]`.
 
+use offworld_runtime::Resolution;
 use offworld_sim_twin::{SimTwin, TwinConfig};
 
 fn main() -> anyhow::Result<()> {
@@ -12,7 +13,7 @@ fn main() -> anyhow::Result<()> {
         _ => (320, 240, 500),
     };
     let mut config = TwinConfig::builtin("monolith_obstacle")?;
-    config.resolution = Some((w, h));
+    config.resolution = Some(Resolution::new(w, h));
     let mut twin = SimTwin::new(config)?;
     let mut checksum = 0.0f64;
     for i in 0..n {

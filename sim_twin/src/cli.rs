@@ -15,10 +15,9 @@ use crate::tracker::TrackerConfig;
 use crate::{
     Clock, PlanarPose, Randomization, SimTwin, TwinConfig, TwinNode, TwinProfile, WorldSpec,
 };
-use anyhow::Context;
 use clap::{Parser, ValueEnum};
 use offworld_runtime::shutdown::ShutdownSignals;
-use offworld_runtime::{CommonArgs, EnvId};
+use offworld_runtime::{CommonArgs, EnvId, Resolution};
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum ClockArg {
@@ -40,7 +39,7 @@ pub struct Args {
     clock: ClockArg,
     /// Rendered resolution WIDTHxHEIGHT (the native view resampled).
     #[arg(long, default_value = "320x240")]
-    resolution: String,
+    resolution: Resolution,
     #[command(flatten)]
     twin: TwinArgs,
     #[command(flatten)]
@@ -85,7 +84,7 @@ pub struct TwinArgs {
 impl TwinArgs {
     /// The twin these flags describe, rendering at `resolution` (`None`:
     /// the world camera's own); reads the world and profile files.
-    pub fn config(&self, resolution: Option<(u32, u32)>) -> anyhow::Result<TwinConfig> {
+    pub fn config(&self, resolution: Option<Resolution>) -> anyhow::Result<TwinConfig> {
         let world = if self.world.ends_with(".toml") {
             WorldSpec::load(&PathBuf::from(&self.world))?
         } else {
@@ -121,14 +120,6 @@ impl TwinArgs {
     }
 }
 
-/// `WIDTHxHEIGHT` (e.g. `320x240`) as (width, height).
-pub fn parse_resolution(text: &str) -> anyhow::Result<(u32, u32)> {
-    let (w, h) = text
-        .split_once('x')
-        .context("resolution must look like 320x240")?;
-    Ok((w.parse()?, h.parse()?))
-}
-
 /// Runs `sim_twin` (also `offworld twin`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
     offworld_runtime::session::run_program(main_async(args))
@@ -142,9 +133,7 @@ async fn main_async(args: Args) -> anyhow::Result<()> {
          emulated hardware: `offworld emulate-hardware`)",
         args.env
     );
-    let config = args
-        .twin
-        .config(Some(parse_resolution(&args.resolution)?))?;
+    let config = args.twin.config(Some(args.resolution))?;
     let clock = match args.clock {
         ClockArg::Lockstep => Clock::Lockstep,
         ClockArg::Realtime => Clock::RealTime,

@@ -84,8 +84,9 @@ mod tests {
     use super::*;
     use crate::physics::PlanarPose;
     use crate::twin::TwinConfig;
+    use offworld_runtime::Resolution;
 
-    fn twin(resolution: (u32, u32)) -> SimTwin {
+    fn twin(resolution: Resolution) -> SimTwin {
         let mut config = TwinConfig::builtin("monolith").expect("world");
         config.resolution = Some(resolution);
         let mut twin = SimTwin::new(config).expect("twin");
@@ -114,7 +115,11 @@ mod tests {
             nanosec: 5,
         };
         // 320×240 renders in place; 5×3 (15 colour bytes: unaligned) copies.
-        for resolution in [(320, 240), (84, 84), (5, 3)] {
+        for resolution in [
+            Resolution::new(320, 240),
+            Resolution::new(84, 84),
+            Resolution::new(5, 3),
+        ] {
             let mut twin = twin(resolution);
             let payloads = FramePayloads::new();
             for seq in [1, 2, u64::MAX] {
@@ -129,7 +134,7 @@ mod tests {
 
     #[test]
     fn buffers_are_reused_once_readers_drop_them() {
-        let mut twin = twin((84, 84));
+        let mut twin = twin(Resolution::new(84, 84));
         let payloads = FramePayloads::new();
         let stamp = Time::default();
         let first = payloads.render(&mut twin, 1, stamp).expect("render");

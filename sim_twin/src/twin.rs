@@ -6,6 +6,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+use offworld_runtime::Resolution;
+
 use crate::camera::{CameraPose, ColumnRenderer, ExactRenderer, Intrinsics, PixelsMut, RgbdFrame};
 use crate::error::SimError;
 use crate::physics::{BodyPose, PlanarPose, RobotPhysics};
@@ -46,7 +48,7 @@ pub struct TwinConfig {
     /// The enclosure.
     pub world: WorldSpec,
     /// Rendered size (the native camera resampled); `None` = native 320×240.
-    pub resolution: Option<(u32, u32)>,
+    pub resolution: Option<Resolution>,
     /// The tracker.
     pub tracker: TrackerConfig,
     /// Randomisation knobs.
@@ -102,9 +104,13 @@ pub struct SimTwin {
 impl SimTwin {
     /// Builds the twin (terrain, physics world, renderer).
     pub fn new(config: TwinConfig) -> Result<Self, SimError> {
-        let (w, h) = config
-            .resolution
-            .unwrap_or((config.world.camera.width, config.world.camera.height));
+        let Resolution {
+            width: w,
+            height: h,
+        } = config.resolution.unwrap_or(Resolution::new(
+            config.world.camera.width,
+            config.world.camera.height,
+        ));
         if w == 0 || h == 0 || w > 4096 || h > 4096 {
             return Err(SimError::BadCommand(format!(
                 "resolution {w}x{h} out of range"

@@ -2,6 +2,7 @@
 //! field changes what it says and nothing else; files load, fail and
 //! round-trip as documented.
 
+use offworld_runtime::Resolution;
 use offworld_test_support::ScratchDir;
 use std::path::{Path, PathBuf};
 
@@ -14,7 +15,7 @@ use offworld_sim_twin::{
     TwinConfig, TwinProfile, WorldSpec,
 };
 
-fn twin_with(world: &str, res: (u32, u32), profile: TwinProfile) -> SimTwin {
+fn twin_with(world: &str, res: Resolution, profile: TwinProfile) -> SimTwin {
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);
     config.profile = profile;
@@ -43,7 +44,7 @@ fn planar_distance(a: PlanarPose, b: PlanarPose) -> f32 {
 /// checksum as bits.
 fn scenario(world: &str, randomization: Randomization, profile: TwinProfile) -> Vec<u32> {
     let mut config = TwinConfig::builtin(world).expect("world");
-    config.resolution = Some((64, 48));
+    config.resolution = Some(Resolution::new(64, 48));
     config.randomization = randomization;
     config.profile = profile;
     let mut twin = SimTwin::new(config).expect("twin");
@@ -155,7 +156,7 @@ fn linear_gain_shortens_the_drive_but_not_the_odometry() {
     let run = |gain: f32| {
         let mut twin = twin_with(
             "monolith",
-            (32, 24),
+            Resolution::new(32, 24),
             with_motion(MotionProfile {
                 linear_gain: gain,
                 ..MotionProfile::default()
@@ -194,7 +195,7 @@ fn angular_gain_shortens_the_turn_but_not_the_odometry() {
     let run = |gain: f32| {
         let mut twin = twin_with(
             "monolith",
-            (32, 24),
+            Resolution::new(32, 24),
             with_motion(MotionProfile {
                 angular_gain: gain,
                 ..MotionProfile::default()
@@ -224,8 +225,8 @@ fn latency_delays_the_motion_without_changing_it() {
         latency_s: 0.2,
         ..MotionProfile::default()
     });
-    let mut nominal = twin_with("monolith", (32, 24), TwinProfile::default());
-    let mut late = twin_with("monolith", (32, 24), lagging);
+    let mut nominal = twin_with("monolith", Resolution::new(32, 24), TwinProfile::default());
+    let mut late = twin_with("monolith", Resolution::new(32, 24), lagging);
     for (v, w, d) in [(0.3, 0.0, 1.0), (0.2, 0.8, 0.5), (0.1, 0.0, 0.1)] {
         let t_nominal = nominal.execute(v, w, d).expect("execute");
         let t_late = late.execute(v, w, d).expect("execute");
@@ -274,7 +275,7 @@ fn settle_time_scales_the_servo_ramp() {
     let stop_time = |settle: Option<f32>| {
         let mut twin = twin_with(
             "monolith",
-            (32, 24),
+            Resolution::new(32, 24),
             with_motion(MotionProfile {
                 settle_time_s: settle,
                 ..MotionProfile::default()
@@ -305,12 +306,12 @@ fn settle_time_scales_the_servo_ramp() {
 
 #[test]
 fn camera_yaw_turns_the_view_about_the_camera() {
-    let mut nominal = twin_with("monolith", (64, 48), TwinProfile::default());
+    let mut nominal = twin_with("monolith", Resolution::new(64, 48), TwinProfile::default());
     let yawed_profile = with_camera(CameraProfile {
         yaw_deg: 5.0,
         ..CameraProfile::default()
     });
-    let mut yawed = twin_with("monolith", (64, 48), yawed_profile);
+    let mut yawed = twin_with("monolith", Resolution::new(64, 48), yawed_profile);
     let frame = yawed.render().clone();
     assert_ne!(frame, *nominal.render());
     // The nominal camera turned by 5° in place, rendered by the column walk.
@@ -331,7 +332,7 @@ fn camera_height_moves_the_floor_the_expected_way() {
     let mut config = TwinConfig::builtin("monolith").expect("world");
     config.world.terrain.max_height = 0.0;
     config.world.terrain.mean_height = 0.0;
-    config.resolution = Some((64, 48));
+    config.resolution = Some(Resolution::new(64, 48));
     let mut nominal = SimTwin::new(config.clone()).expect("twin");
     let raised = TwinConfig {
         profile: with_camera(CameraProfile {
@@ -377,8 +378,8 @@ fn camera_pitch_renders_exactly_and_sees_the_floor_nearer() {
         pitch_deg: 10.0,
         ..CameraProfile::default()
     });
-    let mut nominal = twin_with("monolith", (64, 48), TwinProfile::default());
-    let mut pitched = twin_with("monolith", (64, 48), pitched_profile);
+    let mut nominal = twin_with("monolith", Resolution::new(64, 48), TwinProfile::default());
+    let mut pitched = twin_with("monolith", Resolution::new(64, 48), pitched_profile);
     let frame = pitched.render().clone();
     // The per-pixel renderer, tilted 10° nose down on a level chassis.
     let base = nominal.camera_pose();
@@ -424,7 +425,7 @@ fn camera_pitch_renders_exactly_and_sees_the_floor_nearer() {
 #[test]
 fn profile_depth_noise_is_the_randomization_model() {
     let mut config = TwinConfig::builtin("monolith").expect("world");
-    config.resolution = Some((64, 48));
+    config.resolution = Some(Resolution::new(64, 48));
     config.randomization.seed = 5;
     let mut by_profile = config.clone();
     by_profile.profile.depth = DepthProfile {

@@ -1,6 +1,7 @@
 //! The camera: the fast level renderer against the exact parry reference,
 //! geometry, golden low-resolution frames, determinism and noise knobs.
 
+use offworld_runtime::Resolution;
 use std::path::PathBuf;
 
 use offworld_sim_twin::camera::{CameraPose, ColumnRenderer, ExactRenderer, Intrinsics, RgbdFrame};
@@ -132,7 +133,7 @@ fn native_intrinsics_are_the_reference_camera() {
     assert!((small.fy - 277.1 * 84.0 / 240.0).abs() < 0.05);
 }
 
-fn twin(world: &str, res: (u32, u32), randomization: Randomization) -> SimTwin {
+fn twin(world: &str, res: Resolution, randomization: Randomization) -> SimTwin {
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);
     config.randomization = randomization;
@@ -156,7 +157,7 @@ fn same_seed_and_commands_give_byte_identical_frames() {
     };
     for randomization in [Randomization::default(), noisy] {
         let run = || {
-            let mut t = twin("monolith_obstacle", (84, 84), randomization);
+            let mut t = twin("monolith_obstacle", Resolution::new(84, 84), randomization);
             let mut frames = vec![frame_bytes(&mut t)];
             t.teleport(PlanarPose {
                 x: 0.9,
@@ -183,10 +184,14 @@ fn same_seed_and_commands_give_byte_identical_frames() {
 
 #[test]
 fn noise_knobs_are_off_by_default_and_change_frames_when_on() {
-    let mut clean = twin("monolith", (84, 84), Randomization::default());
+    let mut clean = twin(
+        "monolith",
+        Resolution::new(84, 84),
+        Randomization::default(),
+    );
     let mut noisy = twin(
         "monolith",
-        (84, 84),
+        Resolution::new(84, 84),
         Randomization {
             seed: 1,
             depth_noise: 0.05,
@@ -210,7 +215,11 @@ fn noise_knobs_are_off_by_default_and_change_frames_when_on() {
 
 #[test]
 fn bad_commands_are_typed_errors_and_change_nothing() {
-    let mut t = twin("monolith", (32, 24), Randomization::default());
+    let mut t = twin(
+        "monolith",
+        Resolution::new(32, 24),
+        Randomization::default(),
+    );
     let before = t.ground_truth();
     for (v, w, d) in [
         (f64::NAN, 0.0, 1.0),
@@ -276,7 +285,7 @@ fn golden_low_resolution_frames() {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden");
     for (name, world, pose) in poses {
         let mut config = TwinConfig::builtin(world).expect("world");
-        config.resolution = Some((32, 24));
+        config.resolution = Some(Resolution::new(32, 24));
         config.start = pose;
         let mut t = SimTwin::new(config).expect("twin");
         let f = t.render();

@@ -28,7 +28,7 @@ use offworld_runtime::codec;
 use offworld_runtime::msg::{EnvState, TrackingStatus};
 use offworld_runtime::seal::SealKey;
 use offworld_runtime::session::{free_loopback_port, loopback_endpoint, Mode};
-use offworld_runtime::{EnvId, SessionConfig, Topic};
+use offworld_runtime::{EnvId, Resolution, SessionConfig, Topic};
 
 use crate::link::ImpairedLink;
 use crate::netns::RobotNamespace;
@@ -79,9 +79,9 @@ pub struct Options {
     /// (`offworld emulate-hardware --profile`, `docs/twin-profile.md`):
     /// how a test perturbs the hardware away from the nominal twin.
     pub hardware_profile: Option<std::path::PathBuf>,
-    /// The emulated camera's resolution (width, height); default the world
+    /// The emulated camera's resolution; default the world
     /// camera's own (`offworld emulate-hardware --camera-resolution`).
-    pub hardware_camera: Option<(u32, u32)>,
+    pub hardware_camera: Option<Resolution>,
 }
 
 impl Options {
@@ -334,8 +334,8 @@ impl EmulatedEnclosure {
                 if let Some(profile) = &options.hardware_profile {
                     push(&["--profile", &profile.to_string_lossy()]);
                 }
-                if let Some((w, h)) = options.hardware_camera {
-                    push(&["--camera-resolution", &format!("{w}x{h}")]);
+                if let Some(camera) = options.hardware_camera {
+                    push(&["--camera-resolution", &camera.to_string()]);
                 }
                 push(&["--mode", "peer", "--connect", robot]);
                 push(&["--listen", &self.hardware_endpoint]);

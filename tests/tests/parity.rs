@@ -16,7 +16,7 @@ use offworld_runtime::msg::{
     Action, AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest, Seed,
 };
 use offworld_runtime::session::SessionConfig;
-use offworld_runtime::ErrorCode;
+use offworld_runtime::{ErrorCode, Resolution};
 use offworld_sim_twin::{CameraProfile, DepthProfile, MotionProfile, TwinProfile};
 use offworld_tests::emulated::{EmulatedEnclosure, Options};
 use rand::{Rng, SeedableRng};
@@ -76,7 +76,7 @@ async fn record_on_emulated_hardware(
         options.hardware_profile = Some(file);
     }
     // A small camera: a tilted mount renders per pixel, in real time.
-    options.hardware_camera = Some((64, 48));
+    options.hardware_camera = Some(Resolution::new(64, 48));
     let deployment = EmulatedEnclosure::start(&options).expect("deployment");
     deployment
         .ready(Duration::from_secs(60))

@@ -10,6 +10,7 @@
 //! twin, a release only with its confirmation, maintenance with its
 //! expected return, a revoked lease whose holder is told why).
 
+use offworld_runtime::Resolution;
 use offworld_test_support::ScratchDir;
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -68,7 +69,7 @@ impl Lab {
         let sim = SimEnv {
             env: EnvId::sim("acct-a").expect("env id"),
             task: "MonolithDiscrete".into(),
-            resolution: Some((8, 6)),
+            resolution: Some(Resolution::new(8, 6)),
             seed: 7,
             profile: TwinProfile::default(),
         };

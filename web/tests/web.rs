@@ -5,6 +5,7 @@
 //! lease and its release, the leaderboard, a dead deployment shown offline
 //! without hanging a request, and the per-client and stream limits.
 
+use offworld_runtime::Resolution;
 use std::net::SocketAddr;
 use std::num::NonZeroU32;
 use std::time::Duration;
@@ -60,7 +61,7 @@ impl Lab {
             .map(|env| SimEnv {
                 env,
                 task: "MonolithDiscrete".into(),
-                resolution: Some((8, 6)),
+                resolution: Some(Resolution::new(8, 6)),
                 seed: 7,
                 profile: TwinProfile::default(),
             })

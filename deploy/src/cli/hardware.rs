@@ -10,8 +10,8 @@ use std::process::ExitCode;
 
 use offworld_runtime::ros2::{KeyStyle, RosGraph};
 use offworld_runtime::shutdown::ShutdownSignals;
-use offworld_runtime::{CommonArgs, EnvId};
-use offworld_sim_twin::cli::{parse_resolution, TwinArgs};
+use offworld_runtime::{CommonArgs, EnvId, Resolution};
+use offworld_sim_twin::cli::TwinArgs;
 use offworld_sim_twin::node::OVERHEAD_CAMERA;
 use offworld_sim_twin::SimTwin;
 
@@ -39,7 +39,7 @@ pub struct Args {
     /// own). A smaller camera keeps a pitched profile's per-pixel renderer
     /// affordable in real time.
     #[arg(long, value_name = "WxH")]
-    camera_resolution: Option<String>,
+    camera_resolution: Option<Resolution>,
     /// The emulated base stops when no velocity command came for this long,
     /// ms (a base with ros2_control's `cmd_vel_timeout`); 0 holds the last
     /// velocity forever (the worst case, the default).
@@ -59,11 +59,7 @@ pub fn run(args: Args) -> ExitCode {
 
 async fn emulate(args: Args) -> anyhow::Result<()> {
     let mut signals = ShutdownSignals::install()?;
-    let resolution = match &args.camera_resolution {
-        Some(text) => Some(parse_resolution(text)?),
-        None => None,
-    };
-    let twin = SimTwin::new(args.twin.config(resolution)?)?;
+    let twin = SimTwin::new(args.twin.config(args.camera_resolution)?)?;
     let mut hardware = HardwareConfig::rosbot(args.tracker_listen)?;
     hardware.ros = RosGraph::new(
         KeyStyle::RmwZenoh {

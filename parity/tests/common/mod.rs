@@ -1,6 +1,7 @@
 //! What the parity tests share: scratch directories and episodes recorded
 //! by an embedded twin with a given profile.
 
+use offworld_runtime::Resolution;
 use std::path::Path;
 
 use offworld_deploy::{connect, Target};
@@ -16,7 +17,7 @@ pub use offworld_test_support::ScratchDir as Scratch;
 pub struct Recording<'a> {
     pub task: &'a str,
     /// Camera (width, height).
-    pub resolution: (u32, u32),
+    pub resolution: Resolution,
     pub channels: Channels,
     pub episodes: u64,
     /// At most this many steps per episode.
@@ -40,7 +41,7 @@ pub async fn record(dir: &Path, profile: TwinProfile, what: &Recording<'_>) {
     )
     .await
     .expect("embedded twin recording");
-    let (width, height) = what.resolution;
+    let Resolution { width, height } = what.resolution;
     let request = OpenRequest {
         experiment_name: "parity".into(),
         ..OpenRequest::anonymous(ObsOptions {

@@ -29,11 +29,36 @@ RECORD_ENV = "OFFWORLD_GYM_RECORD"
 LONGEST_WAIT_S = 365 * 86_400
 
 
+@dataclass(frozen=True)
+class NativeOptions:
+    """What ``NativeEnvs(options)`` reads, by attribute name (its Rust
+    side: ``OpenOptions`` in ``py_client/src/lib.rs``)."""
+
+    task: str
+    realm: str
+    num_envs: int
+    connect: str | None
+    env_ids: list[str] | None
+    token: str
+    experiment_name: str
+    resume_experiment: bool
+    learning_type: str
+    algorithm_mode: str
+    channels: str
+    height: int
+    width: int
+    depth_format: str
+    rerun: str | None
+    record: str | None
+    twin_profile: str | None
+    wait_s: float
+
+
 @dataclass
 class Resolved:
     """Everything the native constructor needs, plus what Python keeps."""
 
-    native_kwargs: dict[str, Any]
+    native: NativeOptions
     channels: Channels
     render_extra_rgb: bool
     height: int
@@ -136,7 +161,7 @@ def resolve(
     render_extra_rgb = render_mode == "rgb_array" and channels == Channels.DEPTH_ONLY
     wire_channels = Channels.RGBD if render_extra_rgb else channels
     return Resolved(
-        native_kwargs=dict(
+        native=NativeOptions(
             task=task,
             realm=realm,
             num_envs=num_envs,

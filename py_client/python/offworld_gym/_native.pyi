@@ -3,6 +3,8 @@ Users call the typed Python layer; these stubs keep it checkable."""
 
 from typing import Any
 
+from ._config import NativeOptions
+
 import numpy as np
 
 __version__: str
@@ -19,27 +21,7 @@ class NativeEnvs:
     Every waiting call raises ``KeyboardInterrupt`` on Ctrl-C and leaves the
     envs usable; reset before stepping again (``py_client/src/lib.rs``)."""
 
-    def __init__(
-        self,
-        task: str,
-        realm: str,
-        num_envs: int,
-        connect: str | None,
-        env_ids: list[str] | None,
-        token: str,
-        experiment_name: str,
-        resume_experiment: bool,
-        learning_type: str,
-        algorithm_mode: str,
-        channels: str,
-        height: int,
-        width: int,
-        depth_format: str,
-        rerun: str | None = None,
-        record: str | None = None,
-        twin_profile: str | None = None,
-        wait_s: float = 0.0,
-    ) -> None: ...
+    def __init__(self, options: NativeOptions) -> None: ...
     @property
     def spec(self) -> dict[str, Any]: ...
     def experiment_episodes(

@@ -45,7 +45,7 @@ class OffWorldMonolithEnv(gymnasium.Env):
         ``record``, ``twin_profile``, ``wait`` (see
         :func:`offworld_gym._config.resolve`)."""
         self._resolved = _config.resolve(task, realm, 1, render_mode=render_mode, **options)
-        self._native = NativeEnvs(**self._resolved.native_kwargs)
+        self._native = NativeEnvs(self._resolved.native)
         self._random_init = random_init
         self._last_rgb: np.ndarray | None = None
         #: Episode index within the experiment (kept out of ``info`` so that

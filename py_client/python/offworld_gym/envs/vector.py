@@ -36,7 +36,7 @@ class OffWorldMonolithVectorEnv(VectorEnv):
         """``options`` as for :class:`OffWorldMonolithEnv`; with one ``env_id``
         and N envs, remote envs are ``<env_id>-0 … <env_id>-(N-1)``."""
         self._resolved = _config.resolve(task, realm, num_envs, render_mode=render_mode, **options)
-        self._native = NativeEnvs(**self._resolved.native_kwargs)
+        self._native = NativeEnvs(self._resolved.native)
         self._closed = False
         self.num_envs = num_envs
         self.render_mode = render_mode
