@@ -5,16 +5,13 @@
 //! `estop_state` for its envs (so a restarted robot agent or twin learns
 //! them from the network), and on start learns them the same way (asking
 //! again for a few seconds: a fresh session may not reach everyone yet).
-//! It applies every press by the obeyers' rule, then takes the latches its
-//! env's robot agent or twin acknowledges with.
 
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
-use offworld_runtime::codec;
 use offworld_runtime::estop::{self, Latch, Pressed, RecentPresses};
-use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
-use offworld_runtime::msg::{EStopAck, EStopState, Time};
+use offworld_runtime::keys::{global_estop_key, EnvId, Topic};
+use offworld_runtime::msg::{EStopState, Time};
 use offworld_runtime::WireError;
 use tokio::sync::watch;
 use zenoh::pubsub::Subscriber;
@@ -30,7 +27,7 @@ const RECALL: Duration = Duration::from_millis(500);
 /// One env's e-stop latches, followed live.
 pub struct EnvEStops {
     state: watch::Receiver<EStopState>,
-    _subscribers: [Subscriber<()>; 3],
+    _subscribers: [Subscriber<()>; 2],
     _queryable: Queryable<()>,
 }
 
@@ -74,35 +71,6 @@ impl EnvEStops {
         let site_sub = subscribe(global_estop_key(), Latch::Site)
             .await
             .map_err(zerr)?;
-        // The env's robot agent or twin is the authority on its latches: its
-        // acknowledgement replaces what this controller applied itself, so
-        // the two never disagree (their clocks may: a release ordered
-        // differently here would refuse resets the robot would take).
-        let acks = {
-            let (tx, env) = (tx.clone(), env.clone());
-            session
-                .declare_subscriber(env.key(Topic::EStopAck))
-                .callback(move |s: Sample| {
-                    let Ok(ack) = codec::decode_payload::<EStopAck>(s.payload()) else {
-                        return;
-                    };
-                    let obeyer = [Component::RobotAgent, Component::SimTwin]
-                        .iter()
-                        .any(|c| c.as_str() == ack.component);
-                    if obeyer && ack.env == env.to_string() {
-                        tx.send_if_modified(|state| {
-                            let differs = *state != ack.state;
-                            if differs {
-                                tracing::warn!(%env, now = ack.state.summary(), by = %ack.component, "e-stop latches as the robot holds them");
-                                *state = ack.state;
-                            }
-                            differs
-                        });
-                    }
-                })
-                .await
-                .map_err(zerr)?
-        };
         let queryable = session
             .declare_queryable(env.key(Topic::EStopState))
             .callback(estop::state_replier(env, state.clone()))
@@ -110,7 +78,7 @@ impl EnvEStops {
             .map_err(zerr)?;
         Ok(Self {
             state,
-            _subscribers: [env_sub, site_sub, acks],
+            _subscribers: [env_sub, site_sub],
             _queryable: queryable,
         })
     }

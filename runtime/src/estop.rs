@@ -66,18 +66,27 @@ impl EStopState {
         changed
     }
 
-    /// Takes, per latch, `other`'s report where it is newer than ours.
-    /// Returns whether anything engaged or released. A report stamped in
-    /// this host's future (another host's clock ahead) counts as made now:
-    /// it must not outrank every press this host applies later.
+    /// Takes, per latch, `other`'s report where it is newer than ours:
+    /// how a component merges what the network or its disk remembers into
+    /// the latches it acts on. Returns whether anything engaged or
+    /// released. A report stamped in this host's future (another host's
+    /// clock ahead) counts as made now: it must not outrank every press
+    /// this host applies later.
     pub fn merge(&mut self, other: &EStopState) -> bool {
-        let now = Time::now();
+        self.take_newer(other, Some(Time::now()))
+    }
+
+    /// [`EStopState::merge`], keeping stamps as reported when `cap` is
+    /// `None` (combining the replies of one recall: the newest report wins
+    /// whatever order the replies arrive in; the result is capped when it
+    /// is merged into live latches).
+    fn take_newer(&mut self, other: &EStopState, cap: Option<Time>) -> bool {
         let mut changed = false;
         for (ours, theirs) in [(&mut self.site, &other.site), (&mut self.env, &other.env)] {
             if newer(&theirs.changed, &ours.changed) {
                 changed |= ours.engaged != theirs.engaged;
                 *ours = theirs.clone();
-                if newer(&ours.changed, &now) {
+                if let Some(now) = cap.filter(|now| newer(&ours.changed, now)) {
                     ours.changed = now;
                 }
             }
@@ -269,7 +278,7 @@ pub async fn recall(session: &Session, env: &EnvId, timeout: Duration) -> EStopS
         }
         Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
     }
-    state
+    as_of_now(&state)
 }
 
 /// When a starting component asks the network again, after its first
@@ -321,7 +330,7 @@ pub fn recall_wait(session: &Session, env: &EnvId, timeout: Duration) -> EStopSt
         }
         Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
     }
-    state
+    as_of_now(&state)
 }
 
 fn recall_query(
@@ -333,6 +342,13 @@ fn recall_query(
         .target(QueryTarget::All)
         .consolidation(ConsolidationMode::None)
         .timeout(timeout)
+}
+
+/// `state` with no stamp ahead of this host's clock (see [`EStopState::merge`]).
+fn as_of_now(state: &EStopState) -> EStopState {
+    let mut live = EStopState::default();
+    live.merge(state);
+    live
 }
 
 fn fold_reply(state: &mut EStopState, env: &EnvId, reply: &Reply) {
@@ -350,7 +366,7 @@ fn fold_reply(state: &mut EStopState, env: &EnvId, reply: &Reply) {
             LatchState::default()
         },
     };
-    state.merge(&report);
+    state.take_newer(&report, None);
 }
 
 #[cfg(test)]
@@ -472,6 +488,25 @@ mod tests {
             Pressed::Applied
         );
         assert_eq!(state.env.changed, Time::from_unix_nanos(400 * SECOND + 1));
+    }
+
+    /// The replies of one recall are combined as reported (the newest wins
+    /// whatever their order), then capped at this host's clock once.
+    #[test]
+    fn one_recall_keeps_the_newest_report_whatever_the_order() {
+        let now = Time::now_unix_nanos();
+        let ahead = |s: u64| Time::from_unix_nanos(now + s * SECOND);
+        let mut engaged = EStopState::default();
+        engaged.apply(Latch::Env, &EStop::new(true, "newest"), ahead(5));
+        let mut released = EStopState::default();
+        released.apply(Latch::Env, &EStop::new(false, "staler"), ahead(2));
+        let mut recalled = EStopState::default();
+        recalled.take_newer(&engaged, None);
+        recalled.take_newer(&released, None);
+        let live = as_of_now(&recalled);
+        assert!(live.env.engaged);
+        assert_eq!(live.env.reason, "newest");
+        assert!(live.env.changed.as_unix_nanos() <= Time::now_unix_nanos());
     }
 
     /// Press ids are the wall clock in nanoseconds, strictly increasing.

@@ -76,7 +76,10 @@ def run(command: str, cwd: Path, timeout: float) -> str:
     try:
         stdout, stderr = process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:  # it ended just then
+            pass
         stdout, stderr = process.communicate()
         raise AssertionError(f"`{command}` ran past {timeout} s:\n{stdout}\n{stderr}") from None
     assert process.returncode == 0, f"`{command}` exited {process.returncode}:\n{stdout}\n{stderr}"
