@@ -73,20 +73,13 @@ impl EStopState {
     /// clock ahead) counts as made now: it must not outrank every press
     /// this host applies later.
     pub fn merge(&mut self, other: &EStopState) -> bool {
-        self.take_newer(other, Some(Time::now()))
-    }
-
-    /// [`EStopState::merge`], keeping stamps as reported when `cap` is
-    /// `None` (combining the replies of one recall: the newest report wins
-    /// whatever order the replies arrive in; the result is capped when it
-    /// is merged into live latches).
-    fn take_newer(&mut self, other: &EStopState, cap: Option<Time>) -> bool {
+        let now = Time::now();
         let mut changed = false;
         for (ours, theirs) in [(&mut self.site, &other.site), (&mut self.env, &other.env)] {
             if newer(&theirs.changed, &ours.changed) {
                 changed |= ours.engaged != theirs.engaged;
                 *ours = theirs.clone();
-                if let Some(now) = cap.filter(|now| newer(&ours.changed, now)) {
+                if newer(&ours.changed, &now) {
                     ours.changed = now;
                 }
             }
@@ -269,16 +262,16 @@ pub fn state_replier(
 /// answers for `env`. Nobody answering gives the default (released, never
 /// changed), which loses to anything kept on disk.
 pub async fn recall(session: &Session, env: &EnvId, timeout: Duration) -> EStopState {
-    let mut state = EStopState::default();
+    let mut recalled = Recalled::default();
     match recall_query(session, timeout).await {
         Ok(replies) => {
             while let Ok(reply) = replies.recv_async().await {
-                fold_reply(&mut state, env, &reply);
+                recalled.fold(env, &reply);
             }
         }
         Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
     }
-    as_of_now(&state)
+    recalled.stamped_by_arrival()
 }
 
 /// When a starting component asks the network again, after its first
@@ -321,16 +314,16 @@ pub async fn keep_recalling(
 
 /// [`recall`] for a caller that is not async (a simulation thread's setup).
 pub fn recall_wait(session: &Session, env: &EnvId, timeout: Duration) -> EStopState {
-    let mut state = EStopState::default();
+    let mut recalled = Recalled::default();
     match recall_query(session, timeout).wait() {
         Ok(replies) => {
             while let Ok(reply) = replies.recv() {
-                fold_reply(&mut state, env, &reply);
+                recalled.fold(env, &reply);
             }
         }
         Err(e) => tracing::warn!("cannot ask the network for e-stop state: {e}"),
     }
-    as_of_now(&state)
+    recalled.stamped_by_arrival()
 }
 
 fn recall_query(
@@ -344,29 +337,65 @@ fn recall_query(
         .timeout(timeout)
 }
 
-/// `state` with no stamp ahead of this host's clock (see [`EStopState::merge`]).
-fn as_of_now(state: &EStopState) -> EStopState {
-    let mut live = EStopState::default();
-    live.merge(state);
-    live
+/// The replies of one recall, combined: per latch the newest report as
+/// stamped (the newest wins whatever order the replies arrive in), and when
+/// that reply arrived here.
+#[derive(Debug, Default)]
+struct Recalled {
+    state: EStopState,
+    /// When the winning reply of the site and the env latch arrived.
+    arrived: [Time; 2],
 }
 
-fn fold_reply(state: &mut EStopState, env: &EnvId, reply: &Reply) {
-    let Ok(sample) = reply.result() else { return };
-    let Ok(theirs) = codec::decode_payload::<EStopState>(sample.payload()) else {
-        tracing::warn!(key = %sample.key_expr(), "ignored a malformed e-stop state");
-        return;
-    };
-    let same_env = EnvId::from_key(sample.key_expr().as_str()).is_ok_and(|e| &e == env);
-    let report = EStopState {
-        site: theirs.site,
-        env: if same_env {
-            theirs.env
-        } else {
-            LatchState::default()
-        },
-    };
-    state.take_newer(&report, None);
+impl Recalled {
+    /// Takes `reply`: the site latch from any env's answer, the env latch
+    /// only from answers for `env`.
+    fn fold(&mut self, env: &EnvId, reply: &Reply) {
+        let Ok(sample) = reply.result() else { return };
+        let Ok(theirs) = codec::decode_payload::<EStopState>(sample.payload()) else {
+            tracing::warn!(key = %sample.key_expr(), "ignored a malformed e-stop state");
+            return;
+        };
+        let same_env = EnvId::from_key(sample.key_expr().as_str()).is_ok_and(|e| &e == env);
+        let report = EStopState {
+            site: theirs.site,
+            env: if same_env {
+                theirs.env
+            } else {
+                LatchState::default()
+            },
+        };
+        self.take(&report, Time::now());
+    }
+
+    fn take(&mut self, report: &EStopState, arrived: Time) {
+        let latches = [
+            (&mut self.state.site, &report.site),
+            (&mut self.state.env, &report.env),
+        ];
+        for (i, (ours, theirs)) in latches.into_iter().enumerate() {
+            if newer(&theirs.changed, &ours.changed) {
+                *ours = theirs.clone();
+                self.arrived[i] = arrived;
+            }
+        }
+    }
+
+    /// The latches, each stamped no later than its reply arrived: a report
+    /// stamped ahead of this host's clock never outranks a press applied
+    /// here after it arrived (see [`EStopState::merge`]).
+    fn stamped_by_arrival(self) -> EStopState {
+        let mut state = self.state;
+        for (latch, arrived) in [
+            (&mut state.site, self.arrived[0]),
+            (&mut state.env, self.arrived[1]),
+        ] {
+            if newer(&latch.changed, &arrived) {
+                latch.changed = arrived;
+            }
+        }
+        state
+    }
 }
 
 #[cfg(test)]
@@ -491,22 +520,33 @@ mod tests {
     }
 
     /// The replies of one recall are combined as reported (the newest wins
-    /// whatever their order), then capped at this host's clock once.
+    /// whatever their order), each latch then stamped no later than its
+    /// winning reply arrived.
     #[test]
     fn one_recall_keeps_the_newest_report_whatever_the_order() {
-        let now = Time::now_unix_nanos();
-        let ahead = |s: u64| Time::from_unix_nanos(now + s * SECOND);
-        let mut engaged = EStopState::default();
-        engaged.apply(Latch::Env, &EStop::new(true, "newest"), ahead(5));
-        let mut released = EStopState::default();
-        released.apply(Latch::Env, &EStop::new(false, "staler"), ahead(2));
-        let mut recalled = EStopState::default();
-        recalled.take_newer(&engaged, None);
-        recalled.take_newer(&released, None);
-        let live = as_of_now(&recalled);
+        let report = |engaged: bool, reason: &str, stamp: u64| {
+            let mut state = EStopState::default();
+            state.apply(Latch::Env, &EStop::new(engaged, reason), at(stamp as i32));
+            state
+        };
+        let mut recalled = Recalled::default();
+        // Stamped by a clock 10 s ahead of this one: the newest arrives first.
+        recalled.take(&report(true, "newest", 105), at(95));
+        recalled.take(&report(false, "staler", 102), at(96));
+        recalled.take(&report(false, "oldest", 50), at(97));
+        let live = recalled.stamped_by_arrival();
         assert!(live.env.engaged);
         assert_eq!(live.env.reason, "newest");
-        assert!(live.env.changed.as_unix_nanos() <= Time::now_unix_nanos());
+        assert_eq!(live.env.changed, at(95), "capped at its arrival");
+        assert_eq!(
+            live.site,
+            LatchState::default(),
+            "nobody reported the site latch"
+        );
+        // A report stamped in the past keeps its stamp.
+        let mut recalled = Recalled::default();
+        recalled.take(&report(true, "past", 40), at(95));
+        assert_eq!(recalled.stamped_by_arrival().env.changed, at(40));
     }
 
     /// Press ids are the wall clock in nanoseconds, strictly increasing.
