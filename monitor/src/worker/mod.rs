@@ -225,10 +225,7 @@ impl Obeyed {
     /// Whether `stop`, received at `wall` (the recording's time in a
     /// replay), changed `latch` as an obeyer would apply it.
     pub(super) fn applies(&mut self, latch: Latch, stop: &EStop, wall: SystemTime) -> bool {
-        let now = Time::from_unix_nanos(
-            wall.duration_since(SystemTime::UNIX_EPOCH)
-                .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)),
-        );
+        let now = Time::from_unix_nanos(Time::unix_nanos(wall));
         self.presses.apply(&mut self.latches, latch, stop, now) == Pressed::Applied
     }
 }

@@ -32,11 +32,14 @@ impl Time {
 
     /// Wall-clock now in nanoseconds since the epoch (0 before it).
     pub fn now_unix_nanos() -> u64 {
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |since| {
-                u64::try_from(since.as_nanos()).unwrap_or(u64::MAX)
-            })
+        Self::unix_nanos(std::time::SystemTime::now())
+    }
+
+    /// `at` in nanoseconds since the epoch (0 before it).
+    pub fn unix_nanos(at: std::time::SystemTime) -> u64 {
+        at.duration_since(std::time::UNIX_EPOCH).map_or(0, |since| {
+            u64::try_from(since.as_nanos()).unwrap_or(u64::MAX)
+        })
     }
 
     /// Seconds as a float.
