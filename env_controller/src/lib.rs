@@ -10,6 +10,8 @@
 //! - [`observation`]: client observations from camera frames.
 //! - [`link`]: commands out, frames and poses back; fails fast when the
 //!   robot, its tracker or the way to them is gone.
+//! - [`step`]: one command's life on the link, from sent to judged and
+//!   replied (once each).
 //! - [`estops`]: the site and env e-stop latches each env obeys.
 //! - [`store`]: users, experiments, episodes, leaderboard.
 //! - [`env`]: one env's sessions, leases and request handlers.
@@ -30,6 +32,7 @@ pub mod estops;
 pub mod link;
 pub mod observation;
 pub mod server;
+pub mod step;
 pub mod store;
 pub mod task;
 #[cfg(test)]

@@ -16,7 +16,7 @@ use offworld_runtime::pool::BufferPool;
 use offworld_runtime::seal::{Gate, SealKey, Sealer};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::WireError;
-use tokio::sync::{oneshot, watch};
+use tokio::sync::watch;
 use zenoh::bytes::ZBytes;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::sample::{Sample, SampleKind};
@@ -24,6 +24,7 @@ use zenoh::Session;
 
 use crate::error::ControllerError;
 use crate::observation::{assemble_into, shape};
+use crate::step::AwaitingFrame;
 
 /// A pose as received.
 #[derive(Debug, Clone)]
@@ -86,7 +87,7 @@ impl Frame {
 
     /// The observation `request` asks for, built from this frame into a
     /// buffer of `buffers`.
-    fn build(
+    pub(crate) fn build(
         &self,
         request: &ObservationRequest,
         buffers: &BufferPool,
@@ -108,128 +109,15 @@ pub struct ObservationRequest {
     pub depth_max_m: f32,
 }
 
-/// Sends the reply to a command's request from the thread that receives the
-/// command's frame, given the pose tagged with the command and the built
-/// observation; gives the observation back to leave the reply to the caller.
-/// Saves the caller's task a wake-up on the way to the client.
-pub type ReplyWhereReceived = Box<dyn FnOnce(&PoseSample, ZBytes) -> Result<(), ZBytes> + Send>;
-
-/// A command's observation, built where its frame is received.
-struct PendingObservation {
-    seq: u64,
-    request: ObservationRequest,
-    reply: Option<ReplyWhereReceived>,
-    built: oneshot::Sender<Built>,
-}
-
-/// What the frame's thread did with a command's observation.
-enum Built {
-    /// Built (or failed to): the caller replies.
-    Observation(Result<ZBytes, WireError>),
-    /// Built and sent as the reply, judged from this pose.
-    Replied(PoseSample),
-}
-
-impl PendingObservation {
-    /// Builds the observation from `frame`; replies with it too if the
-    /// caller asked to and the pose tagged with this command is in (a
-    /// tracker's untagged poses come after the frame: never here).
-    fn complete(
-        self,
-        frame: &Frame,
-        buffers: &BufferPool,
-        pose: Option<PoseSample>,
-        tracking_lost: bool,
-    ) {
-        let built = frame.build(&self.request, buffers);
-        let outcome = match (built, self.reply, pose) {
-            (Ok(data), Some(reply), Some(pose)) if pose.seq == Some(self.seq) && !tracking_lost => {
-                match reply(&pose, data) {
-                    Ok(()) => Built::Replied(pose),
-                    Err(data) => Built::Observation(Ok(data)),
-                }
-            }
-            (built, _, _) => Built::Observation(built),
-        };
-        // The step may have given up: nobody to tell.
-        let _ = self.built.send(outcome);
-    }
-}
-
-/// The command waiting for its observation, if any.
-type Pending = Arc<std::sync::Mutex<Option<PendingObservation>>>;
+/// The command waiting for its frame, if any ([`crate::step`]).
+type Pending = Arc<std::sync::Mutex<Option<Box<dyn AwaitingFrame>>>>;
 
 /// Locks the pending slot; a panic elsewhere while it was held leaves
 /// nothing half-done in it (it is only ever replaced or taken).
-fn lock(pending: &Pending) -> std::sync::MutexGuard<'_, Option<PendingObservation>> {
+fn lock_pending(pending: &Pending) -> std::sync::MutexGuard<'_, Option<Box<dyn AwaitingFrame>>> {
     pending
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
-/// What answered a command: its pose, and its observation once built.
-pub struct Answer {
-    pose: PoseSample,
-    built: oneshot::Receiver<Built>,
-    /// To build the observation here if the frame's thread did not; `None`
-    /// once that thread has taken the request.
-    fallback: Option<(Arc<Frame>, ObservationRequest, BufferPool)>,
-    /// The frame that answered (for the recorder); `None` when the step
-    /// was replied to as it gave up.
-    frame: Option<Arc<Frame>>,
-}
-
-/// A command's answer, complete.
-pub enum Answered {
-    /// The observation, for the caller to reply with.
-    Observation {
-        /// The robot's pose after the motion.
-        pose: PoseSample,
-        /// The observation's data.
-        data: ZBytes,
-    },
-    /// Already replied where the frame was received (see
-    /// [`ReplyWhereReceived`]), judged from this pose.
-    Replied {
-        /// The robot's pose after the motion.
-        pose: PoseSample,
-    },
-}
-
-impl Answered {
-    /// The robot's pose after the motion.
-    pub fn pose(&self) -> &PoseSample {
-        match self {
-            Self::Observation { pose, .. } | Self::Replied { pose } => pose,
-        }
-    }
-}
-
-impl Answer {
-    /// The camera frame that answered the command, if it is at hand.
-    pub fn frame(&self) -> Option<Arc<Frame>> {
-        self.frame.clone()
-    }
-
-    /// Waits for the observation (see [`RobotLink::execute`]).
-    pub async fn complete(self) -> Result<Answered, WireError> {
-        match self.built.await {
-            Ok(Built::Observation(data)) => Ok(Answered::Observation {
-                pose: self.pose,
-                data: data?,
-            }),
-            Ok(Built::Replied(pose)) => Ok(Answered::Replied { pose }),
-            // Never built where received (cannot happen while one command
-            // is in flight): build it here.
-            Err(_) => match self.fallback {
-                Some((frame, request, buffers)) => Ok(Answered::Observation {
-                    data: frame.build(&request, &buffers)?,
-                    pose: self.pose,
-                }),
-                None => Err(WireError::internal("the observation was never built")),
-            },
-        }
-    }
 }
 
 /// Timeouts of the link.
@@ -290,8 +178,6 @@ pub struct RobotLink {
     sealer: Option<Arc<Sealer>>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
     pending: Pending,
-    /// Observation buffers, recycled once a reply is sent.
-    observations: BufferPool,
     faults: watch::Receiver<Option<MotionFault>>,
     poses: watch::Receiver<Option<PoseSample>>,
     /// True while the tracker reports (or its vanished token means) that
@@ -320,8 +206,8 @@ impl RobotLink {
         let (frame_tx, frames) = watch::channel(None);
         let pending = Pending::default();
         let building = pending.clone();
-        let observations = BufferPool::new();
-        let buffers = observations.clone();
+        // Observation buffers, recycled once a reply is sent.
+        let buffers = BufferPool::new();
         let (pose_tx, poses) = watch::channel(None::<PoseSample>);
         let latest_pose = poses.clone();
         let tracking_lost = Arc::new(watch::channel(false).0);
@@ -335,33 +221,16 @@ impl RobotLink {
                 move |sample: Sample| match Frame::accept(sample.payload()) {
                     Ok(frame) => {
                         let frame = Arc::new(frame);
-                        let waiting = lock(&building).take_if(|p| p.seq == frame.seq());
-                        // The pose tagged with this command, if it is in.
-                        let tagged = |p: &PendingObservation| {
-                            latest_pose
-                                .borrow()
-                                .clone()
-                                .filter(|pose| pose.seq == Some(p.seq))
-                                .filter(|_| !*lost.borrow())
+                        let announce = |frame| {
+                            frame_tx.send_replace(Some(frame));
                         };
-                        match waiting.map(|p| (tagged(&p), p)) {
-                            // Replied from here: the step learns it once the
-                            // reply is on its way.
-                            Some((Some(pose), p)) if p.reply.is_some() => {
-                                p.complete(&frame, &buffers, Some(pose), false);
-                                frame_tx.send_replace(Some(frame));
+                        let waiting = lock_pending(&building).take_if(|p| p.seq() == frame.seq());
+                        match waiting {
+                            Some(step) => {
+                                let pose = latest_pose.borrow().clone().filter(|_| !*lost.borrow());
+                                step.on_frame(frame, &buffers, pose, &announce);
                             }
-                            // The step wakes first and reads the pose while
-                            // this thread builds (a tracker's pose comes after
-                            // the frame: the sooner the step sees the frame,
-                            // the sooner it accepts that pose).
-                            Some((_, p)) => {
-                                frame_tx.send_replace(Some(frame.clone()));
-                                p.complete(&frame, &buffers, None, false);
-                            }
-                            None => {
-                                frame_tx.send_replace(Some(frame));
-                            }
+                            None => announce(frame),
                         }
                     }
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
@@ -458,7 +327,6 @@ impl RobotLink {
             sealer: seals.command.clone(),
             frames,
             pending,
-            observations,
             faults,
             poses,
             tracking_lost,
@@ -495,16 +363,9 @@ impl RobotLink {
             .is_ok_and(|r| r.is_ok())
     }
 
-    /// Sends `cmd` and waits for the frame and pose answering it; the
-    /// observation `request` asks for is built from that frame as it is
-    /// received, while the caller goes on ([`Answer::complete`]). With
-    /// `reply`, the reply is sent from there too when it can be.
-    pub async fn execute(
-        &self,
-        cmd: &MotionCommand,
-        request: ObservationRequest,
-        reply: Option<ReplyWhereReceived>,
-    ) -> Result<Answer, WireError> {
+    /// Refuses a command that cannot be answered now: no robot, the
+    /// controller stopping, or tracking lost (the robot is stopped then).
+    pub(crate) async fn ready_to_send(&self) -> Result<(), WireError> {
         if !self.online() {
             return Err(self.gone());
         }
@@ -517,61 +378,30 @@ impl RobotLink {
                 "tracking lost: the robot's pose is unknown",
             ));
         }
-        let (sender, built) = oneshot::channel();
-        self.expect(PendingObservation {
-            seq: cmd.seq,
-            request,
-            reply,
-            built: sender,
-        });
-        match self.await_answer(cmd).await {
-            Ok((frame, pose)) => Ok(Answer {
-                pose,
-                built,
-                frame: Some(frame.clone()),
-                fallback: Some((frame, request, self.observations.clone())),
-            }),
-            Err(e) => {
-                if self.take_expected(cmd.seq) {
-                    return Err(e);
-                }
-                // The frame arrived as this gave up (a timeout or a tracking
-                // loss racing it): if its thread replied, the client has
-                // the step, so the step stands.
-                match built.await {
-                    Ok(Built::Replied(pose)) => {
-                        let (sender, built) = oneshot::channel();
-                        let _ = sender.send(Built::Replied(pose.clone()));
-                        // The frame that was replied with, for the recorder.
-                        let frame = self.frames.borrow().clone().filter(|f| f.seq() == cmd.seq);
-                        Ok(Answer {
-                            pose,
-                            built,
-                            fallback: None,
-                            frame,
-                        })
-                    }
-                    _ => Err(e),
-                }
-            }
-        }
+        Ok(())
     }
 
-    /// Withdraws the request for `seq`'s observation; false if the frame's
-    /// thread has already taken it.
-    fn take_expected(&self, seq: u64) -> bool {
-        lock(&self.pending).take_if(|p| p.seq == seq).is_some()
+    /// Hands the next frame of `step`'s command to it, on the frame's thread.
+    pub(crate) fn expect(&self, step: Box<dyn AwaitingFrame>) {
+        *lock_pending(&self.pending) = Some(step);
     }
 
-    /// Sets the observation to build from the next matching frame.
-    fn expect(&self, pending: PendingObservation) {
-        *lock(&self.pending) = Some(pending);
+    /// Withdraws the command `seq` from the frame's thread; false if that
+    /// thread has taken it already.
+    pub(crate) fn withdraw(&self, seq: u64) -> bool {
+        lock_pending(&self.pending)
+            .take_if(|p| p.seq() == seq)
+            .is_some()
     }
 
-    async fn await_answer(
+    /// Sends `cmd` and waits until its frame is in and the pose that
+    /// answers it: tagged with the command, or (a tracker streaming) the
+    /// first after the frame. Fails fast on whatever makes an answer
+    /// impossible.
+    pub(crate) async fn send_and_await(
         &self,
         cmd: &MotionCommand,
-    ) -> Result<(Arc<Frame>, PoseSample), WireError> {
+    ) -> Result<PoseSample, WireError> {
         let mut frames = self.frames.clone();
         frames.mark_unchanged();
         let mut faults = self.faults.clone();
@@ -605,9 +435,8 @@ impl RobotLink {
                         if changed.is_err() {
                             return None;
                         }
-                        let frame = frames.borrow_and_update().clone();
-                        if let Some(frame) = frame.filter(|f| f.seq() == seq) {
-                            return Some(Ok(frame));
+                        if frames.borrow_and_update().as_ref().is_some_and(|f| f.seq() == seq) {
+                            return Some(Ok(()));
                         }
                     }
                     Ok(()) = faults.changed() => {
@@ -652,7 +481,7 @@ impl RobotLink {
                 limit.as_secs_f64()
             ))
         })?;
-        let frame = answer?;
+        answer?;
         let arrived = Instant::now();
         // A tagged pose answers this command exactly; an untagged one (a
         // tracker streaming) must have arrived after the frame.
@@ -677,7 +506,7 @@ impl RobotLink {
             self.stop().await;
             return Err(WireError::unavailable("tracking lost during the step"));
         }
-        Ok((frame, pose))
+        Ok(pose)
     }
 
     /// Moves the robot to a spawn pose (sim: teleport; real: drive there).

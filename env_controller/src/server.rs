@@ -442,7 +442,7 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
         Topic::Step => {
             respond_unless_sent(query, async {
                 let req = wire::decode_query::<StepRequest>(query)?;
-                server.step(req, Some(query.clone())).await
+                server.step(req, query.clone()).await
             })
             .await
         }

@@ -2,19 +2,20 @@
 //! playing the robot: a command the robot reports it cannot answer fails
 //! with the robot's reason (Unavailable), not with the answer timeout;
 //! faults of other commands and malformed faults are ignored; the
-//! observation is built from the command's own frame, never a stale one.
+//! observation is built from the command's own frame, never a stale one;
+//! a step is judged once and replied once, from where its frame arrives
+//! when it can be.
 
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use offworld_env_controller::link::{
-    Answer, Answered, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink,
-};
+use offworld_env_controller::link::{LinkTimeouts, ObservationRequest, RobotLink};
+use offworld_env_controller::step::{Answered, Plan, Reply, StepJudge};
+use offworld_env_controller::Task;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, Channels, DepthFormat, Header, Image, MotionCommand, MotionFault, ObsOptions,
-    PixelEncoding, PoseStamped, SeqTag,
+    PixelEncoding, PoseStamped, SeqTag, StepReply,
 };
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, Delivery};
@@ -62,7 +63,7 @@ async fn a_reported_fault_fails_the_command_with_its_reason() {
     );
 
     // The link keeps serving: the next command fails with its own fault.
-    let Err(err) = link.execute(&command(50, 0.1, 0.5), rgbd(2, 2), None).await else {
+    let Err(err) = look(&link, command(50, 0.1, 0.5), rgbd(2, 2)).await else {
         panic!("command 50 was answered")
     };
     assert_eq!(err.code, ErrorCode::Unavailable);
@@ -120,7 +121,7 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
         .expect("robot's cmd subscriber");
 
     let (seq, answer) = first_heard(&link, 10, 0.0, 0.0).await;
-    let (pose, data) = observation(answer.expect("answered")).await;
+    let (pose, data) = observation(answer.expect("answered"));
     assert_eq!(pose, Some(seq));
     let c = seq as u8;
     // 1 m of 0–5 m is level 51; no return is 0.
@@ -132,12 +133,11 @@ async fn the_observation_is_built_from_the_commands_own_frame() {
     // The next command, with other options, gets its own.
     let mut depth_only = rgbd(1, 1);
     depth_only.options.channels = Channels::DepthOnly;
-    let answer = link
-        .execute(&command(seq + 1, 0.0, 0.0), depth_only, None)
+    let answer = look(&link, command(seq + 1, 0.0, 0.0), depth_only)
         .await
         .expect("answered");
     // Sampled at the source pixel nearest the centre: (1, 1).
-    assert_eq!(observation(answer).await, (Some(seq + 1), vec![51]));
+    assert_eq!(observation(answer), (Some(seq + 1), vec![51]));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -146,7 +146,10 @@ async fn the_reply_is_sent_where_the_frame_arrives_only_with_a_tagged_pose() {
 
     // The robot: commands below 100 get a pose tagged with them, then their
     // frame (a twin); the others their frame, then untagged poses at 50 Hz
-    // (a robot and its tracker).
+    // (a robot and its tracker). Its pose is inside the enclosure, 1.3 m
+    // from the monolith: a step there goes on.
+    let mut inside = PoseStamped::default();
+    (inside.pose.position.x, inside.pose.position.y) = (1.0, 0.5);
     let obs = wire::publisher(&robot, env.key(Topic::Obs), Delivery::Every)
         .await
         .expect("obs publisher");
@@ -163,15 +166,15 @@ async fn the_reply_is_sent_where_the_frame_arrives_only_with_a_tagged_pose() {
             };
             if cmd.seq < 100 {
                 let tag = SeqTag { seq: cmd.seq };
-                let _ = wire::publish_tagged(&pose, &PoseStamped::default(), tag);
+                let _ = wire::publish_tagged(&pose, &inside, tag);
                 let _ = wire::publish(&obs, &frame(cmd.seq));
             } else {
                 let _ = wire::publish(&obs, &frame(cmd.seq));
-                let tracker = pose.clone();
+                let (tracker, inside) = (pose.clone(), inside.clone());
                 std::thread::spawn(move || {
                     for _ in 0..10 {
                         std::thread::sleep(Duration::from_millis(20));
-                        let _ = wire::publish(&tracker, &PoseStamped::default());
+                        let _ = wire::publish(&tracker, &inside);
                     }
                 });
             }
@@ -182,81 +185,128 @@ async fn the_reply_is_sent_where_the_frame_arrives_only_with_a_tagged_pose() {
     answer.expect("answered");
 
     // A client's request, answered from the thread that gets the frame: the
-    // client receives the observation, the caller learns the pose used.
+    // client receives the judged reply and the observation, the caller
+    // learns the pose used and the verdict.
     let step_key = env.key(Topic::Step);
     let queries = controller
         .declare_queryable(&step_key)
         .await
         .expect("queryable");
-    // Until the queryable is known to the client's session, a get matches
-    // nothing: bounded attempts.
-    let mut attempt = None;
-    for _ in 0..50 {
-        let replies = robot.get(&step_key).await.expect("get");
-        let arrived = tokio::time::timeout(Duration::from_millis(100), queries.recv_async());
-        if let Ok(Ok(query)) = arrived.await {
-            attempt = Some((replies, query));
-            break;
-        }
-    }
-    let (replies, query) = attempt.expect("the query never arrived");
-    let reply: ReplyWhereReceived = Box::new(move |_pose, data| {
-        query
-            .reply(query.key_expr().clone(), data)
-            .wait()
-            .expect("reply");
-        Ok(())
-    });
-    let answer = link
-        .execute(&command(seq + 1, 0.0, 0.0), rgbd(2, 2), Some(reply))
-        .await
-        .expect("answered");
-    match answer.complete().await.expect("complete") {
-        Answered::Replied { pose } => assert_eq!(pose.seq, Some(seq + 1)),
-        Answered::Observation { .. } => panic!("not replied where the frame arrived"),
-    }
+    let task = Arc::new(Task::by_name("MonolithDiscrete").expect("task"));
+    let judge = |step| StepJudge {
+        task: task.clone(),
+        seq: 77,
+        episode_id: 3,
+        step,
+        obs: rgbd(2, 2).options,
+        share_pose: true,
+    };
+    let (replies, query) = step_query(&robot, &queries, &step_key).await;
+    let answer = Plan::judged(
+        command(seq + 1, 0.0, 0.0),
+        rgbd(2, 2),
+        judge(1),
+        Some(query),
+    )
+    .run(&link)
+    .await
+    .expect("answered");
+    assert!(
+        matches!(answer.reply, Reply::Sent),
+        "not replied where the frame arrived"
+    );
+    assert_eq!(answer.pose.seq, Some(seq + 1));
+    assert_eq!(
+        (answer.verdict.reply.seq, answer.verdict.reply.info.step),
+        (77, 1)
+    );
     let received = tokio::time::timeout(Duration::from_secs(5), replies.recv_async())
         .await
         .expect("reply in time")
         .expect("reply");
+    let payload = received.result().expect("ok").payload().clone();
+    let reply: StepReply = codec::decode_payload_tail(&payload).expect("a step reply");
     let c = (seq + 1) as u8;
     assert_eq!(
-        received.result().expect("ok").payload().to_bytes(),
+        reply.observation.data,
         [c, c, c, 51, c, c, c, 51, c, c, c, 0, c, c, c, 51].as_slice()
     );
-    drop(queries);
-
-    // A reply that declines leaves the observation to the caller.
-    let declined: ReplyWhereReceived = Box::new(|_pose, data| Err(data));
-    let answer = link
-        .execute(&command(seq + 2, 0.0, 0.0), rgbd(1, 1), Some(declined))
-        .await
-        .expect("answered");
     assert_eq!(
-        observation(answer).await,
+        reply,
+        StepReply {
+            observation: reply.observation.clone(),
+            ..answer.verdict.reply
+        }
+    );
+
+    // A step that ends its episode (here at the step limit) leaves the
+    // reply to the caller, who records the episode first.
+    let last = task.episode.max_steps;
+    let (_replies, query) = step_query(&robot, &queries, &step_key).await;
+    let answer = Plan::judged(
+        command(seq + 2, 0.0, 0.0),
+        rgbd(1, 1),
+        judge(last),
+        Some(query),
+    )
+    .run(&link)
+    .await
+    .expect("answered");
+    assert!(answer.verdict.outcome.truncated);
+    assert_eq!(
+        observation(answer),
         (Some(seq + 2), vec![c + 1, c + 1, c + 1, 51])
     );
 
-    // Without a pose tagged with the command, the reply is never attempted.
-    let attempted = Arc::new(AtomicBool::new(false));
-    let flag = attempted.clone();
-    let untagged: ReplyWhereReceived = Box::new(move |_pose, _data| {
-        flag.store(true, Ordering::SeqCst);
-        Ok(())
-    });
-    let answer = link
-        .execute(&command(100, 0.0, 0.0), rgbd(1, 1), Some(untagged))
+    // Without a pose tagged with the command, the reply is never attempted
+    // there: the caller's task judges (once) and replies.
+    let (_replies, query) = step_query(&robot, &queries, &step_key).await;
+    let answer = Plan::judged(command(100, 0.0, 0.0), rgbd(1, 1), judge(1), Some(query))
+        .run(&link)
         .await
         .expect("answered");
-    assert_eq!(observation(answer).await, (None, vec![100, 100, 100, 51]));
-    assert!(!attempted.load(Ordering::SeqCst));
+    assert_eq!(
+        (answer.verdict.reply.seq, answer.verdict.reply.info.step),
+        (77, 1)
+    );
+    assert_eq!(observation(answer), (None, vec![100, 100, 100, 51]));
+}
+
+/// A step request from the robot's session to `queries` on `key`: the
+/// replies' receiver and the query. Until the queryable is known to the
+/// robot's session, a get matches nothing: bounded attempts.
+async fn step_query(
+    robot: &Session,
+    queries: &zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>,
+    key: &str,
+) -> (
+    zenoh::handlers::FifoChannelHandler<zenoh::query::Reply>,
+    zenoh::query::Query,
+) {
+    for _ in 0..50 {
+        let replies = robot.get(key).await.expect("get");
+        let arrived = tokio::time::timeout(Duration::from_millis(100), queries.recv_async());
+        if let Ok(Ok(query)) = arrived.await {
+            return (replies, query);
+        }
+    }
+    panic!("the query never arrived");
+}
+
+/// Sends `motion` and waits for its observation, judged by no one.
+async fn look(
+    link: &RobotLink,
+    motion: MotionCommand,
+    request: ObservationRequest,
+) -> Result<Answered<()>, WireError> {
+    Plan::observe(motion, request).run(link).await
 }
 
 /// The pose's tag and the observation's bytes of an answer not replied yet.
-async fn observation(answer: Answer) -> (Option<u64>, Vec<u8>) {
-    match answer.complete().await.expect("observation") {
-        Answered::Observation { pose, data } => (pose.seq, data.to_bytes().into_owned()),
-        Answered::Replied { .. } => panic!("replied without being asked to"),
+fn observation<V>(answer: Answered<V>) -> (Option<u64>, Vec<u8>) {
+    match answer.reply {
+        Reply::Due(data) => (answer.pose.seq, data.to_bytes().into_owned()),
+        Reply::Sent => panic!("replied without being asked to"),
     }
 }
 
@@ -312,10 +362,10 @@ async fn first_heard(
     first: u64,
     linear_x: f64,
     duration_s: f64,
-) -> (u64, Result<Answer, WireError>) {
+) -> (u64, Result<Answered<()>, WireError>) {
     for seq in first..first + 5 {
         let cmd = command(seq, linear_x, duration_s);
-        let attempt = link.execute(&cmd, rgbd(2, 2), None);
+        let attempt = look(link, cmd, rgbd(2, 2));
         if let Ok(result) = tokio::time::timeout(Duration::from_secs(3), attempt).await {
             return (seq, result);
         }
@@ -359,7 +409,7 @@ async fn a_vanished_robot_or_a_guard_stop_fails_the_command_in_flight_at_once() 
     };
     let result = tokio::time::timeout(Duration::from_secs(10), async {
         tokio::select! {
-            result = link.execute(&seventh, rgbd(2, 2), None) => result,
+            result = look(&link, seventh, rgbd(2, 2)) => result,
             () = guard => unreachable!(),
         }
     })
@@ -381,7 +431,7 @@ async fn a_vanished_robot_or_a_guard_stop_fails_the_command_in_flight_at_once() 
     };
     let result = tokio::time::timeout(Duration::from_secs(10), async {
         tokio::select! {
-            result = link.execute(&eighth, rgbd(2, 2), None) => result,
+            result = look(&link, eighth, rgbd(2, 2)) => result,
             () = vanish => unreachable!(),
         }
     })
@@ -392,7 +442,7 @@ async fn a_vanished_robot_or_a_guard_stop_fails_the_command_in_flight_at_once() 
     assert!(err.message.contains("is gone"), "{err}");
     // And a new command fails before it is sent.
     let ninth = command(9, 0.1, 1.0);
-    let Err(err) = link.execute(&ninth, rgbd(2, 2), None).await else {
+    let Err(err) = look(&link, ninth, rgbd(2, 2)).await else {
         panic!("answered without a robot")
     };
     assert!(err.message.contains("is gone"), "{err}");

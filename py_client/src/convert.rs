@@ -75,9 +75,22 @@ pub fn action(space: &ActionSpace, value: &Bound<'_, PyAny>) -> PyResult<Action>
     }
 }
 
+/// `Channels` from the Python enum of the same name
+/// (`offworld_gym.envs.common.channels`), read by its value.
+pub fn channels(value: &Bound<'_, PyAny>) -> PyResult<Channels> {
+    match value.extract::<i64>() {
+        Ok(1) => Ok(Channels::DepthOnly),
+        Ok(2) => Ok(Channels::RgbOnly),
+        Ok(3) => Ok(Channels::Rgbd),
+        _ => Err(PyValueError::new_err(format!(
+            "channels must be a Channels (DEPTH_ONLY, RGB_ONLY or RGBD), got {value}"
+        ))),
+    }
+}
+
 /// Observation options from the Python keyword arguments.
 pub fn obs_options(
-    channels: &str,
+    channels: Channels,
     height: i64,
     width: i64,
     depth_format: &str,
@@ -86,12 +99,6 @@ pub fn obs_options(
     // Python ints of any size: a negative or huge side is named, not an
     // OverflowError from the conversion.
     let side = |v: i64| u32::try_from(v).unwrap_or(MAX_SIDE + 1);
-    let channels = match channels {
-        "depth" => Channels::DepthOnly,
-        "rgb" => Channels::RgbOnly,
-        "rgbd" => Channels::Rgbd,
-        other => return Err(PyValueError::new_err(format!("unknown channels `{other}`"))),
-    };
     let depth_format = match depth_format {
         "uint8" => DepthFormat::Uint8,
         "meters" => DepthFormat::Meters,

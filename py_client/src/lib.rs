@@ -10,7 +10,7 @@ use std::sync::OnceLock;
 use offworld_deploy::{Connection, Target, TwinProfile};
 use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
 use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
-use offworld_runtime::msg::{ActionSpace, OpenRequest, Seed};
+use offworld_runtime::msg::{ActionSpace, Channels, OpenRequest, Seed};
 use offworld_runtime::{EnvId, Resolution, SessionConfig, WireError};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -152,7 +152,8 @@ struct OpenOptions {
     resume_experiment: bool,
     learning_type: String,
     algorithm_mode: String,
-    channels: String,
+    #[pyo3(from_py_with = convert::channels)]
+    channels: Channels,
     height: i64,
     width: i64,
     depth_format: String,
@@ -189,7 +190,7 @@ impl NativeEnvs {
         if num_envs == 0 {
             return Err(PyValueError::new_err("num_envs must be at least 1"));
         }
-        let obs = convert::obs_options(&channels, height, width, &depth_format)?;
+        let obs = convert::obs_options(channels, height, width, &depth_format)?;
         let wait = convert::wait(wait_s)?;
         let sink = rerun
             .map(|s| s.parse::<Sink>())

@@ -1,5 +1,5 @@
-//! Episodes: `reset` and `step`, each judged by the task and recorded; a
-//! step's reply goes from its task or where its frame is received.
+//! Episodes: `reset` and `step`, each run by [`crate::step`] (judged once,
+//! replied once), then recorded and accounted for here.
 
 use super::*;
 
@@ -40,12 +40,9 @@ impl EnvServer {
             duration_s: 0.0,
         };
         let obs = self.holder(&mut state, &req.session_id)?.obs;
-        let answer = self
-            .link
-            .execute(&observe, self.observation_request(obs), None)
+        let answered = Plan::observe(observe, self.observation_request(obs))
+            .run(&self.link)
             .await?;
-        let frame = answer.frame();
-        let answered = answer.complete().await?;
         let lease = self.holder(&mut state, &req.session_id)?;
         let index = lease.experiment.episodes;
         let experiment = (lease.experiment.name.clone(), lease.experiment.id);
@@ -70,7 +67,7 @@ impl EnvServer {
             max_episode_steps: self.task.episode.max_steps,
             requested_start: [target.x, target.y, target.yaw],
         });
-        let achieved = answered.pose().planar();
+        let achieved = answered.pose.planar();
         let accuracy =
             ResetAccuracy::measure(target, achieved, began.elapsed().as_secs_f64(), now_ms());
         tracing::debug!(env = %self.env, ?target, reached = ?arrived.achieved, ?accuracy, "reset");
@@ -105,13 +102,14 @@ impl EnvServer {
             )]);
             recorder.begin_annotated(info, notes).await;
             let step = Step::from_event(&event, None, None);
-            self.record_step(frame, &answered, step, None).await;
+            self.record_step(&answered, step, None).await;
         }
         let reply = ResetReply {
             info: step_info(&self.task, index, 0, &achieved, None, self.shares_pose()),
             observation: shape(&obs),
         };
-        let reply = with_observation(&reply, answered)?
+        let reply = answered
+            .reply_with(&reply)?
             .ok_or_else(|| WireError::internal("a reset was replied where its frame arrived"))?;
         self.publish_event(&event).await;
         Ok(reply)
@@ -131,14 +129,14 @@ impl EnvServer {
         }
     }
 
-    /// `step`: act, observe, judge. Given its `query`, the reply is sent
-    /// from where the robot's answer is received when it can be (not for
-    /// an episode's last step, which is recorded first), and this returns
+    /// `step`: act, observe, judge. The reply to `query` is sent from
+    /// where the robot's answer is received when it can be (not for an
+    /// episode's last step, which is recorded first), and this returns
     /// `None`; otherwise the reply to send.
     pub async fn step(
         &self,
         req: StepRequest,
-        query: Option<Query>,
+        query: Query,
     ) -> Result<Option<Encoded<StepReply>>, WireError> {
         let mut state = self.state.lock().await;
         self.enforce_slots(&mut state, &req.session_id).await?;
@@ -166,7 +164,7 @@ impl EnvServer {
         let motion = self.task.motion(&req.action, state.seq + 1)?;
         state.seq += 1;
         let request = self.observation_request(obs);
-        let judged = JudgedStep {
+        let judge = StepJudge {
             task: self.task.clone(),
             share_pose: self.shares_pose(),
             seq: req.seq,
@@ -174,17 +172,11 @@ impl EnvServer {
             step,
             obs,
         };
-        let reply_here = query.map(|query| judged.clone().reply_where_received(query));
         let commanded_at = Time::now();
-        let mut frame = None;
-        let answered = match self.link.execute(&motion, request, reply_here).await {
-            Ok(answer) => {
-                frame = answer.frame();
-                answer.complete().await
-            }
-            Err(e) => Err(e),
-        };
-        let answered = match answered {
+        let answered = match Plan::judged(motion, request, judge, Some(query))
+            .run(&self.link)
+            .await
+        {
             Ok(a) => a,
             Err(e) => {
                 // The step cannot be scored, so neither can the episode (a
@@ -196,21 +188,21 @@ impl EnvServer {
                 return Err(self.estops.refuse_motion().err().unwrap_or(e));
             }
         };
-        let (outcome, reply) = judged.judge(&answered.pose().planar());
+        let outcome = &answered.verdict.outcome;
         let Some(episode) = state.episode.as_mut() else {
             return Err(WireError::internal("episode vanished"));
         };
         episode.steps = step;
         episode.episode_return += outcome.reward;
         let (steps, ret) = (episode.steps, episode.episode_return);
-        let event = episode_event(&experiment, index, steps, motion.seq, Some(&outcome), ret);
+        let event = episode_event(&experiment, index, steps, motion.seq, Some(outcome), ret);
         if self.recorder.is_some() {
             let recorded = Step::from_event(&event, Some(&req.action), Some(&motion));
             let command = Twist::planar(motion.linear_x, motion.angular_z);
-            self.record_step(frame, &answered, recorded, Some((command, commanded_at)))
+            self.record_step(&answered, recorded, Some((command, commanded_at)))
                 .await;
         }
-        let reply = with_observation(&reply, answered)?;
+        let reply = answered.reply_with(&answered.verdict.reply)?;
         self.publish_event(&event).await;
         match &outcome.end {
             Some(end) => self.finish_episode(&mut state, end).await?,
@@ -219,7 +211,6 @@ impl EnvServer {
         Ok(reply)
     }
 
-    /// Records an unfinished episode as ended for `reason`.
     /// Stops the robot and records the episode in progress as aborted
     /// (the controller is stopping).
     pub async fn stop_and_record(&self, reason: &str) {
@@ -229,6 +220,7 @@ impl EnvServer {
         self.abort_episode(&mut state, reason).await;
     }
 
+    /// Records an unfinished episode as ended for `reason`.
     pub(super) async fn abort_episode(&self, state: &mut State, reason: &str) {
         let running = state.episode.as_ref().is_some_and(|e| !e.over);
         if running {
@@ -288,22 +280,21 @@ impl EnvServer {
     }
 
     /// Hands a step to the recorder (which stamps it with its frame's
-    /// capture time), when recording and its frame is at hand.
-    pub(super) async fn record_step(
+    /// capture time), when recording.
+    pub(super) async fn record_step<V>(
         &self,
-        frame: Option<Arc<crate::link::Frame>>,
-        answered: &Answered,
+        answered: &Answered<V>,
         step: Step,
         command: Option<(Twist, Time)>,
     ) {
-        let (Some(recorder), Some(frame)) = (&self.recorder, frame) else {
+        let Some(recorder) = &self.recorder else {
             return;
         };
         recorder
             .step(StepRecord {
                 step,
-                frame: frame.payload().clone(),
-                pose: answered.pose().pose.clone(),
+                frame: answered.frame.payload().clone(),
+                pose: answered.pose.pose.clone(),
                 command,
             })
             .await;
@@ -343,78 +334,5 @@ pub(super) fn episode_event(
         end_reason: end.map(|e| e.as_str().to_owned()).unwrap_or_default(),
         experiment_id: experiment.1,
         command_seq,
-    }
-}
-
-/// Encodes `reply` with the observation as its last field; `None` if the
-/// reply was already sent where the frame was received.
-pub(super) fn with_observation<T: serde::Serialize>(
-    reply: &T,
-    answered: Answered,
-) -> Result<Option<Encoded<T>>, WireError> {
-    match answered {
-        Answered::Observation { data, .. } => codec::encode_with_tail(reply, data)
-            .map(Some)
-            .map_err(|e| WireError::internal(e.to_string())),
-        Answered::Replied { .. } => Ok(None),
-    }
-}
-
-/// What a step's reply says, given the pose it reached: one definition for
-/// the reply sent from the step's task and the one sent where its frame is
-/// received.
-#[derive(Clone)]
-pub(super) struct JudgedStep {
-    task: Arc<Task>,
-    /// The client's request number.
-    seq: u64,
-    episode_id: u64,
-    /// This step's number in the episode (1-based).
-    step: u32,
-    obs: ObsOptions,
-    /// Whether `info` carries the robot's ground truth.
-    share_pose: bool,
-}
-
-impl JudgedStep {
-    fn judge(&self, pose: &Pose2D) -> (Outcome, StepReply) {
-        let outcome = judge(&self.task, pose.x, pose.y, self.step);
-        let info = step_info(
-            &self.task,
-            self.episode_id,
-            self.step,
-            pose,
-            Some(&outcome),
-            self.share_pose,
-        );
-        let reply = StepReply {
-            seq: self.seq,
-            reward: outcome.reward,
-            terminated: outcome.terminated,
-            truncated: outcome.truncated,
-            info,
-            observation: shape(&self.obs),
-        };
-        (outcome, reply)
-    }
-
-    /// Replies to `query` where the frame is received, unless the episode
-    /// ends (its record is written before the reply).
-    fn reply_where_received(self, query: Query) -> ReplyWhereReceived {
-        Box::new(move |pose, data| {
-            let (outcome, reply) = self.judge(&pose.planar());
-            if outcome.end.is_some() {
-                return Err(data);
-            }
-            match codec::encode_with_tail(&reply, data.clone()) {
-                Ok(encoded) => {
-                    if let Err(e) = wire::reply_encoded_now(&query, Ok(encoded)) {
-                        tracing::warn!(key = %query.key_expr(), "step reply failed: {e}");
-                    }
-                    Ok(())
-                }
-                Err(_) => Err(data),
-            }
-        })
     }
 }

@@ -14,13 +14,13 @@ use std::time::{Duration, Instant};
 
 use offworld_recorder::msg::{EpisodeEnd as RecordedEnd, EpisodeInfo as RecordedEpisode, Step};
 use offworld_recorder::{EnvRecorder, RecordTo, StepRecord};
-use offworld_runtime::codec::{self, Encoded};
+use offworld_runtime::codec::Encoded;
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::{
     AdminReply, AdminRequest, Booking, BookingRequest, Bookings, CloseReply, CloseRequest, EnvSpec,
     EnvState, EnvStatus, EpisodeEvent, EpisodeRecordEntry, ExperimentInfo, ExperimentRecord,
     Experiments, ExperimentsRequest, Header, Leaderboard, MotionCommand, ObsOptions, OpenReply,
-    OpenRequest, Pose2D, RecordingFile, ResetAccuracy, ResetReply, ResetRequest, Seed, StepReply,
+    OpenRequest, RecordingFile, ResetAccuracy, ResetReply, ResetRequest, Seed, StepReply,
     StepRequest, Time, Twist, EXPERIMENTS_PER_REPLY, EXPERIMENT_EPISODES_PER_REPLY,
 };
 use offworld_runtime::wire::{self, Delivery};
@@ -31,12 +31,11 @@ use zenoh::pubsub::Publisher;
 use zenoh::query::Query;
 use zenoh::Session;
 
-use crate::episode::{judge, step_info, EndReason, Outcome, SpawnSampler};
+use crate::episode::{step_info, EndReason, Outcome, SpawnSampler};
 use crate::estops::EnvEStops;
-use crate::link::{
-    Answered, LinkSeals, LinkTimeouts, ObservationRequest, ReplyWhereReceived, RobotLink,
-};
+use crate::link::{LinkSeals, LinkTimeouts, ObservationRequest, RobotLink};
 use crate::observation::{shape, validate_options};
+use crate::step::{Answered, Plan, StepJudge};
 use crate::store::{
     format_unix_ms, lock_store, now_ms, validate_experiment_name, BookingRules, EpisodeRecord,
     SlotAt, Store, User, ANONYMOUS, IN_PROGRESS, LATEST_BOOKABLE_MS,

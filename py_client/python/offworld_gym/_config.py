@@ -44,7 +44,7 @@ class NativeOptions:
     resume_experiment: bool
     learning_type: str
     algorithm_mode: str
-    channels: str
+    channels: Channels
     height: int
     width: int
     depth_format: str
@@ -172,7 +172,7 @@ def resolve(
             resume_experiment=bool(resume_experiment),
             learning_type=LearningType(learning_type).value,
             algorithm_mode=AlgorithmMode(algorithm_mode).value,
-            channels=wire_channels.wire_name,
+            channels=wire_channels,
             height=height,
             width=width,
             depth_format=depth_format,

@@ -4,7 +4,9 @@ from enum import IntEnum
 
 
 class Channels(IntEnum):
-    """Which camera channels an observation carries."""
+    """Which camera channels an observation carries (the native layer reads
+    the value: keep it in step with ``convert::channels`` in
+    ``py_client/src/convert.rs``)."""
 
     DEPTH_ONLY = 1
     RGB_ONLY = 2
@@ -14,8 +16,3 @@ class Channels(IntEnum):
     def count(self) -> int:
         """Channels per pixel."""
         return {Channels.DEPTH_ONLY: 1, Channels.RGB_ONLY: 3, Channels.RGBD: 4}[self]
-
-    @property
-    def wire_name(self) -> str:
-        """The name the native layer uses."""
-        return {Channels.DEPTH_ONLY: "depth", Channels.RGB_ONLY: "rgb", Channels.RGBD: "rgbd"}[self]
