@@ -7,9 +7,9 @@
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use offworld_client::operator::{press_estop, EStopScope};
+use offworld_program::CommonArgs;
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::operator::{press_estop, EStopScope};
-use offworld_runtime::CommonArgs;
 use offworld_test_support::ScratchDir;
 
 /// `offworld ARGS` with the connection modes left to their defaults.
@@ -73,7 +73,7 @@ async fn a_standalone_twin_behind_a_peer_controller_is_reachable_by_every_client
     let env = EnvId::sim("alone-0").expect("env id");
     let mut components = Vec::new();
     for _ in 0..100 {
-        let listed = offworld_runtime::client::discover(&session, Duration::from_secs(2))
+        let listed = offworld_client::discover(&session, Duration::from_secs(2))
             .await
             .expect("a listing");
         if let Some(listing) = listed.iter().find(|l| l.env == env) {

@@ -72,7 +72,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 .open()
                 .await
                 .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
-            let prefix = offworld_runtime::client::random_id();
+            let prefix = offworld_runtime::keys::random_id();
             let envs: Vec<EnvId> = (0..count.max(1))
                 .map(|i| EnvId::sim(&format!("embedded-{}-{i}", &prefix[..8])))
                 .collect::<Result<_, _>>()

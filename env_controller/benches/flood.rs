@@ -26,9 +26,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::{loopback_endpoint, Mode};
 use offworld_runtime::wire::{self, RequestError};
@@ -335,7 +335,7 @@ async fn main() -> anyhow::Result<()> {
         after.push(timed_step(&mut b, i).await?);
     }
     b.close().await?;
-    let status_a = offworld_runtime::client::status(&trainer, &env_a, Duration::from_secs(5)).await;
+    let status_a = offworld_client::status(&trainer, &env_a, Duration::from_secs(5)).await;
     let router_alive = router.0.try_wait()?.is_none();
 
     let kinds = ["status", "step", "reset"];

@@ -22,10 +22,10 @@ use offworld_runtime::Resolution;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::{connect, Target};
 use offworld_recorder::episode_file::{Channel, Compression, EpisodeFile};
 use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo};
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 
 const DEFAULT_ROUNDS: usize = 5;
@@ -41,7 +41,7 @@ fn median(v: &mut [f64]) -> f64 {
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!(
         "offworld-record-bench-{name}-{}",
-        offworld_runtime::client::random_id()
+        offworld_runtime::keys::random_id()
     ));
     std::fs::create_dir_all(&dir).expect("scratch");
     dir

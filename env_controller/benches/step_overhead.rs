@@ -11,9 +11,9 @@
 use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::EnvId;

@@ -6,8 +6,8 @@
 use offworld_runtime::Resolution;
 use std::time::Instant;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::Target;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]

@@ -6,7 +6,7 @@
 //!
 //! In order: the request's size ([`RequestLimits::max_request_bytes`],
 //! checked before anything is decoded: `BadRequest`); who asks (the
-//! [`ClientTag`] attachment `runtime::client` puts on every request;
+//! [`ClientTag`] attachment `offworld_client` puts on every request;
 //! untagged requests share one client, [`UNTAGGED`]); that client's rate
 //! ([`ClientRates`], across the controller); then, for a request that needs
 //! the env's state or the store, a place in the env's bounded queue

@@ -22,9 +22,11 @@ use crate::store::{self, BookingRules};
 use crate::{Controller, EnvOptions, RequestLimits, Store, Task};
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use offworld_runtime::operator::{press_estop, EStopScope, PressError};
-use offworld_runtime::seal::{SealArgs, Sealer};
-use offworld_runtime::{CommonArgs, EnvId, Realm};
+use offworld_client::operator::{press_estop, EStopScope, PressError};
+use offworld_program::CommonArgs;
+use offworld_program::SealArgs;
+use offworld_runtime::seal::Sealer;
+use offworld_runtime::{EnvId, Realm};
 use zenoh::Session;
 
 /// The OffWorld gym server.
@@ -271,7 +273,7 @@ pub async fn until_signalled<F: std::future::Future<Output = ()>>(
     stop: impl FnOnce(String) -> F,
 ) -> anyhow::Result<()> {
     tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
-    let signal = offworld_runtime::shutdown::signalled().await?;
+    let signal = offworld_program::shutdown::signalled().await?;
     // Robots told to stop, episodes in progress recorded; then the
     // liveliness tokens go with the deployment.
     stop(format!("the controller stopped ({signal})")).await;
@@ -370,7 +372,7 @@ fn parse_env(text: &str) -> anyhow::Result<(EnvId, Task)> {
 /// Runs `env_controller` with these arguments.
 pub fn run(args: Args) -> ExitCode {
     match args.command {
-        ServerCommand::Serve(serve) => offworld_runtime::session::run_program(async move {
+        ServerCommand::Serve(serve) => offworld_program::run(async move {
             let controller = serve.open(args.db).await?.serve().await?;
             until_signalled(|reason| async move { controller.shutdown(&reason).await }).await
         }),
@@ -381,7 +383,7 @@ pub fn run(args: Args) -> ExitCode {
 /// Runs one of its record-keeping commands on the database `db` (also
 /// `offworld users`, …).
 pub fn run_command(db: Option<PathBuf>, command: Command) -> ExitCode {
-    offworld_runtime::session::run_program(main_async(db, command))
+    offworld_program::run(main_async(db, command))
 }
 
 async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Result<()> {

@@ -13,9 +13,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::wire::{self, RequestError};
@@ -484,7 +484,7 @@ async fn clients_on_the_controllers_own_session_are_answered() {
     .await
     .expect("embedded");
     let (session, env) = (&connection.session, &connection.envs[0]);
-    let spec = offworld_runtime::client::spec(session, env, Duration::from_secs(5))
+    let spec = offworld_client::spec(session, env, Duration::from_secs(5))
         .await
         .expect("spec");
     assert_eq!(spec.task, "MonolithDiscrete");

@@ -7,9 +7,9 @@ use offworld_test_support::ScratchDir;
 use std::path::Path;
 use std::time::Duration;
 
+use offworld_client::{self as client, ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
-use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{wire, EnvId, ErrorCode, SessionConfig, Topic, WireError};
@@ -846,7 +846,7 @@ async fn bookings_reserve_slots_and_end_leases_with_them() {
 /// lets a new episode start.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_sim_env_under_an_estop_refuses_motion_and_shows_it() {
-    use offworld_runtime::operator::{press_estop, EStopScope};
+    use offworld_client::operator::{press_estop, EStopScope};
     let dir = ScratchDir::new("gym-test");
     let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
     let session = client_session(&d).await;

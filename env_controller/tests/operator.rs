@@ -8,8 +8,8 @@
 use offworld_runtime::Resolution;
 use std::time::Duration;
 
+use offworld_client::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::keys::{Component, EnvId, Topic};
-use offworld_runtime::operator::{press_estop, EStopScope, PressError};
 use offworld_runtime::session::{loopback_endpoint, loopback_pair, SessionConfig};
 use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
 use zenoh::Session;

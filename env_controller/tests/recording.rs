@@ -7,10 +7,10 @@ use offworld_test_support::ScratchDir;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::{connect, Target};
 use offworld_recorder::msg::{EpisodeEnd, Step};
 use offworld_recorder::read;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{
     Action, Channels, DepthFormat, Image, LearningType, ObsOptions, OpenRequest, RecordingFile,
@@ -96,7 +96,7 @@ async fn every_step_the_client_was_answered_is_in_the_episode_file() {
     }
     client.close().await.expect("close");
     // The controller lists each episode's file with the episode's record.
-    let (_, episodes) = offworld_runtime::client::experiment_episodes(
+    let (_, episodes) = offworld_client::experiment_episodes(
         &connection.session,
         &env,
         "",

@@ -8,10 +8,10 @@
 use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::{loopback_endpoint, SessionConfig};
 use offworld_runtime::EnvId;

@@ -5,17 +5,17 @@
 
 use std::time::Duration;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, Scope, Sink};
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::EnvId;
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     let mut args = std::env::args().skip(1);
     let path = args.next().unwrap_or_else(|| "run.rrd".into());
     let steps: usize = args.next().and_then(|s| s.parse().ok()).unwrap_or(200);

@@ -19,7 +19,8 @@ use std::time::Duration;
 use crate::replay::{episode_files, FileReport, Replay, ReplayConfig, ReplayError};
 use crate::{Monitor, MonitorConfig, Scope, Sink};
 use clap::{ArgGroup, Parser, Subcommand};
-use offworld_runtime::{CommonArgs, EnvId};
+use offworld_program::CommonArgs;
+use offworld_runtime::EnvId;
 
 /// Streams OffWorld Gym envs (world, robot, camera, rewards, events) to rerun.
 #[derive(Debug, Parser)]
@@ -167,7 +168,7 @@ impl Args {
 
 /// Runs `monitor` (also `offworld monitor`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(main_async(args))
+    offworld_program::run(main_async(args))
 }
 
 async fn main_async(mut args: Args) -> anyhow::Result<ExitCode> {
@@ -197,7 +198,7 @@ async fn live(args: Args) -> anyhow::Result<()> {
                 tokio::time::sleep(Duration::from_secs_f64(secs)).await;
             }
             _ => {
-                let _ = offworld_runtime::shutdown::signalled().await;
+                let _ = offworld_program::shutdown::signalled().await;
             }
         }
     };
@@ -269,7 +270,7 @@ async fn replay(args: ReplayArgs) -> anyhow::Result<()> {
     let stop = replay.stopper();
     let interrupted = stop.clone();
     let signalled = tokio::spawn(async move {
-        let _ = offworld_runtime::shutdown::signalled().await;
+        let _ = offworld_program::shutdown::signalled().await;
         interrupted.store(true, Ordering::Relaxed);
     });
     let total = files.len();

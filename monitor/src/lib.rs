@@ -347,7 +347,7 @@ impl Monitor {
             std::thread::Builder::new()
                 .name("offworld-monitor".into())
                 .spawn(move || {
-                    offworld_runtime::priority::lower_current_thread();
+                    offworld_program::priority::lower_current_thread();
                     let rec = match open_sink(&config.sink, config.recording_name.as_deref()) {
                         Ok(rec) => rec,
                         Err(e) => {

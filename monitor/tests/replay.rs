@@ -12,11 +12,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use anyhow::{anyhow, ensure, Context};
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::{connect, Target};
 use offworld_recorder::episode_file::{partial_path, stamp_ns, Compression, EpisodeFile};
 use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo, Step};
 use offworld_recorder::Channel;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::{codec, EnvId};
 use serde_json::Value;
@@ -25,7 +25,7 @@ use serde_json::Value;
 fn scratch(tag: &str) -> anyhow::Result<PathBuf> {
     let dir = std::env::temp_dir().join(format!(
         "offworld-replay-{tag}-{}",
-        offworld_runtime::client::random_id()
+        offworld_runtime::keys::random_id()
     ));
     std::fs::create_dir_all(&dir)?;
     Ok(dir)

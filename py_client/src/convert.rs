@@ -156,7 +156,7 @@ pub fn timeout(seconds: f64) -> PyResult<std::time::Duration> {
 /// One discovered env as a dict.
 pub fn listing<'py>(
     py: Python<'py>,
-    listing: &offworld_runtime::client::EnvListing,
+    listing: &offworld_client::EnvListing,
 ) -> PyResult<Bound<'py, PyDict>> {
     use offworld_runtime::msg::EnvState;
     let dict = PyDict::new(py);

@@ -7,9 +7,9 @@ mod errors;
 
 use std::sync::OnceLock;
 
+use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_deploy::{Connection, Target, TwinProfile};
 use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
-use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::{ActionSpace, Channels, OpenRequest, Seed};
 use offworld_runtime::{EnvId, Resolution, SessionConfig, WireError};
 use pyo3::exceptions::PyValueError;
@@ -379,13 +379,8 @@ impl NativeEnvs {
         let timeout = convert::timeout(timeout_s)?;
         let session = &self.connection.session;
         let id = env.opened().experiment.id;
-        let asked = offworld_runtime::client::experiment_episodes(
-            session,
-            env.env(),
-            &self.token,
-            id,
-            timeout,
-        );
+        let asked =
+            offworld_client::experiment_episodes(session, env.env(), &self.token, id, timeout);
         let (experiment, episodes) = block_on_interruptibly(py, asked)?.map_err(errors::to_py)?;
         convert::experiment_with_episodes(py, &experiment, &episodes)
     }
@@ -551,7 +546,7 @@ fn list_envs<'py>(
 ) -> PyResult<Bound<'py, PyList>> {
     let timeout = convert::timeout(timeout_s)?;
     let listings = on_deployment(py, connect, move |session| async move {
-        offworld_runtime::client::discover(&session, timeout).await
+        offworld_client::discover(&session, timeout).await
     })?;
     let out = PyList::empty(py);
     for listing in &listings {
@@ -572,7 +567,7 @@ fn booking_request<'py>(
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
     let bookings = on_deployment(py, connect, move |session| async move {
-        offworld_runtime::client::book(&session, &env, &request, timeout).await
+        offworld_client::book(&session, &env, &request, timeout).await
     })?;
     let out = PyList::empty(py);
     for b in &bookings.bookings {
@@ -595,7 +590,7 @@ fn experiments<'py>(
     let timeout = convert::timeout(timeout_s)?;
     let answer = on_deployment(py, connect, move |session| async move {
         let request = offworld_runtime::msg::ExperimentsRequest::List { token };
-        offworld_runtime::client::experiments(&session, &env, &request, timeout).await
+        offworld_client::experiments(&session, &env, &request, timeout).await
     })?;
     convert::experiments(py, &answer.experiments)
 }
@@ -614,14 +609,7 @@ fn experiment_episodes<'py>(
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
     let (experiment, episodes) = on_deployment(py, connect, move |session| async move {
-        offworld_runtime::client::experiment_episodes(
-            &session,
-            &env,
-            &token,
-            experiment_id,
-            timeout,
-        )
-        .await
+        offworld_client::experiment_episodes(&session, &env, &token, experiment_id, timeout).await
     })?;
     convert::experiment_with_episodes(py, &experiment, &episodes)
 }
@@ -638,7 +626,7 @@ fn leaderboard<'py>(
     let env = parse_env(env_id)?;
     let timeout = convert::timeout(timeout_s)?;
     let board = on_deployment(py, connect, move |session| async move {
-        offworld_runtime::client::leaderboard(&session, &env, timeout).await
+        offworld_client::leaderboard(&session, &env, timeout).await
     })?;
     convert::leaderboard(py, &board)
 }
@@ -709,7 +697,7 @@ fn whoami<'py>(
     let timeout = convert::timeout(timeout_s)?;
     let request = offworld_runtime::msg::AdminRequest::Identify { token };
     let reply = on_deployment(py, connect, move |session| async move {
-        offworld_runtime::client::admin(&session, &env, &request, timeout).await
+        offworld_client::admin(&session, &env, &request, timeout).await
     })?;
     let dict = PyDict::new(py);
     dict.set_item("user", &reply.user)?;

@@ -16,7 +16,8 @@ use std::time::Duration;
 use crate::follow::{FinishedEpisode, FollowConfig, FollowScope, Follower};
 use crate::read::{self, EpisodeSummary};
 use clap::{ArgGroup, Parser, Subcommand};
-use offworld_runtime::{CommonArgs, EnvId};
+use offworld_program::CommonArgs;
+use offworld_runtime::EnvId;
 
 /// Records OffWorld Gym episodes from outside the controller, inspects
 /// recorded episodes (MCAP, ROS 2 profile) and recovers the ones a crash
@@ -87,7 +88,7 @@ struct RecordArgs {
 
 /// Runs `recorder` (also `offworld recorder`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     match run_command(args.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -126,7 +127,7 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
     // An unwritable directory is reported before anything is joined.
     crate::RecordTo::check(&dir)?;
     // Installed first: a Ctrl-C at any time finishes the files.
-    let mut signals = offworld_runtime::shutdown::ShutdownSignals::install()?;
+    let mut signals = offworld_program::shutdown::ShutdownSignals::install()?;
     let scope = if args.all {
         FollowScope::All
     } else {

@@ -474,7 +474,7 @@ async fn follow_env(inner: Arc<Inner>, env: EnvId, mut stop: watch::Receiver<boo
     };
     tracing::info!(%env, "following");
     let mut env_follower = EnvFollower {
-        spec: offworld_runtime::client::spec(&inner.session, &env, inner.config.spec_timeout)
+        spec: offworld_client::spec(&inner.session, &env, inner.config.spec_timeout)
             .await
             .map_err(|e| tracing::warn!(%env, "no spec yet ({}); asked again at the next episode", e.message))
             .ok(),
@@ -576,7 +576,7 @@ impl EnvFollower {
     async fn begin(&mut self, event: &EpisodeEvent) {
         if self.spec.is_none() {
             let timeout = self.inner.config.spec_timeout;
-            self.spec = offworld_runtime::client::spec(&self.inner.session, &self.env, timeout)
+            self.spec = offworld_client::spec(&self.inner.session, &self.env, timeout)
                 .await
                 .ok();
         }

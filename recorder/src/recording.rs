@@ -466,7 +466,7 @@ fn write_episodes(
 ) {
     // Writing is background work: on a machine whose cores the step path
     // keeps busy (a sim, the robot's computer) it must not take their turn.
-    offworld_runtime::priority::lower_current_thread();
+    offworld_program::priority::lower_current_thread();
     let mut open: Option<Open> = None;
     while let Some(Queued { generation, event }) = events.blocking_recv() {
         let handled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {

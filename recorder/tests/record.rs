@@ -11,11 +11,11 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_recorder::msg::{EpisodeEnd, Step};
 use offworld_recorder::read;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{
     Action, Channels, DepthFormat, Image, ObsOptions, OpenRequest, PoseStamped, Seed, StepReply,
@@ -236,7 +236,7 @@ async fn a_subscriber_records_every_step_the_client_was_answered() {
     };
     let env = EnvId::sim(&format!(
         "follow-{}",
-        &offworld_runtime::client::random_id()[..8]
+        &offworld_runtime::keys::random_id()[..8]
     ))
     .expect("env");
     let sim = SimEnv {

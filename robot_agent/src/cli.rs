@@ -9,10 +9,11 @@ use std::process::ExitCode;
 
 use crate::{AgentConfig, Ros2Robot};
 use clap::Parser;
-use offworld_runtime::seal::SealArgs;
-use offworld_runtime::shutdown::ShutdownSignals;
-use offworld_runtime::state_dir;
-use offworld_runtime::{CommonArgs, EnvId, Realm};
+use offworld_program::shutdown::ShutdownSignals;
+use offworld_program::state_dir;
+use offworld_program::CommonArgs;
+use offworld_program::SealArgs;
+use offworld_runtime::{EnvId, Realm};
 
 /// Run the OffWorld robot agent (ROS 2 robot over Zenoh).
 #[derive(Parser)]
@@ -46,7 +47,7 @@ pub struct Args {
 
 /// Runs `robot_agent` (also `offworld robot`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(main_async(args))
+    offworld_program::run(main_async(args))
 }
 
 async fn main_async(args: Args) -> anyhow::Result<()> {

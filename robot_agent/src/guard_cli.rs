@@ -13,8 +13,9 @@ use std::process::ExitCode;
 
 use crate::{guard, AgentConfig};
 use clap::Parser;
-use offworld_runtime::shutdown::ShutdownSignals;
-use offworld_runtime::{CommonArgs, EnvId, Realm};
+use offworld_program::shutdown::ShutdownSignals;
+use offworld_program::CommonArgs;
+use offworld_runtime::{EnvId, Realm};
 
 /// Zero the robot's base when the robot agent dies, freezes or goes silent.
 #[derive(Parser)]
@@ -38,7 +39,7 @@ pub struct Args {
 /// Runs `base_guard` (also `offworld guard`) with these arguments, on one
 /// runtime thread: it stays small beside the agent.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program_on(Some(1), guard_base(args))
+    offworld_program::run_on(Some(1), guard_base(args))
 }
 
 async fn guard_base(args: Args) -> anyhow::Result<()> {

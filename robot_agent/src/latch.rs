@@ -88,7 +88,7 @@ mod tests {
     fn scratch(name: &str) -> PathBuf {
         std::env::temp_dir().join(format!(
             "offworld-latch-{name}-{}",
-            offworld_runtime::client::random_id()
+            offworld_runtime::keys::random_id()
         ))
     }
 

@@ -1226,7 +1226,7 @@ async fn a_reset_drive_holds_through_short_gaps_and_gives_up_on_long_ones() {
 async fn an_estop_survives_an_agent_restart() {
     let dir = std::env::temp_dir().join(format!(
         "offworld-agent-latch-{}",
-        offworld_runtime::client::random_id()
+        offworld_runtime::keys::random_id()
     ));
     let config = AgentConfig {
         estop_latch: Some(dir.join("estop")),
@@ -1375,7 +1375,7 @@ async fn site_and_env_latches_are_independent_and_every_press_is_acknowledged() 
 async fn an_agent_that_cannot_write_its_latch_refuses_to_start() {
     let file = std::env::temp_dir().join(format!(
         "offworld-agent-latch-file-{}",
-        offworld_runtime::client::random_id()
+        offworld_runtime::keys::random_id()
     ));
     std::fs::write(&file, b"not a directory").expect("a plain file");
     let config = AgentConfig {
@@ -1575,7 +1575,7 @@ fn command_key_file(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!(
         "offworld-agent-{name}-{}-{}",
         std::process::id(),
-        offworld_runtime::client::random_id()
+        offworld_runtime::keys::random_id()
     ));
     std::fs::create_dir_all(&dir).expect("key dir");
     let path = dir.join("command.seal");

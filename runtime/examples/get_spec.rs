@@ -3,8 +3,9 @@
 use std::time::Duration;
 
 use clap::Parser;
+use offworld_program::CommonArgs;
 use offworld_runtime::msg::EnvSpec;
-use offworld_runtime::{wire, CommonArgs, EnvId, Topic};
+use offworld_runtime::{wire, EnvId, Topic};
 
 #[derive(Parser)]
 struct Args {
@@ -17,7 +18,7 @@ struct Args {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     let args = Args::parse();
     let session = args.common.client_config().open().await?;
     let key = args.env.key(Topic::Spec);

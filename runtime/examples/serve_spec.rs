@@ -1,8 +1,9 @@
 //! Serves an env's `spec` queryable, as a controller would.
 
 use clap::Parser;
+use offworld_program::CommonArgs;
 use offworld_runtime::msg::{ActionSpace, EnvSpec};
-use offworld_runtime::{wire, CommonArgs, EnvId, Topic};
+use offworld_runtime::{wire, EnvId, Topic};
 
 #[derive(Parser)]
 struct Args {
@@ -15,7 +16,7 @@ struct Args {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     let args = Args::parse();
     let session = args.common.server_config().open().await?;
     let key = args.env.key(Topic::Spec);

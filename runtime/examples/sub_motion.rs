@@ -3,8 +3,9 @@
 //! then `--example pub_motion` in another shell.
 
 use clap::Parser;
+use offworld_program::CommonArgs;
 use offworld_runtime::msg::MotionCommand;
-use offworld_runtime::{codec, CommonArgs, EnvId, Topic};
+use offworld_runtime::{codec, EnvId, Topic};
 
 #[derive(Parser)]
 struct Args {
@@ -17,7 +18,7 @@ struct Args {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     let args = Args::parse();
     let session = args.common.server_config().open().await?;
     let key = args.env.key(Topic::Cmd);

@@ -260,6 +260,15 @@ impl Component {
     }
 }
 
+/// A random id usable as a key chunk (16 hex digits), e.g. a client's id.
+pub fn random_id() -> String {
+    use rand::Rng;
+    let mut rng = rand::rng();
+    (0..16)
+        .map(|_| format!("{:x}", rng.random_range(0..16u8)))
+        .collect()
+}
+
 /// Key of the site-wide e-stop that stops every robot at once.
 pub fn global_estop_key() -> String {
     format!("{ROOT}/{VERSION}/estop")

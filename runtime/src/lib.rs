@@ -12,36 +12,33 @@
 //! - [`codec`]: little-endian CDR with the encapsulation header; decoding
 //!   untrusted bytes never panics.
 //! - [`wire`]: typed put / request / reply over a Zenoh session.
-//! - [`session`]: opening sessions from files, environment or flags.
-//! - [`priority`]: background threads yield to the step path.
-//! - [`shutdown`]: SIGINT, SIGTERM and SIGHUP as one "stop cleanly".
-//! - [`state_dir`]: where a component keeps files across restarts.
+//! - [`session`]: opening sessions from files, environment or endpoints.
+//! - [`pool`]: recycled payload buffers.
+//! - [`seal`]: sealed control messages of a real site.
 //! - [`world`]: enclosure definitions (`runtime/worlds/*.toml`) every
 //!   component reads: geometry, task, robot, camera.
 //! - [`WireError`]: the one typed error every reply can carry.
+//!
+//! The client library is `offworld_client`; what programs share (flags,
+//! logging, entry point, stop signals) is `offworld_program`.
 
-pub mod client;
 pub mod codec;
 mod error;
 pub mod estop;
 pub mod keys;
 pub mod msg;
 pub mod named;
-pub mod operator;
 pub mod pool;
-pub mod priority;
 mod resolution;
 pub mod ros2;
 pub mod seal;
 pub mod session;
-pub mod shutdown;
-pub mod state_dir;
 pub mod wire;
 pub mod world;
 
 pub use error::{ContractError, DecodeError, EncodeError, ErrorCode, WireError};
 pub use keys::{Component, EnvId, Realm, Topic};
 pub use resolution::Resolution;
-pub use session::{CommonArgs, SessionConfig};
+pub use session::SessionConfig;
 pub use wire::RequestError;
 pub use world::{WorldError, WorldSpec};

@@ -184,34 +184,6 @@ impl SealKey {
     }
 }
 
-/// The key files a component is given (`--command-key`, `--tracker-key`),
-/// the same flags on every binary that takes them.
-#[derive(Debug, Clone, Default, clap::Args)]
-pub struct SealArgs {
-    /// The site's command key (a file of 64 hex digits, mode 600): the
-    /// real-site controller seals every command, heartbeat and reset drive
-    /// with it; a robot agent given it obeys nothing else.
-    #[arg(long, value_name = "FILE", env = "OFFWORLD_COMMAND_KEY")]
-    pub command_key: Option<PathBuf>,
-    /// The site's tracker key: the tracker agent seals its poses and
-    /// tracking reports with it; a controller or robot agent given it
-    /// believes no other pose.
-    #[arg(long, value_name = "FILE", env = "OFFWORLD_TRACKER_KEY")]
-    pub tracker_key: Option<PathBuf>,
-}
-
-impl SealArgs {
-    /// The command key, if given (loaded and checked).
-    pub fn command(&self) -> Result<Option<SealKey>, SealError> {
-        self.command_key.as_deref().map(SealKey::load).transpose()
-    }
-
-    /// The tracker key, if given (loaded and checked).
-    pub fn tracker(&self) -> Result<Option<SealKey>, SealError> {
-        self.tracker_key.as_deref().map(SealKey::load).transpose()
-    }
-}
-
 /// Checks the seal of a received sample or query against an [`Opener`].
 pub trait Sealed {
     /// The key expression, payload and attachment the seal covers.

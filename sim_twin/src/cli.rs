@@ -16,8 +16,9 @@ use crate::{
     Clock, PlanarPose, Randomization, SimTwin, TwinConfig, TwinNode, TwinProfile, WorldSpec,
 };
 use clap::{Parser, ValueEnum};
-use offworld_runtime::shutdown::ShutdownSignals;
-use offworld_runtime::{CommonArgs, EnvId, Resolution};
+use offworld_program::shutdown::ShutdownSignals;
+use offworld_program::CommonArgs;
+use offworld_runtime::{EnvId, Resolution};
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum ClockArg {
@@ -122,7 +123,7 @@ impl TwinArgs {
 
 /// Runs `sim_twin` (also `offworld twin`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(main_async(args))
+    offworld_program::run(main_async(args))
 }
 
 async fn main_async(args: Args) -> anyhow::Result<()> {

@@ -13,7 +13,7 @@
 
 use std::time::{Duration, Instant};
 
-use offworld_runtime::client::{ClientTimeouts, EnvClient, VecEnvClient};
+use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, SessionConfig};
@@ -212,7 +212,7 @@ async fn per_twin(
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     let scratch = std::env::temp_dir().join(format!("offworld-farm-bench-{}", std::process::id()));
     std::fs::create_dir_all(&scratch)?;
     println!(

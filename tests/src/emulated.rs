@@ -22,8 +22,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use offworld_client as client;
 use offworld_deploy::hardware::default_world_from_tracking;
-use offworld_runtime::client;
 use offworld_runtime::codec;
 use offworld_runtime::msg::{EnvState, TrackingStatus};
 use offworld_runtime::seal::SealKey;
@@ -214,7 +214,7 @@ impl EmulatedEnclosure {
         let dir = std::env::temp_dir().join(format!(
             "offworld-emulated-{}-{}",
             std::process::id(),
-            offworld_runtime::client::random_id()
+            offworld_runtime::keys::random_id()
         ));
         std::fs::create_dir_all(&dir)?;
         if options.isolated_robot && options.pausable_tracker {

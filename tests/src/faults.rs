@@ -11,7 +11,7 @@ use std::io::{BufRead, BufReader};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use offworld_runtime::client::EnvClient;
+use offworld_client::EnvClient;
 use offworld_runtime::codec;
 use offworld_runtime::msg::{
     Action, AlgorithmMode, Channels, DepthFormat, ObsOptions, Odometry, OpenRequest, Seed,

@@ -136,7 +136,7 @@ impl RouterSite {
         let dir = std::env::temp_dir().join(format!(
             "offworld-site-{name}-{}-{}",
             std::process::id(),
-            offworld_runtime::client::random_id()
+            offworld_runtime::keys::random_id()
         ));
         std::fs::create_dir_all(&dir)?;
         let mut generate = Command::new("bash");
@@ -518,7 +518,7 @@ impl SimFarm {
         let session = self.site.session(Role::Trainer).open().await?;
         let deadline = Instant::now() + timeout;
         for env in &self.envs {
-            while offworld_runtime::client::spec(&session, env, Duration::from_secs(2))
+            while offworld_client::spec(&session, env, Duration::from_secs(2))
                 .await
                 .is_err()
             {

@@ -11,9 +11,9 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use offworld_runtime::operator::{press_estop, EStopScope, PressError};
+use offworld_client::operator::{press_estop, EStopScope, PressError};
 
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::*;
@@ -171,7 +171,7 @@ async fn a_full_episode_runs_through_the_router_over_tls_with_passwords() -> any
     let trainer = site.session(Role::Trainer).await;
     let mut gym = open(&trainer, &site.env, "through-router", false).await;
     // Discovery through the router: the env, its task, its components, leased.
-    let listed = offworld_runtime::client::discover(&trainer, Duration::from_secs(3))
+    let listed = offworld_client::discover(&trainer, Duration::from_secs(3))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
     assert_eq!(listed.len(), 1, "{listed:?}");
@@ -480,7 +480,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     // What its pages read: the listing with the lease's holder, a
     // leaderboard, the bookings, and `admin` (a user's token, checked by
     // the controller: a stranger's is refused there, not at the router).
-    let listed = offworld_runtime::client::discover(&web, Duration::from_secs(5))
+    let listed = offworld_client::discover(&web, Duration::from_secs(5))
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
     let listing = listed
@@ -493,10 +493,10 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         "{listing:?}"
     );
     let timeout = Duration::from_secs(5);
-    offworld_runtime::client::leaderboard(&web, &env, timeout)
+    offworld_client::leaderboard(&web, &env, timeout)
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
-    offworld_runtime::client::book(
+    offworld_client::book(
         &web,
         &env,
         &BookingRequest::List { from_unix_ms: 0 },
@@ -507,7 +507,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     let stranger = AdminRequest::Identify {
         token: "not-a-user".into(),
     };
-    let refused = offworld_runtime::client::admin(&web, &env, &stranger, timeout)
+    let refused = offworld_client::admin(&web, &env, &stranger, timeout)
         .await
         .expect_err("a stranger's token");
     assert_eq!(refused.code, ErrorCode::Unauthorized, "{refused}");
@@ -595,7 +595,7 @@ async fn press_as(
     env: &EnvId,
     engaged: bool,
     reason: &str,
-) -> anyhow::Result<offworld_runtime::operator::PressReport> {
+) -> anyhow::Result<offworld_client::operator::PressReport> {
     press_estop(
         session,
         &EStopScope::Env(env.clone()),

@@ -18,11 +18,11 @@
 use std::collections::BTreeSet;
 use std::time::Duration;
 
-use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
+use offworld_client::operator::{press_estop, EStopScope, PressReport};
+use offworld_client::{self as client, ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{Component, EnvId, Realm, Topic};
 use offworld_runtime::msg::{EStopState, Seed};
-use offworld_runtime::operator::{press_estop, EStopScope, PressReport};
 use offworld_runtime::{ErrorCode, SessionConfig};
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::open_request;

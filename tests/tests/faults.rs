@@ -11,8 +11,8 @@
 
 use std::time::Duration;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_env_controller::Store;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::{ErrorCode, SessionConfig};
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::{

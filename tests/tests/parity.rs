@@ -7,11 +7,11 @@
 use offworld_test_support::ScratchDir as Scratch;
 use std::time::Duration;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_parity::identify::{identify, IdentifyOptions};
 use offworld_parity::recorded::RecordedEpisode;
 use offworld_parity::replay::replay;
 use offworld_parity::report::{markdown, Summary};
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::{
     Action, AlgorithmMode, Channels, DepthFormat, ObsOptions, OpenRequest, Seed,
 };

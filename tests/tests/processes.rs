@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
+use offworld_client::{self as client, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
@@ -383,7 +383,7 @@ async fn every_completed_episode_survives_kill_9_at_random_points() {
 
 /// Every program that joins a deployment takes the shared Zenoh settings
 /// from the same environment variables as the Python client (one shared
-/// clap group, `runtime::CommonArgs`), and says so in `--help`.
+/// clap group, `offworld_program::CommonArgs`), and says so in `--help`.
 #[test]
 fn every_program_reads_the_shared_zenoh_settings_from_the_same_variables() {
     let dir = offworld_tests::binary_dir();

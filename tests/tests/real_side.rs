@@ -8,7 +8,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{EnvId, Topic};
 use offworld_runtime::msg::*;
@@ -151,7 +151,7 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
     let mut options = Options::new("MonolithContinuous").expect("options");
     let runs = std::env::temp_dir().join(format!(
         "offworld-real-runs-{}",
-        offworld_runtime::client::random_id()
+        offworld_runtime::keys::random_id()
     ));
     options.record = Some(runs.clone());
     let mut deployment = EmulatedEnclosure::start(&options).expect("deployment");
@@ -188,10 +188,9 @@ async fn a_real_namespace_episode_runs_end_to_end_and_a_dead_controller_stops_th
     // Its accuracy is in the env's status: within the navigation's
     // tolerances (5 cm, 0.08 rad; twice that for the tracker's and the
     // settling's share), timed by the controller.
-    let status =
-        offworld_runtime::client::status(&session, &deployment.env, Duration::from_secs(5))
-            .await
-            .expect("status");
+    let status = offworld_client::status(&session, &deployment.env, Duration::from_secs(5))
+        .await
+        .expect("status");
     let accuracy = status.last_reset;
     assert!(accuracy.measured, "{accuracy:?}");
     assert!(

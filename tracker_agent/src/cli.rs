@@ -24,8 +24,9 @@ use crate::{
 use anyhow::{bail, ensure, Context};
 use clap::{Parser, Subcommand};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use offworld_program::CommonArgs;
 use offworld_runtime::seal::SealKey;
-use offworld_runtime::{CommonArgs, EnvId};
+use offworld_runtime::EnvId;
 use tokio::io::AsyncBufReadExt;
 
 /// Vive tracker localization for an OffWorld enclosure.
@@ -155,7 +156,7 @@ struct CalibrateArgs {
 
 /// Runs `tracker_agent` (also `offworld tracker`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(async move {
+    offworld_program::run(async move {
         match args.command {
             Command::Run(args) => run_tracker(args).await,
             Command::Calibrate(args) => calibrate(args).await,
@@ -192,7 +193,7 @@ async fn run_tracker(args: RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("opening {}", args.source))?;
     let session = args.common.client_config().open().await?;
     let stats = crate::run(&session, args.env, calibration, source, config, async {
-        let _ = offworld_runtime::shutdown::signalled().await;
+        let _ = offworld_program::shutdown::signalled().await;
     })
     .await?;
     tracing::info!(?stats, "done");

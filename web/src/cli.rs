@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use crate::{DiscoveryConfig, LabWeb, Limits, WebOptions};
 use clap::Parser;
-use offworld_runtime::CommonArgs;
+use offworld_program::CommonArgs;
 
 /// Serves the lab's web page: live availability of every env (real and
 /// sim), each env's leaderboard, bookings and (signed in with a gym access
@@ -78,7 +78,7 @@ pub struct Args {
 
 /// Runs `lab_web` (also `offworld web`) with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(serve(args))
+    offworld_program::run(serve(args))
 }
 
 async fn serve(args: Args) -> anyhow::Result<()> {
@@ -104,7 +104,7 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     let session = args.common.clone().client_config().open().await?;
     let web = LabWeb::start(session.clone(), args.http_listen, options).await?;
     tracing::info!("lab web page on http://{}", web.local_addr());
-    let signal = offworld_runtime::shutdown::signalled().await?;
+    let signal = offworld_program::shutdown::signalled().await?;
     tracing::info!("stopping ({signal:?})");
     web.stop().await;
     let _ = session.close().await;

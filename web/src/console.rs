@@ -10,9 +10,9 @@
 use axum::extract::{Request, State};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
+use offworld_client::operator::{EStopScope, PressError, PressReport};
 use offworld_runtime::keys::{EnvId, Realm};
 use offworld_runtime::msg::AdminRequest;
-use offworld_runtime::operator::{EStopScope, PressError, PressReport};
 
 use crate::account::{acting_session, html_with, identify_with, known_env, post_form};
 use crate::account_pages::{signin_needed, Notice};

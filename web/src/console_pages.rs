@@ -4,7 +4,7 @@
 //! confirmation box (the server refuses one without it too).
 
 use maud::{html, Markup};
-use offworld_runtime::operator::PressReport;
+use offworld_client::operator::PressReport;
 
 use crate::account_pages::{notice, Notice};
 use crate::console::{MAX_BACK_MINUTES, MAX_REASON_CHARS};

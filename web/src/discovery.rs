@@ -15,13 +15,13 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use offworld_runtime::client::{self, EnvListing};
+use offworld_client::operator::{press_estop, EStopScope, PressError, PressReport};
+use offworld_client::{self as client, EnvListing};
 use offworld_runtime::keys::{self, EnvId, Topic};
 use offworld_runtime::msg::{
     AdminReply, AdminRequest, BookingRequest, Bookings, EnvStatus, Experiments, ExperimentsRequest,
     Leaderboard, MotionFault, TrackingStatus,
 };
-use offworld_runtime::operator::{press_estop, EStopScope, PressError, PressReport};
 use offworld_runtime::{codec, WireError};
 use tokio::sync::{watch, Notify};
 use zenoh::Session;

@@ -8,9 +8,10 @@
 
 use std::process::ExitCode;
 
+use offworld_program::shutdown::ShutdownSignals;
+use offworld_program::CommonArgs;
 use offworld_runtime::ros2::{KeyStyle, RosGraph};
-use offworld_runtime::shutdown::ShutdownSignals;
-use offworld_runtime::{CommonArgs, EnvId, Resolution};
+use offworld_runtime::{EnvId, Resolution};
 use offworld_sim_twin::cli::TwinArgs;
 use offworld_sim_twin::node::OVERHEAD_CAMERA;
 use offworld_sim_twin::SimTwin;
@@ -54,7 +55,7 @@ pub struct Args {
 
 /// Runs `offworld emulate-hardware` with these arguments.
 pub fn run(args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(emulate(args))
+    offworld_program::run(emulate(args))
 }
 
 async fn emulate(args: Args) -> anyhow::Result<()> {

@@ -28,7 +28,7 @@ pub struct Args {
 
 /// Runs `serve` on the database named before the command (if any).
 pub fn run(db_before_command: Option<PathBuf>, args: Args) -> ExitCode {
-    offworld_runtime::session::run_program(serve(db_before_command, args))
+    offworld_program::run(serve(db_before_command, args))
 }
 
 async fn serve(db_before_command: Option<PathBuf>, args: Args) -> anyhow::Result<()> {

@@ -275,7 +275,7 @@ fn unix_ms_in(d: Duration) -> i64 {
 }
 
 /// Checks the client id of an `open`: empty (no liveliness watch) or one
-/// safe key chunk, as `runtime::client` makes them (the liveliness key of
+/// safe key chunk, as `offworld_client` makes them (the liveliness key of
 /// the client is built from it).
 pub fn validate_client_id(env: &EnvId, client_id: &str) -> Result<(), WireError> {
     if client_id.is_empty() {

@@ -139,7 +139,7 @@ pub(super) fn query_world(
         Ok(rt) => rt,
         Err(e) => return fallback(format!("no runtime for the spec query: {e}")),
     };
-    let reply = runtime.block_on(offworld_runtime::client::spec(session, env, timeout));
+    let reply = runtime.block_on(offworld_client::spec(session, env, timeout));
     match reply {
         Ok(spec) => match WorldSpec::builtin(&spec.world) {
             Ok(world) => (Some(world), WorldSource::Spec),

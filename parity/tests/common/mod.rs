@@ -4,9 +4,9 @@
 use offworld_runtime::Resolution;
 use std::path::Path;
 
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::{connect, Target};
 use offworld_parity::recorded::RecordedEpisode;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::msg::{Action, Channels, DepthFormat, ObsOptions, OpenRequest, Seed};
 use offworld_sim_twin::TwinProfile;
 

@@ -22,8 +22,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
+use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_env_controller::Store;
-use offworld_runtime::client::{ClientTimeouts, EnvClient};
 use offworld_runtime::SessionConfig;
 use offworld_tests::emulated::{EmulatedEnclosure, Options, Part};
 use offworld_tests::faults::{

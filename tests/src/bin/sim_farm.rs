@@ -42,7 +42,7 @@ struct Args {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     let args = Args::parse();
     let profile = match &args.twin_profile {
         Some(path) => {

@@ -44,7 +44,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
 use futures::stream::{FuturesUnordered, StreamExt};
-use offworld_runtime::client::{self, ClientTimeouts, EnvClient};
+use offworld_client::{self as client, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::{
     Action, ActionSpace, BookingRequest, Channels, DepthFormat, EnvSpec, EnvState, ObsOptions,
     OpenRequest, Seed,
@@ -1496,7 +1496,7 @@ fn main() -> anyhow::Result<ExitCode> {
     if std::env::var_os("RUST_LOG").is_none() {
         std::env::set_var("RUST_LOG", "info,zenoh=warn,zenoh::api::handlers::fifo=off");
     }
-    offworld_runtime::session::init_logging();
+    offworld_program::init_logging();
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?

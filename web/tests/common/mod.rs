@@ -1,6 +1,6 @@
 //! What the web service's tests share.
 
-use offworld_runtime::client::EnvClient;
+use offworld_client::EnvClient;
 use offworld_runtime::msg::Action;
 
 /// Steps `client` with action 0 until its episode ends (bounded).

@@ -1,20 +1,30 @@
-//! A typed gym client: open a session on an env, reset, step, close. Used
-//! by the Python package, the CLI and the tests; it knows keys and messages
-//! only, so it works against any deployment.
+//! The OffWorld Gym client library, over the contract
+//! (`offworld_runtime`): it knows keys and messages only, so it works
+//! against any deployment. Used by the Python package, the CLI, the web
+//! page, monitors and the tests.
+//!
+//! - [`EnvClient`]: open a session on an env, reset, step, close; wait in
+//!   an env's line.
+//! - [`VecEnvClient`]: several envs stepped at once, with gymnasium's
+//!   autoreset.
+//! - [`discover`], [`envs_here`]: what a deployment serves.
+//! - [`spec`], [`status`], [`leaderboard`], [`book`], [`admin`],
+//!   [`experiments`]: one request each, outside a session.
+//! - [`operator`]: pressing e-stops and hearing who obeyed.
 
 use std::time::Duration;
 
-use rand::Rng;
-
-use crate::keys::{Component, EnvId, Topic};
-use crate::msg::{
+use offworld_runtime::keys::{random_id, Component, EnvId, Topic};
+use offworld_runtime::msg::{
     Action, ClientTag, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, Leaderboard,
     OpenReply, OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
 };
-use crate::wire;
-use crate::{ErrorCode, WireError};
+use offworld_runtime::wire;
+use offworld_runtime::{ErrorCode, WireError};
 use zenoh::liveliness::LivelinessToken;
 use zenoh::Session;
+
+pub mod operator;
 
 /// Deadlines of client requests.
 #[derive(Debug, Clone, Copy)]
@@ -35,14 +45,6 @@ impl Default for ClientTimeouts {
             reset: Duration::from_secs(120),
         }
     }
-}
-
-/// A random id usable as a key chunk.
-pub fn random_id() -> String {
-    let mut rng = rand::rng();
-    (0..16)
-        .map(|_| format!("{:x}", rng.random_range(0..16u8)))
-        .collect()
 }
 
 /// Who this process is to a controller for the requests it sends outside
@@ -340,9 +342,9 @@ pub async fn leaderboard(
 pub async fn book(
     session: &Session,
     env: &EnvId,
-    request: &crate::msg::BookingRequest,
+    request: &offworld_runtime::msg::BookingRequest,
     timeout: Duration,
-) -> Result<crate::msg::Bookings, WireError> {
+) -> Result<offworld_runtime::msg::Bookings, WireError> {
     ask(session, env, Topic::Book, request, timeout).await
 }
 
@@ -351,9 +353,9 @@ pub async fn book(
 pub async fn admin(
     session: &Session,
     env: &EnvId,
-    request: &crate::msg::AdminRequest,
+    request: &offworld_runtime::msg::AdminRequest,
     timeout: Duration,
-) -> Result<crate::msg::AdminReply, WireError> {
+) -> Result<offworld_runtime::msg::AdminReply, WireError> {
     ask(session, env, Topic::Admin, request, timeout).await
 }
 
@@ -361,9 +363,9 @@ pub async fn admin(
 pub async fn experiments(
     session: &Session,
     env: &EnvId,
-    request: &crate::msg::ExperimentsRequest,
+    request: &offworld_runtime::msg::ExperimentsRequest,
     timeout: Duration,
-) -> Result<crate::msg::Experiments, WireError> {
+) -> Result<offworld_runtime::msg::Experiments, WireError> {
     ask(session, env, Topic::Experiments, request, timeout).await
 }
 
@@ -377,15 +379,15 @@ pub async fn experiment_episodes(
     timeout: Duration,
 ) -> Result<
     (
-        crate::msg::ExperimentRecord,
-        Vec<crate::msg::EpisodeRecordEntry>,
+        offworld_runtime::msg::ExperimentRecord,
+        Vec<offworld_runtime::msg::EpisodeRecordEntry>,
     ),
     WireError,
 > {
     let mut episodes = Vec::new();
     let mut from_episode = 0;
     loop {
-        let request = crate::msg::ExperimentsRequest::Show {
+        let request = offworld_runtime::msg::ExperimentsRequest::Show {
             token: token.to_owned(),
             experiment_id,
             from_episode,
@@ -421,13 +423,13 @@ pub struct EnvListing {
     pub components: Vec<String>,
     /// Booked slots in progress or ahead, earliest first (empty when the
     /// controller did not answer).
-    pub bookings: Vec<crate::msg::Booking>,
+    pub bookings: Vec<offworld_runtime::msg::Booking>,
     /// The e-stop latches in force as its controller knows them (default,
     /// nothing engaged, when it did not answer).
-    pub estop: crate::msg::EStopState,
+    pub estop: offworld_runtime::msg::EStopState,
     /// How well its last reset put the robot at its spawn pose (not
     /// measured when the controller did not answer or has not reset it).
-    pub last_reset: crate::msg::ResetAccuracy,
+    pub last_reset: offworld_runtime::msg::ResetAccuracy,
 }
 
 /// Lists the envs reachable through `session`: every env with a liveliness
@@ -439,7 +441,7 @@ pub struct EnvListing {
 pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvListing>, WireError> {
     let replies = session
         .liveliness()
-        .get(crate::keys::all_alive_selector())
+        .get(offworld_runtime::keys::all_alive_selector())
         .timeout(timeout)
         .await
         .map_err(|e| WireError::new(ErrorCode::Unavailable, format!("liveliness query: {e}")))?;
@@ -466,7 +468,7 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
             let now = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .unwrap_or_default();
-            let upcoming = crate::msg::BookingRequest::List {
+            let upcoming = offworld_runtime::msg::BookingRequest::List {
                 from_unix_ms: i64::try_from(now.as_millis()).unwrap_or(i64::MAX),
             };
             let (spec, status, booked) = futures::join!(

@@ -19,14 +19,14 @@ use zenoh::bytes::Encoding;
 use zenoh::sample::Sample;
 use zenoh::Session;
 
-use crate::codec;
-use crate::estop::{self, Latch};
-use crate::keys::{
+use offworld_runtime::codec;
+use offworld_runtime::estop::{self, Latch};
+use offworld_runtime::keys::{
     all_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
 };
-use crate::msg::{EStop, EStopAck, EStopState};
-use crate::wire::{self, Delivery};
-use crate::WireError;
+use offworld_runtime::msg::{EStop, EStopAck, EStopState};
+use offworld_runtime::wire::{self, Delivery};
+use offworld_runtime::WireError;
 
 /// Why a press did not reach every robot it should have.
 #[derive(Debug, thiserror::Error)]
