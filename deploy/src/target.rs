@@ -2,8 +2,9 @@
 //! default: no router, no robot) or a remote deployment reached through
 //! Zenoh. Shared by the Python package and any other front end.
 
+use offworld_client as client;
 use offworld_runtime::keys::EnvId;
-use offworld_runtime::{client, Resolution, SessionConfig};
+use offworld_runtime::{Resolution, SessionConfig};
 use zenoh::Session;
 
 use offworld_env_controller::{ControllerError, EnvOptions, RequestLimits, Store};

@@ -273,7 +273,7 @@ pub async fn until_signalled<F: std::future::Future<Output = ()>>(
     stop: impl FnOnce(String) -> F,
 ) -> anyhow::Result<()> {
     tracing::info!("serving; Ctrl-C, SIGTERM or SIGHUP to stop");
-    let signal = offworld_program::shutdown::signalled().await?;
+    let signal = offworld_runtime::shutdown::signalled().await?;
     // Robots told to stop, episodes in progress recorded; then the
     // liveliness tokens go with the deployment.
     stop(format!("the controller stopped ({signal})")).await;

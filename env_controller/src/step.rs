@@ -188,7 +188,8 @@ impl<J: Judge + Clone> Plan<J> {
                     reply: Reply::Due(observation?),
                 }),
                 // The slot holds one command, replaced only by the next,
-                // which waits for this one: it cannot be dropped unheard.
+                // which waits for this one: only a panic while its frame
+                // was handled drops it unheard.
                 Err(_) => Err(WireError::internal(format!(
                     "command {seq}'s frame was taken and never handed over"
                 ))),
@@ -313,7 +314,8 @@ impl<J: Judge> AwaitingFrame for InFlight<J> {
         announce: &dyn Fn(Arc<Frame>),
     ) {
         let tagged = pose.filter(|p| p.seq == Some(self.seq));
-        let stage = match (tagged, &self.reply_to) {
+        // The task may have given up: nobody to tell (each `send` below).
+        match (tagged, &self.reply_to) {
             (Some(pose), Some(query)) => {
                 let stage = match frame.build(&self.observation, buffers) {
                     Ok(observation) => {
@@ -331,19 +333,18 @@ impl<J: Judge> AwaitingFrame for InFlight<J> {
                         observation: Err(e),
                     },
                 };
+                // Handed over before the task wakes: it finds the step done.
+                let _ = self.handed.send(stage);
                 announce(frame);
-                stage
             }
             _ => {
                 announce(frame.clone());
-                Stage::Built {
+                let _ = self.handed.send(Stage::Built {
                     observation: frame.build(&self.observation, buffers),
                     frame,
-                }
+                });
             }
-        };
-        // The task may have given up: nobody to tell.
-        let _ = self.handed.send(stage);
+        }
     }
 }
 

@@ -198,7 +198,7 @@ async fn live(args: Args) -> anyhow::Result<()> {
                 tokio::time::sleep(Duration::from_secs_f64(secs)).await;
             }
             _ => {
-                let _ = offworld_program::shutdown::signalled().await;
+                let _ = offworld_runtime::shutdown::signalled().await;
             }
         }
     };
@@ -270,7 +270,7 @@ async fn replay(args: ReplayArgs) -> anyhow::Result<()> {
     let stop = replay.stopper();
     let interrupted = stop.clone();
     let signalled = tokio::spawn(async move {
-        let _ = offworld_program::shutdown::signalled().await;
+        let _ = offworld_runtime::shutdown::signalled().await;
         interrupted.store(true, Ordering::Relaxed);
     });
     let total = files.len();

@@ -1,9 +1,10 @@
 //! What every OffWorld program shares, beside the contract
 //! (`offworld_runtime`): its entry point ([`run`]), logging
 //! ([`init_logging`]), session and key-file flags ([`CommonArgs`],
-//! [`SealArgs`]), stop signals ([`shutdown`]), background thread priority
-//! ([`priority`]) and where it keeps files across restarts
-//! ([`state_dir`]).
+//! [`SealArgs`]), background thread priority ([`priority`]) and where it
+//! keeps files across restarts ([`state_dir`]). Stop signals are the
+//! contract's (`offworld_runtime::shutdown`): a session waiting for its
+//! endpoint hears them.
 
 use std::path::PathBuf;
 
@@ -14,7 +15,6 @@ use offworld_runtime::session::{
 use strum::VariantNames;
 
 pub mod priority;
-pub mod shutdown;
 pub mod state_dir;
 
 /// Session flags shared by every binary (flatten into a clap parser).
@@ -50,7 +50,8 @@ pub struct CommonArgs {
 
 /// `--mode`: one of [`Mode`]'s names, listed in `--help`.
 fn mode_parser() -> impl clap::builder::TypedValueParser<Value = Mode> {
-    clap::builder::PossibleValuesParser::new(Mode::VARIANTS).try_map(|name| name.parse::<Mode>())
+    use clap::builder::{PossibleValuesParser, TypedValueParser};
+    PossibleValuesParser::new(Mode::VARIANTS).try_map(|name| name.parse::<Mode>())
 }
 
 impl CommonArgs {

@@ -127,7 +127,7 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
     // An unwritable directory is reported before anything is joined.
     crate::RecordTo::check(&dir)?;
     // Installed first: a Ctrl-C at any time finishes the files.
-    let mut signals = offworld_program::shutdown::ShutdownSignals::install()?;
+    let mut signals = offworld_runtime::shutdown::ShutdownSignals::install()?;
     let scope = if args.all {
         FollowScope::All
     } else {

@@ -9,10 +9,10 @@ use std::process::ExitCode;
 
 use crate::{AgentConfig, Ros2Robot};
 use clap::Parser;
-use offworld_program::shutdown::ShutdownSignals;
 use offworld_program::state_dir;
 use offworld_program::CommonArgs;
 use offworld_program::SealArgs;
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{EnvId, Realm};
 
 /// Run the OffWorld robot agent (ROS 2 robot over Zenoh).

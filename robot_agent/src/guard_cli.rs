@@ -13,8 +13,8 @@ use std::process::ExitCode;
 
 use crate::{guard, AgentConfig};
 use clap::Parser;
-use offworld_program::shutdown::ShutdownSignals;
 use offworld_program::CommonArgs;
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{EnvId, Realm};
 
 /// Zero the robot's base when the robot agent dies, freezes or goes silent.

@@ -15,12 +15,14 @@
 //! - [`session`]: opening sessions from files, environment or endpoints.
 //! - [`pool`]: recycled payload buffers.
 //! - [`seal`]: sealed control messages of a real site.
+//! - [`shutdown`]: SIGINT, SIGTERM and SIGHUP as one "stop cleanly" (a
+//!   session still waiting for its endpoint gives up on it).
 //! - [`world`]: enclosure definitions (`runtime/worlds/*.toml`) every
 //!   component reads: geometry, task, robot, camera.
 //! - [`WireError`]: the one typed error every reply can carry.
 //!
 //! The client library is `offworld_client`; what programs share (flags,
-//! logging, entry point, stop signals) is `offworld_program`.
+//! logging, entry point) is `offworld_program`.
 
 pub mod codec;
 mod error;
@@ -33,6 +35,7 @@ mod resolution;
 pub mod ros2;
 pub mod seal;
 pub mod session;
+pub mod shutdown;
 pub mod wire;
 pub mod world;
 

@@ -16,8 +16,8 @@ use crate::{
     Clock, PlanarPose, Randomization, SimTwin, TwinConfig, TwinNode, TwinProfile, WorldSpec,
 };
 use clap::{Parser, ValueEnum};
-use offworld_program::shutdown::ShutdownSignals;
 use offworld_program::CommonArgs;
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{EnvId, Resolution};
 
 #[derive(Debug, Clone, Copy, ValueEnum)]

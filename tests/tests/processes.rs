@@ -11,7 +11,10 @@ use offworld_tests::Process;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn controller_and_twin_processes_serve_a_full_episode() {
-    let scratch = std::env::temp_dir().join(format!("offworld-processes-{}", client::random_id()));
+    let scratch = std::env::temp_dir().join(format!(
+        "offworld-processes-{}",
+        offworld_runtime::keys::random_id()
+    ));
     std::fs::create_dir_all(&scratch).expect("scratch");
     let db = scratch.join("gym.db");
     let endpoint = loopback_endpoint().expect("port");
@@ -117,7 +120,10 @@ async fn controller_and_twin_processes_serve_a_full_episode() {
 /// default action.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_service_exits_cleanly_on_sigterm_sigint_and_sighup() {
-    let scratch = std::env::temp_dir().join(format!("offworld-signals-{}", client::random_id()));
+    let scratch = std::env::temp_dir().join(format!(
+        "offworld-signals-{}",
+        offworld_runtime::keys::random_id()
+    ));
     std::fs::create_dir_all(&scratch).expect("scratch");
     let endpoint = loopback_endpoint().expect("port");
     let db = scratch.join("gym.db");
@@ -228,7 +234,10 @@ async fn every_completed_episode_survives_kill_9_at_random_points() {
     use offworld_env_controller::Store;
     use rand::{Rng, SeedableRng};
 
-    let scratch = std::env::temp_dir().join(format!("offworld-durable-{}", client::random_id()));
+    let scratch = std::env::temp_dir().join(format!(
+        "offworld-durable-{}",
+        offworld_runtime::keys::random_id()
+    ));
     std::fs::create_dir_all(&scratch).expect("scratch");
     let db = scratch.join("gym.db");
     let endpoint = loopback_endpoint().expect("port");

@@ -193,7 +193,7 @@ async fn run_tracker(args: RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("opening {}", args.source))?;
     let session = args.common.client_config().open().await?;
     let stats = crate::run(&session, args.env, calibration, source, config, async {
-        let _ = offworld_program::shutdown::signalled().await;
+        let _ = offworld_runtime::shutdown::signalled().await;
     })
     .await?;
     tracing::info!(?stats, "done");

@@ -104,7 +104,7 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     let session = args.common.clone().client_config().open().await?;
     let web = LabWeb::start(session.clone(), args.http_listen, options).await?;
     tracing::info!("lab web page on http://{}", web.local_addr());
-    let signal = offworld_program::shutdown::signalled().await?;
+    let signal = offworld_runtime::shutdown::signalled().await?;
     tracing::info!("stopping ({signal:?})");
     web.stop().await;
     let _ = session.close().await;

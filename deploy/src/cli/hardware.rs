@@ -8,9 +8,9 @@
 
 use std::process::ExitCode;
 
-use offworld_program::shutdown::ShutdownSignals;
 use offworld_program::CommonArgs;
 use offworld_runtime::ros2::{KeyStyle, RosGraph};
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_runtime::{EnvId, Resolution};
 use offworld_sim_twin::cli::TwinArgs;
 use offworld_sim_twin::node::OVERHEAD_CAMERA;

@@ -51,7 +51,7 @@ async fn main() -> anyhow::Result<()> {
     eprintln!("  OFFWORLD_OPERATOR_TOKEN={}", deployment.operator_token);
     let Some((program, rest)) = args.command.split_first() else {
         eprintln!("Ctrl-C to stop");
-        offworld_program::shutdown::signalled().await?;
+        offworld_runtime::shutdown::signalled().await?;
         return Ok(());
     };
     let status = Command::new(program)

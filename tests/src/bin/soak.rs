@@ -929,7 +929,7 @@ fn start(args: &Args) -> anyhow::Result<Deployment> {
             let dir = std::env::temp_dir().join(format!(
                 "offworld-soak-{}-{}",
                 std::process::id(),
-                client::random_id()
+                offworld_runtime::keys::random_id()
             ));
             std::fs::create_dir_all(&dir)?;
             (None, Some(dir))
