@@ -27,6 +27,7 @@ use offworld_deploy::{connect, Target};
 use offworld_recorder::episode_file::{Channel, Compression, EpisodeFile};
 use offworld_recorder::msg::{EpisodeEnd, EpisodeInfo};
 use offworld_runtime::msg::*;
+use offworld_test_support::callgrind;
 
 const DEFAULT_ROUNDS: usize = 5;
 const STEPS: usize = 1000;
@@ -199,33 +200,6 @@ async fn only(mode: &str, steps: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Instructions of this bench run under callgrind in `mode` for `steps`.
-fn spawn_callgrind(mode: &str, steps: usize) -> anyhow::Result<std::process::Child> {
-    let exe = std::env::current_exe()?;
-    std::process::Command::new("valgrind")
-        .args(["--tool=callgrind", "--callgrind-out-file=/dev/null"])
-        .arg(exe)
-        .env("RECORD_COST_ONLY", mode)
-        .env("RECORD_COST_STEPS", steps.to_string())
-        .env_remove("RECORD_COST_INSTRUCTIONS")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .map_err(|e| anyhow::anyhow!("cannot run valgrind (is it installed?): {e}"))
-}
-
-fn collected(child: std::process::Child) -> anyhow::Result<u64> {
-    let output = child.wait_with_output()?;
-    let log = String::from_utf8_lossy(&output.stderr);
-    log.lines()
-        .find_map(|line| {
-            line.split_once("Collected :")
-                .map(|(_, n)| n.trim().parse().ok())
-        })
-        .flatten()
-        .ok_or_else(|| anyhow::anyhow!("no instruction count in callgrind's output:\n{log}"))
-}
-
 /// The cost of recording in instructions per step, all threads counted.
 fn instructions() -> anyhow::Result<()> {
     println!(
@@ -235,11 +209,19 @@ fn instructions() -> anyhow::Result<()> {
     );
     let mut per_step = Vec::new();
     for mode in ["without", "with"] {
-        // Both lengths at once: callgrind runs a process on one core.
-        let short = spawn_callgrind(mode, FEW_STEPS)?;
-        let long = spawn_callgrind(mode, STEPS + FEW_STEPS)?;
-        let (short, long) = (collected(short)?, collected(long)?);
-        let instructions = long.saturating_sub(short) as f64 / STEPS as f64;
+        let exe = std::env::current_exe()?;
+        let instructions = callgrind::per_unit(
+            |steps| {
+                let mut run = callgrind::command(&exe);
+                run.env("RECORD_COST_ONLY", mode)
+                    .env("RECORD_COST_STEPS", steps.to_string())
+                    .env_remove("RECORD_COST_INSTRUCTIONS");
+                run
+            },
+            FEW_STEPS,
+            STEPS,
+        )
+        .map_err(|e| anyhow::anyhow!(e))?;
         println!("  {mode:>7} recording: {instructions:.0}");
         per_step.push(instructions);
     }

@@ -4,6 +4,12 @@
 //! profile's tilted camera (the per-pixel renderer), and RSS.
 //!
 //! `cargo bench -p offworld-sim-twin --bench twin_step`
+//!
+//! Wall clock on a shared machine moves by several percent from run to
+//! run; instructions do not: `TWIN_STEP_INSTRUCTIONS=1` counts instructions
+//! per env step, per render and per physics action under callgrind (the
+//! bench re-runs itself for a few and for many units of each; see
+//! `offworld_test_support::callgrind`).
 
 use std::time::Instant;
 
@@ -13,6 +19,7 @@ use offworld_runtime::Resolution;
 use offworld_sim_twin::frame_payload::FramePayloads;
 use offworld_sim_twin::ros_out::frame_images;
 use offworld_sim_twin::{CameraProfile, PlanarPose, SimTwin, TwinConfig, TwinProfile};
+use offworld_test_support::callgrind;
 
 /// The discrete action table (linear, angular, duration).
 const ACTIONS: [(f64, f64, f64); 4] = [
@@ -76,11 +83,88 @@ fn rss_mb() -> f64 {
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
+/// What an instruction count measures: one unit of each.
+const UNITS: [(&str, &str); 5] = [
+    ("step-320x240", "env step 320x240 RGBD (physics + render)"),
+    ("step-84x84", "env step 84x84 RGBD (physics + render)"),
+    ("render-320x240", "render 320x240"),
+    ("render-84x84", "render 84x84"),
+    ("physics", "physics, one discrete action"),
+];
+
+/// Does `n` units of `unit` and nothing else (the run callgrind counts).
+fn only(world: &str, unit: &str, n: usize) {
+    let resolution = |r: &str| match r {
+        "320x240" => Resolution::new(320, 240),
+        _ => Resolution::new(84, 84),
+    };
+    match unit.split_once('-') {
+        Some(("step", r)) => {
+            let mut t = twin(world, resolution(r));
+            (0..n).for_each(|i| env_step(&mut t, i));
+        }
+        Some(("render", r)) => {
+            let mut t = twin(world, resolution(r));
+            (0..n).for_each(|_| {
+                std::hint::black_box(t.render());
+            });
+        }
+        _ => {
+            let mut t = twin(world, resolution("84x84"));
+            for i in 0..n {
+                let (v, w, d) = ACTIONS[i % 4];
+                t.execute(v, w, d).expect("motion");
+            }
+        }
+    }
+}
+
+fn instructions(world: &str) {
+    const FEW: usize = 20;
+    const MANY: usize = 200;
+    println!(
+        "sim_twin instructions, world `{world}` (callgrind; {MANY} units = {} − {FEW}):",
+        FEW + MANY
+    );
+    let exe = std::env::current_exe().expect("this bench's path");
+    for (unit, what) in UNITS {
+        let per_unit = callgrind::per_unit(
+            |n| {
+                let mut run = callgrind::command(&exe);
+                run.arg(world)
+                    .env("TWIN_STEP_ONLY", unit)
+                    .env("TWIN_STEP_COUNT", n.to_string())
+                    .env_remove("TWIN_STEP_INSTRUCTIONS");
+                run
+            },
+            FEW,
+            MANY,
+        );
+        match per_unit {
+            Ok(count) => println!("  {what:<42}: {count:>12.0} instructions"),
+            Err(e) => {
+                eprintln!("{what}: {e}");
+                std::process::exit(1);
+            }
+        }
+    }
+}
+
 fn main() {
     let world = std::env::args()
         .nth(1)
         .filter(|a| !a.starts_with('-'))
         .unwrap_or_else(|| "monolith_obstacle".into());
+    if let Ok(unit) = std::env::var("TWIN_STEP_ONLY") {
+        let n = std::env::var("TWIN_STEP_COUNT")
+            .ok()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(100);
+        return only(&world, &unit, n);
+    }
+    if std::env::var_os("TWIN_STEP_INSTRUCTIONS").is_some() {
+        return instructions(&world);
+    }
     println!("sim_twin bench, world `{world}`, single thread, median of 5 runs");
     let rss_before = rss_mb();
     let mut full = twin(&world, Resolution::new(320, 240));

@@ -1,4 +1,7 @@
-//! What the tests of several OffWorld crates share and no user runs.
+//! What the tests and benches of several OffWorld crates share and no user
+//! runs: scratch directories and instruction counts.
+
+pub mod callgrind;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};

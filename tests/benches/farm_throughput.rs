@@ -8,8 +8,14 @@
 //! - "controller per twin": N `offworld serve --embedded-twins` processes —
 //!   only the gym's queries and replies cross the router.
 //!
+//! A third table takes the router's cost apart for the twin-process layout
+//! at N = 1: peer to peer, a bare `zenohd` on plain TCP (no TLS, no
+//! passwords, no ACL), the site's router reached over TLS on TCP, and over
+//! QUIC (what the first table measures).
+//!
 //! `cargo bench -p offworld-tests --bench farm_throughput`
-//! (`FARM_SECONDS` per measurement, default 8; `FARM_SIZES`, default `1,2,4`).
+//! (`FARM_SECONDS` per measurement, default 8; `FARM_SIZES`, default `1,2,4`;
+//! `FARM_TABLES`, default `layouts,router`).
 
 use std::time::{Duration, Instant};
 
@@ -121,7 +127,21 @@ fn spawn(binary: &str, args: &[String]) -> anyhow::Result<Process> {
 }
 
 async fn through_router(n: usize) -> anyhow::Result<f64> {
-    let farm = SimFarm::start(&format!("router-{n}"), n, "MonolithDiscrete")?;
+    through_site(n, false, true).await
+}
+
+/// Twin processes behind the site's router (the repository's files), over
+/// QUIC or, with `tls_over_tcp`, over its TLS-on-TCP listeners; without
+/// `acl`, the router's access control is off (to measure what it costs).
+async fn through_site(n: usize, tls_over_tcp: bool, acl: bool) -> anyhow::Result<f64> {
+    let mut site = RouterSite::start(&format!("router-{n}"))?;
+    if tls_over_tcp {
+        site.use_tls_over_tcp();
+    }
+    if !acl {
+        site.restart_router_with(&["access_control/enabled:false"])?;
+    }
+    let farm = SimFarm::start_on(site, &format!("router-{n}"), n, "MonolithDiscrete")?;
     farm.ready(Duration::from_secs(60)).await?;
     let trainer = farm.site.session(Role::Trainer).open().await?;
     let mut vec = open_all(&trainer, &farm.envs, &farm.token).await?;
@@ -146,6 +166,89 @@ async fn peer_to_peer(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
     let rate = measure(&mut vec).await;
     drop(processes);
     rate
+}
+
+/// Twin processes behind a bare `zenohd` on plain TCP: every process a
+/// client of it, no TLS, no passwords, no access control.
+async fn through_bare_router(dir: &std::path::Path, n: usize) -> anyhow::Result<f64> {
+    let envs = envs(n, "bare")?;
+    let endpoint = loopback_endpoint()?;
+    let router = Process::spawn_from_path(
+        "zenohd",
+        &["--no-multicast-scouting", "-l", &endpoint],
+        "warn",
+    )?;
+    let client = |mut args: Vec<String>| {
+        args.extend([
+            "--connect".into(),
+            endpoint.clone(),
+            "--mode".into(),
+            "client".into(),
+        ]);
+        args
+    };
+    let db = dir.join(format!("bare-{n}.db"));
+    let mut processes = vec![router];
+    for env in &envs {
+        processes.push(spawn("sim_twin", &client(twin_args(env)))?);
+    }
+    processes.push(spawn(
+        "env_controller",
+        &client(serve_args(&db.to_string_lossy(), &envs)),
+    )?);
+    let trainer = SessionConfig {
+        mode: offworld_runtime::session::Mode::Client,
+        ..SessionConfig::connecting(&endpoint)
+    }
+    .open()
+    .await?;
+    let mut vec = open_all(&trainer, &envs, "").await?;
+    let rate = measure(&mut vec).await;
+    drop(processes);
+    rate
+}
+
+/// Where the router's cost goes, one twin process behind one controller.
+async fn router_breakdown(dir: &std::path::Path) {
+    println!("  where the router's cost goes (1 twin process, 84x84 render):");
+    println!("  path                                     | steps/s | vs peer to peer");
+    let direct = peer_to_peer(dir, 1).await;
+    let rows = [
+        ("peer to peer, TCP", None),
+        (
+            "bare zenohd, TCP (no TLS, auth, ACL)",
+            Some(through_bare_router(dir, 1).await),
+        ),
+        (
+            "site zenohd, TLS over TCP + ACL",
+            Some(through_site(1, true, true).await),
+        ),
+        (
+            "site zenohd, QUIC, ACL off",
+            Some(through_site(1, false, false).await),
+        ),
+        (
+            "site zenohd, QUIC + ACL",
+            Some(through_site(1, false, true).await),
+        ),
+    ];
+    for (path, rate) in rows {
+        let rate = rate.as_ref().unwrap_or(&direct);
+        let (shown, ratio) = match (rate, &direct) {
+            (Ok(r), Ok(d)) => (format!("{r:7.0}"), format!("{:.2}", r / d)),
+            (Ok(r), Err(_)) => (format!("{r:7.0}"), "-".into()),
+            (Err(e), _) => (format!("failed: {e}"), "-".into()),
+        };
+        println!("  {path:<40} | {shown} | {ratio:>6}");
+    }
+}
+
+fn tables() -> Vec<String> {
+    std::env::var("FARM_TABLES")
+        .unwrap_or_else(|_| "layouts,router".into())
+        .split(',')
+        .map(|t| t.trim().to_owned())
+        .collect()
 }
 
 fn print_header() {
@@ -210,6 +313,26 @@ async fn per_twin(
     rate
 }
 
+/// The two layouts, N = each of `sizes()`, routed vs peer to peer.
+async fn layouts(scratch: &std::path::Path) -> anyhow::Result<()> {
+    println!("  twin processes behind one controller (84x84 render):");
+    print_header();
+    for n in sizes() {
+        let routed = through_router(n).await;
+        let direct = peer_to_peer(scratch, n).await;
+        print_row(n, &routed, &direct);
+    }
+    println!("  controller per twin (embedded, 320x240 render, 84x84 obs):");
+    print_header();
+    let site = RouterSite::start("bench")?;
+    for n in sizes() {
+        let routed = per_twin(Some(&site), scratch, n).await;
+        let direct = per_twin(None, scratch, n).await;
+        print_row(n, &routed, &direct);
+    }
+    Ok(())
+}
+
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
     offworld_program::init_logging();
@@ -220,20 +343,12 @@ async fn main() -> anyhow::Result<()> {
         seconds(),
         std::thread::available_parallelism().map_or(0, |n| n.get())
     );
-    println!("  twin processes behind one controller (84x84 render):");
-    print_header();
-    for n in sizes() {
-        let routed = through_router(n).await;
-        let direct = peer_to_peer(&scratch, n).await;
-        print_row(n, &routed, &direct);
+    let tables = tables();
+    if tables.iter().any(|t| t == "layouts") {
+        layouts(&scratch).await?;
     }
-    println!("  controller per twin (embedded, 320x240 render, 84x84 obs):");
-    print_header();
-    let site = RouterSite::start("bench")?;
-    for n in sizes() {
-        let routed = per_twin(Some(&site), &scratch, n).await;
-        let direct = per_twin(None, &scratch, n).await;
-        print_row(n, &routed, &direct);
+    if tables.iter().any(|t| t == "router") {
+        router_breakdown(&scratch).await;
     }
     std::fs::remove_dir_all(&scratch).ok();
     Ok(())

@@ -192,6 +192,14 @@ impl RouterSite {
         Ok(site)
     }
 
+    /// Every role connects through the router's TLS-over-TCP listeners
+    /// from now on instead of QUIC (same ports, same certificates).
+    pub fn use_tls_over_tcp(&mut self) {
+        self.trainer_endpoint = Self::over_tcp(&self.trainer_endpoint);
+        self.site_endpoint = Self::over_tcp(&self.site_endpoint);
+        self.site_endpoint_inside = Self::over_tcp(&self.site_endpoint_inside);
+    }
+
     /// The TLS-over-TCP fallback of a QUIC endpoint (same port number).
     pub fn over_tcp(endpoint: &str) -> String {
         endpoint.replacen("quic/", "tls/", 1)
