@@ -13,7 +13,7 @@
 use std::any::Any;
 use std::future::Future;
 use std::panic::AssertUnwindSafe;
-use std::pin::pin;
+use std::pin::{pin, Pin};
 use std::sync::{Arc, Mutex};
 use std::task::Poll;
 use std::time::Duration;
@@ -426,55 +426,72 @@ pub async fn answer_supervised(query: &Query, work: impl Future<Output = ()>) {
 async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
     let sent = match topic {
         Topic::Open => {
-            respond(query, async {
-                server.open(wire::decode_query::<OpenRequest>(query)?).await
-            })
+            respond(
+                query,
+                Box::pin(async { server.open(wire::decode_query::<OpenRequest>(query)?).await }),
+            )
             .await
         }
         Topic::Reset => {
-            respond_encoded(query, async {
-                server
-                    .reset(wire::decode_query::<ResetRequest>(query)?)
-                    .await
-            })
+            respond_encoded(
+                query,
+                Box::pin(async {
+                    server
+                        .reset(wire::decode_query::<ResetRequest>(query)?)
+                        .await
+                }),
+            )
             .await
         }
         Topic::Step => {
-            respond_unless_sent(query, async {
-                let req = wire::decode_query::<StepRequest>(query)?;
-                server.step(req, query.clone()).await
-            })
+            respond_unless_sent(
+                query,
+                Box::pin(async {
+                    let req = wire::decode_query::<StepRequest>(query)?;
+                    server.step(req, query.clone()).await
+                }),
+            )
             .await
         }
         Topic::Close => {
-            respond(query, async {
-                server
-                    .close(wire::decode_query::<CloseRequest>(query)?)
-                    .await
-            })
+            respond(
+                query,
+                Box::pin(async {
+                    server
+                        .close(wire::decode_query::<CloseRequest>(query)?)
+                        .await
+                }),
+            )
             .await
         }
         Topic::Admin => {
-            respond(query, async {
-                server
-                    .admin(wire::decode_query::<AdminRequest>(query)?)
-                    .await
-            })
+            respond(
+                query,
+                Box::pin(async {
+                    server
+                        .admin(wire::decode_query::<AdminRequest>(query)?)
+                        .await
+                }),
+            )
             .await
         }
-        Topic::Leaderboard => respond(query, async { server.leaderboard() }).await,
+        Topic::Leaderboard => respond(query, Box::pin(async { server.leaderboard() })).await,
         Topic::Book => {
-            respond(query, async {
-                server.book(wire::decode_query::<BookingRequest>(query)?)
-            })
+            respond(
+                query,
+                Box::pin(async { server.book(wire::decode_query::<BookingRequest>(query)?) }),
+            )
             .await
         }
         Topic::Experiments => {
-            respond(query, async {
-                server
-                    .experiments(wire::decode_query::<ExperimentsRequest>(query)?)
-                    .await
-            })
+            respond(
+                query,
+                Box::pin(async {
+                    server
+                        .experiments(wire::decode_query::<ExperimentsRequest>(query)?)
+                        .await
+                }),
+            )
             .await
         }
         other => {
@@ -487,25 +504,33 @@ async fn handle(server: &EnvServer, topic: Topic, query: &Query) {
     }
 }
 
+/// A handler's work, boxed where [`handle`] starts it. Each layer of
+/// `respond*` and [`answer_supervised`] keeps the future it wraps in its own
+/// state, so an unboxed handler's state machine is copied into every layer:
+/// the request task grew to ~48 KB, memcpy'd on each spawn and poll of a
+/// step (a tenth of a step's instructions outside the twin). Boxed once,
+/// each layer holds a pointer.
+type Work<'a, T> = Pin<Box<dyn Future<Output = Result<T, WireError>> + Send + 'a>>;
+
 async fn respond<T: serde::Serialize>(
     query: &Query,
-    work: impl std::future::Future<Output = Result<T, WireError>>,
+    work: Work<'_, T>,
 ) -> Result<(), offworld_runtime::RequestError> {
-    respond_encoded(query, async { Ok(Encoded::new(&work.await?)?) }).await
+    respond_encoded(query, Box::pin(async { Ok(Encoded::new(&work.await?)?) })).await
 }
 
 /// Replies with the handler's encoded reply or its typed error.
 async fn respond_encoded<T>(
     query: &Query,
-    work: impl std::future::Future<Output = Result<Encoded<T>, WireError>>,
+    work: Work<'_, Encoded<T>>,
 ) -> Result<(), offworld_runtime::RequestError> {
-    respond_unless_sent(query, async { work.await.map(Some) }).await
+    respond_unless_sent(query, Box::pin(async { work.await.map(Some) })).await
 }
 
 /// [`respond_encoded`] for a handler that may have replied itself (`None`).
 async fn respond_unless_sent<T>(
     query: &Query,
-    work: impl std::future::Future<Output = Result<Option<Encoded<T>>, WireError>>,
+    work: Work<'_, Option<Encoded<T>>>,
 ) -> Result<(), offworld_runtime::RequestError> {
     let result = match work.await {
         Ok(None) => return Ok(()),
