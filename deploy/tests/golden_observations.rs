@@ -8,7 +8,7 @@
 //!
 //! After a deliberate change (say why in the commit and in
 //! `docs/performance.md`), regenerate with
-//! `UPDATE_GOLDEN=1 cargo test --release -p offworld-deploy --test golden_observations`.
+//! `UPDATE_GOLDEN=1 cargo test --release --test golden_observations`.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;

@@ -1,5 +1,5 @@
 //! What building an observation from a camera frame costs, per layout.
-//! Run: `cargo bench -p offworld-env-controller --bench assemble`
+//! Run: `cargo bench --bench assemble`
 
 use std::time::Instant;
 

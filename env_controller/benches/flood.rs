@@ -13,7 +13,7 @@
 //!
 //! ```text
 //! source .ci/env   # zenohd on PATH
-//! cargo bench -p offworld-env-controller --bench flood
+//! cargo bench --bench flood
 //! ```
 //! `FLOOD_QUERIES` (10000), `FLOOD_CLIENTS` (100), `FLOOD_DRIVE_MS` (3000),
 //! `FLOOD_IDLE_STEPS` (300); `ZENOHD` names the router binary.

@@ -7,7 +7,7 @@
 //!    (on the real path this runs on the recorder's thread; the step itself
 //!    only queues the frame).
 //!
-//! Run: `cargo bench -p offworld-env-controller --bench record_cost`
+//! Run: `cargo bench --bench record_cost`
 //! (`RECORD_COST_ROUNDS=N` for more rounds than the default 5: the cost is
 //! the median of each round's paired ratio, so more rounds narrow it).
 //!

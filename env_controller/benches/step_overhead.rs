@@ -6,7 +6,7 @@
 //! measured in a tight loop and interleaved with the steps (raw, step, raw,
 //! …), so slow spells of a shared machine hit both alike; the ratio and the
 //! µs above the floor are also taken per step against the floor run just
-//! before it. Run: `cargo bench -p offworld-env-controller --bench step_overhead`
+//! before it. Run: `cargo bench --bench step_overhead`
 
 use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};

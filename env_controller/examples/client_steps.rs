@@ -1,7 +1,7 @@
 //! Rust-only step rate through the embedded deployment (controller + twin
 //! over Zenoh), the baseline the Python benchmark compares against.
 //!
-//! `cargo run --release -p offworld-env-controller --example client_steps -- 84 84 1000`
+//! `cargo run --release --example client_steps -- 84 84 1000`
 
 use offworld_runtime::Resolution;
 use std::time::Instant;

@@ -3,7 +3,7 @@
 //! RGBD on one session, the gym client on a second, the monitor (saving an
 //! `.rrd` to the temp dir) on a third, all over loopback TCP; rounds
 //! alternate off/on and the medians are compared. Run:
-//! `cargo bench -p offworld-monitor --bench step_rate`
+//! `cargo bench --bench step_rate`
 
 use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};

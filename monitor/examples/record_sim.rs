@@ -1,6 +1,6 @@
 //! Records a few episodes of an embedded sim env (twin + controller, random
 //! actions) to an `.rrd`, the way `monitor --save` would:
-//! `cargo run --release -p offworld-monitor --example record_sim -- run.rrd [steps] [task]`
+//! `cargo run --release --example record_sim -- run.rrd [steps] [task]`
 //! then `rerun run.rrd`.
 
 use std::time::Duration;

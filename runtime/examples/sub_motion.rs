@@ -1,5 +1,5 @@
 //! Subscribes to motion commands of one env and prints them.
-//! Run with `cargo run --release -p offworld-runtime --example sub_motion`,
+//! Run with `cargo run --release --example sub_motion`,
 //! then `--example pub_motion` in another shell.
 
 use clap::Parser;

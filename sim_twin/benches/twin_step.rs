@@ -3,7 +3,7 @@
 //! (rendered in place vs rendered then encoded), physics-only, a twin
 //! profile's tilted camera (the per-pixel renderer), and RSS.
 //!
-//! `cargo bench -p offworld-sim-twin --bench twin_step`
+//! `cargo bench --bench twin_step`
 //!
 //! Wall clock on a shared machine moves by several percent from run to
 //! run; instructions do not: `TWIN_STEP_INSTRUCTIONS=1` counts instructions

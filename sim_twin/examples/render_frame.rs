@@ -1,7 +1,7 @@
 //! Renders one RGBD frame of a world from a robot pose and writes
 //! `rgb.png` and `depth.png`, for a person to look at.
 //!
-//! `cargo run --release -p offworld-sim-twin --example render_frame -- --x -1 --y 0.3 --yaw -0.3 --out out`
+//! `cargo run --release --example render_frame -- --x -1 --y 0.3 --yaw -0.3 --out out`
 
 use offworld_runtime::Resolution;
 use std::path::PathBuf;

@@ -91,7 +91,7 @@ pub struct CameraProfile {
     /// the per-pixel [`ExactRenderer`](crate::camera::ExactRenderer)
     /// instead of the level-camera column walk, about 75× slower: 51 ms a
     /// frame at 320×240 instead of 0.65 ms, 4.6 ms at 84×84 instead of
-    /// 0.07 ms (`cargo bench -p offworld-sim-twin --bench twin_step`, one
+    /// 0.07 ms (`cargo bench --bench twin_step`, one
     /// core); see `docs/twin-profile.md`.
     pub pitch_deg: f32,
     /// Added to the camera's heading (left positive), degrees. Within ±30.

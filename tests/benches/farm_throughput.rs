@@ -13,7 +13,7 @@
 //! passwords, no ACL), the site's router reached over TLS on TCP, and over
 //! QUIC (what the first table measures).
 //!
-//! `cargo bench -p offworld-tests --bench farm_throughput`
+//! `cargo bench --bench farm_throughput`
 //! (`FARM_SECONDS` per measurement, default 8; `FARM_SIZES`, default `1,2,4`;
 //! `FARM_TABLES`, default `layouts,router`).
 
