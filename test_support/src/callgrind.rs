@@ -57,3 +57,41 @@ pub fn per_unit(run: impl Fn(usize) -> Command, few: usize, many: usize) -> Resu
     let (short, long) = (collected(short)?, collected(long)?);
     Ok(long.saturating_sub(short) as f64 / many as f64)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `sh` counting to `n`: work that grows with `n`.
+    fn count_to(n: usize) -> Command {
+        let mut run = command("sh");
+        run.args([
+            "-c",
+            &format!("i=0; while [ $i -lt {n} ]; do i=$((i+1)); done"),
+        ]);
+        run
+    }
+
+    #[test]
+    fn counts_the_instructions_of_the_extra_units_only() {
+        let per_loop = per_unit(count_to, 10, 200).expect("valgrind runs (.ci/setup installs it)");
+        // A shell loop turn is thousands of instructions, not millions: the
+        // setup both runs share (starting sh) is subtracted.
+        assert!(
+            (100.0..100_000.0).contains(&per_loop),
+            "{per_loop} instructions per loop turn"
+        );
+    }
+
+    #[test]
+    fn a_failing_run_is_an_error_with_its_output() {
+        let failing = |_| {
+            let mut run = command("sh");
+            run.args(["-c", "echo broken >&2; exit 3"]);
+            run
+        };
+        let error = per_unit(failing, 1, 2).expect_err("the run failed");
+        assert!(error.contains("failed"), "{error}");
+        assert!(error.contains("broken"), "{error}");
+    }
+}
