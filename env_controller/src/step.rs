@@ -137,7 +137,7 @@ impl Plan<Look> {
     }
 }
 
-impl<J: Judge + Clone> Plan<J> {
+impl<J: Judge> Plan<J> {
     /// A command judged by `judge`; with `reply_to`, replied from where its
     /// frame is received when the pose tagged with it is in by then and
     /// the judge lets it ([`Judge::reply_now`]).
@@ -160,7 +160,6 @@ impl<J: Judge + Clone> Plan<J> {
         link.ready_to_send().await?;
         let seq = self.motion.seq;
         let (handed, stage) = oneshot::channel();
-        let judge = self.judge.clone();
         link.expect(Box::new(InFlight {
             seq,
             observation: self.observation,
@@ -181,7 +180,11 @@ impl<J: Judge + Clone> Plan<J> {
                     verdict,
                     reply,
                 }),
-                Ok(Stage::Built { frame, observation }) => Ok(Answered {
+                Ok(Stage::Built {
+                    frame,
+                    observation,
+                    judge,
+                }) => Ok(Answered {
                     verdict: judge.judge(&pose),
                     pose,
                     frame,
@@ -278,17 +281,19 @@ pub(crate) trait AwaitingFrame: Send {
 }
 
 /// What the frame's thread hands back.
-enum Stage<V> {
-    /// The observation built (or not); the task waits for the pose.
+enum Stage<J: Judge> {
+    /// The observation built (or not); the task judges the pose when it
+    /// has it, with the judge handed back.
     Built {
         frame: Arc<Frame>,
         observation: Result<ZBytes, WireError>,
+        judge: J,
     },
     /// Judged from the pose tagged with the command.
     Judged {
         frame: Arc<Frame>,
         pose: PoseSample,
-        verdict: V,
+        verdict: J::Verdict,
         reply: Reply,
     },
 }
@@ -298,7 +303,7 @@ struct InFlight<J: Judge> {
     observation: ObservationRequest,
     judge: J,
     reply_to: Option<Query>,
-    handed: oneshot::Sender<Stage<J::Verdict>>,
+    handed: oneshot::Sender<Stage<J>>,
 }
 
 impl<J: Judge> AwaitingFrame for InFlight<J> {
@@ -313,13 +318,20 @@ impl<J: Judge> AwaitingFrame for InFlight<J> {
         pose: Option<PoseSample>,
         announce: &dyn Fn(Arc<Frame>),
     ) {
-        let tagged = pose.filter(|p| p.seq == Some(self.seq));
+        let InFlight {
+            seq,
+            observation: request,
+            judge,
+            reply_to,
+            handed,
+        } = *self;
+        let tagged = pose.filter(|p| p.seq == Some(seq));
         // The task may have given up: nobody to tell (each `send` below).
-        match (tagged, &self.reply_to) {
+        match (tagged, &reply_to) {
             (Some(pose), Some(query)) => {
-                let stage = match frame.build(&self.observation, buffers) {
+                let stage = match frame.build(&request, buffers) {
                     Ok(observation) => {
-                        let verdict = self.judge.judge(&pose);
+                        let verdict = judge.judge(&pose);
                         let reply = reply_now(query, J::reply_now(&verdict), observation);
                         Stage::Judged {
                             frame: frame.clone(),
@@ -331,17 +343,19 @@ impl<J: Judge> AwaitingFrame for InFlight<J> {
                     Err(e) => Stage::Built {
                         frame: frame.clone(),
                         observation: Err(e),
+                        judge,
                     },
                 };
                 // Handed over before the task wakes: it finds the step done.
-                let _ = self.handed.send(stage);
+                let _ = handed.send(stage);
                 announce(frame);
             }
             _ => {
                 announce(frame.clone());
-                let _ = self.handed.send(Stage::Built {
-                    observation: frame.build(&self.observation, buffers),
+                let _ = handed.send(Stage::Built {
+                    observation: frame.build(&request, buffers),
                     frame,
+                    judge,
                 });
             }
         }

@@ -412,8 +412,10 @@ impl NativeEnvs {
         PyTuple::new(py, [observations.into_any(), infos.into_any()])
     }
 
-    /// Steps env 0 alone (no autoreset): (obs, reward, terminated, truncated, info).
-    fn step_single<'py>(
+    /// Steps the first env alone, as a `gymnasium.Env` does: an ended
+    /// episode waits for `reset()`. Returns (obs, reward, terminated,
+    /// truncated, info).
+    fn step_without_autoreset<'py>(
         &mut self,
         py: Python<'py>,
         action: &Bound<'py, PyAny>,
@@ -443,7 +445,7 @@ impl NativeEnvs {
 
     /// Steps every env concurrently with gymnasium's next-step autoreset.
     /// Returns a list of (obs, reward, terminated, truncated, info, autoreset).
-    fn step_all<'py>(
+    fn step_with_autoreset<'py>(
         &mut self,
         py: Python<'py>,
         actions: Vec<Bound<'py, PyAny>>,

@@ -95,7 +95,7 @@ class OffWorldMonolithEnv(gymnasium.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Executes one action on the robot (or its twin)."""
-        obs, reward, terminated, truncated, info = self._native.step_single(action)
+        obs, reward, terminated, truncated, info = self._native.step_without_autoreset(action)
         obs, self._last_rgb = _config.split(self._resolved, obs)
         self.episode_id = info.pop("episode_id")
         return obs, float(reward), bool(terminated), bool(truncated), info

@@ -80,7 +80,7 @@ class OffWorldMonolithVectorEnv(VectorEnv):
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Steps all envs at once; an env whose episode ended last step is reset instead."""
-        results = self._native.step_all([actions[i] for i in range(self.num_envs)])
+        results = self._native.step_with_autoreset([actions[i] for i in range(self.num_envs)])
         obs = np.stack([_config.split(self._resolved, r[0])[0] for r in results])
         rewards = np.array([r[1] for r in results], dtype=np.float64)
         terminated = np.array([r[2] for r in results], dtype=bool)
