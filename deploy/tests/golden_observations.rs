@@ -29,11 +29,13 @@ const ACTIONS: [i64; 10] = [2, 0, 2, 2, 1, 1, 3, 2, 0, 2];
 const SEED: u64 = 11;
 
 fn digest(obs: &ObsArray) -> String {
-    let hash = Sha256::digest(&obs.data);
-    let hex: String = hash.iter().map(|b| format!("{b:02x}")).collect();
     format!(
-        "{}x{}x{} {:?} sha256:{hex}",
-        obs.width, obs.height, obs.channels, obs.dtype
+        "{}x{}x{} {:?} sha256:{:x}",
+        obs.width,
+        obs.height,
+        obs.channels,
+        obs.dtype,
+        Sha256::digest(&obs.data)
     )
 }
 
