@@ -31,6 +31,9 @@ pub struct Terrain {
     pub max_height: f32,
     /// The two triangle planes of every cell, `(iy·nx + ix)·2 + upper`.
     planes: Vec<TerrainPlane>,
+    /// The unit normal of every plane, same order (the renderer shades
+    /// with them; a square root and a division each, done once here).
+    normals: Vec<[f32; 3]>,
     /// Highest corner of every cell, `iy·nx + ix` (lets rays skip cells).
     cell_max: Vec<f32>,
 }
@@ -76,6 +79,7 @@ impl Terrain {
             heights,
             max_height,
             planes: Vec::new(),
+            normals: Vec::new(),
             cell_max: Vec::new(),
         };
         terrain.cell_max = (0..ny)
@@ -93,6 +97,7 @@ impl Terrain {
             .flat_map(|(ix, iy)| [false, true].map(|upper| (ix, iy, upper)))
             .map(|(ix, iy, upper)| terrain.compute_plane(ix, iy, upper))
             .collect();
+        terrain.normals = terrain.planes.iter().map(TerrainPlane::normal).collect();
         terrain
     }
 
@@ -127,6 +132,12 @@ impl Terrain {
     #[inline]
     pub fn cell_plane(&self, ix: usize, iy: usize, upper: bool) -> TerrainPlane {
         self.planes[(iy * self.nx + ix) * 2 + upper as usize]
+    }
+
+    /// The unit normal of [`Terrain::cell_plane`]`(ix, iy, upper)`.
+    #[inline]
+    pub fn cell_normal(&self, ix: usize, iy: usize, upper: bool) -> [f32; 3] {
+        self.normals[(iy * self.nx + ix) * 2 + upper as usize]
     }
 
     /// Highest corner of a cell.

@@ -20,10 +20,62 @@ use crate::world::LightSpec;
 pub struct ColumnRenderer {
     intrinsics: Intrinsics,
     shading: Shading,
-    row_slopes: Vec<f32>,
-    inv_row_slopes: Vec<f32>,
-    col_depth: Vec<f32>,
-    col_grey: Vec<u8>,
+    rows: Rows,
+    /// The frame column by column (`u · height + v`): each column is walked
+    /// into contiguous memory, then the frame is written row by row, so
+    /// neither pass strides across the row-major image per pixel.
+    depth_by_column: Vec<f32>,
+    grey_by_column: Vec<u8>,
+    /// The scene's boxes shaded, face by face, once per frame.
+    box_faces: Vec<FaceGreys>,
+}
+
+/// The grey level of each face of an upright box.
+#[derive(Debug, Clone, Copy)]
+struct FaceGreys {
+    minus_x: u8,
+    plus_x: u8,
+    minus_y: u8,
+    plus_y: u8,
+    top: u8,
+    bottom: u8,
+}
+
+impl FaceGreys {
+    fn new(shading: &Shading, albedo: f32) -> Self {
+        let grey = |normal| shading.grey(normal, albedo);
+        Self {
+            minus_x: grey([-1.0, 0.0, 0.0]),
+            plus_x: grey([1.0, 0.0, 0.0]),
+            minus_y: grey([0.0, -1.0, 0.0]),
+            plus_y: grey([0.0, 1.0, 0.0]),
+            top: grey([0.0, 0.0, 1.0]),
+            bottom: grey([0.0, 0.0, -1.0]),
+        }
+    }
+
+    /// The face with outward `normal` (an axis, as [`slab_2d`] gives).
+    fn facing(&self, normal: [f32; 3]) -> u8 {
+        match normal {
+            [x, _, _] if x < 0.0 => self.minus_x,
+            [x, _, _] if x > 0.0 => self.plus_x,
+            [_, y, _] if y < 0.0 => self.minus_y,
+            [_, y, _] if y > 0.0 => self.plus_y,
+            [_, _, z] if z < 0.0 => self.bottom,
+            _ => self.top,
+        }
+    }
+}
+
+/// The image rows' ray slopes (increasing with `v`: up, level, down).
+#[derive(Debug, Clone)]
+struct Rows {
+    slopes: Vec<f32>,
+    inv_slopes: Vec<f32>,
+    /// First row that does not look up (slope ≥ 0).
+    first_level: usize,
+    /// First row that looks down (slope > 0).
+    first_down: usize,
 }
 
 const T_START: f32 = 1e-3;
@@ -31,18 +83,22 @@ const T_START: f32 = 1e-3;
 impl ColumnRenderer {
     /// A renderer for one image size.
     pub fn new(intrinsics: Intrinsics, light: &LightSpec) -> Self {
-        let h = intrinsics.height as usize;
+        let slopes: Vec<f32> = (0..intrinsics.height)
+            .map(|v| intrinsics.row_slope(v))
+            .collect();
+        let pixels = (intrinsics.width * intrinsics.height) as usize;
         Self {
             intrinsics,
             shading: Shading::new(light),
-            row_slopes: (0..intrinsics.height)
-                .map(|v| intrinsics.row_slope(v))
-                .collect(),
-            inv_row_slopes: (0..intrinsics.height)
-                .map(|v| 1.0 / intrinsics.row_slope(v))
-                .collect(),
-            col_depth: vec![f32::INFINITY; h],
-            col_grey: vec![0; h],
+            rows: Rows {
+                inv_slopes: slopes.iter().map(|s| 1.0 / s).collect(),
+                first_level: slopes.partition_point(|&s| s < 0.0),
+                first_down: slopes.partition_point(|&s| s <= 0.0),
+                slopes,
+            },
+            depth_by_column: vec![f32::INFINITY; pixels],
+            grey_by_column: vec![0; pixels],
+            box_faces: Vec::new(),
         }
     }
 
@@ -77,40 +133,89 @@ impl ColumnRenderer {
         let (sin_y, cos_y) = pose.yaw.sin_cos();
         let forward = [cos_y, sin_y];
         let right = [sin_y, -cos_y];
-        for u in 0..intr.width {
-            let a = intr.col_slope(u);
+        let h = intr.height as usize;
+        self.box_faces.clear();
+        let shading = &self.shading;
+        let faces = scene
+            .boxes
+            .iter()
+            .map(|b| FaceGreys::new(shading, b.albedo));
+        self.box_faces.extend(faces);
+        let columns = self
+            .depth_by_column
+            .chunks_exact_mut(h)
+            .zip(self.grey_by_column.chunks_exact_mut(h));
+        for (u, (depth, grey)) in columns.enumerate() {
+            let a = intr.col_slope(u as u32);
             let dir = [forward[0] + a * right[0], forward[1] + a * right[1]];
-            self.render_column(scene, pose.position, dir);
-            self.write_column(pixels, u);
+            let mut column = Column {
+                intrinsics: &intr,
+                shading: &self.shading,
+                box_faces: &self.box_faces,
+                rows: &self.rows,
+                depth,
+                grey,
+            };
+            column.render(scene, pose.position, dir);
         }
+        self.write_rows(pixels);
         true
     }
 
-    fn write_column(&self, frame: &mut PixelsMut<'_>, u: u32) {
+    /// Writes the column-major scratch into the row-major frame, grey as RGB.
+    fn write_rows(&self, frame: &mut PixelsMut<'_>) {
         let intr = &self.intrinsics;
-        let w = intr.width as usize;
-        for (v, (&d, &g)) in self.col_depth.iter().zip(&self.col_grey).enumerate() {
-            let i = v * w + u as usize;
-            frame.depth[i] = if d >= intr.min_range && d <= intr.max_range {
-                d
-            } else {
-                f32::NAN
-            };
-            frame.rgb[i * 3..i * 3 + 3].fill(g);
+        let (w, h) = (intr.width as usize, intr.height as usize);
+        let (rgb_pixels, _) = frame.rgb.as_chunks_mut::<3>();
+        let rows = frame
+            .depth
+            .chunks_exact_mut(w)
+            .zip(rgb_pixels.chunks_exact_mut(w));
+        for (v, (depth_row, rgb_row)) in (0..h).zip(rows) {
+            let pixels = depth_row.iter_mut().zip(rgb_row);
+            let columns = self
+                .depth_by_column
+                .chunks_exact(h)
+                .zip(self.grey_by_column.chunks_exact(h));
+            for ((depth_out, rgb_out), (depth, grey)) in pixels.zip(columns) {
+                *depth_out = depth[v];
+                *rgb_out = [grey[v]; 3];
+            }
         }
     }
+}
 
-    fn render_column(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
-        self.col_depth.fill(f32::INFINITY);
-        self.col_grey.fill(0);
+/// One image column being walked: its rows' nearest depth and grey so far.
+struct Column<'a> {
+    intrinsics: &'a Intrinsics,
+    shading: &'a Shading,
+    /// [`FaceGreys`] of `scene.boxes`, same order.
+    box_faces: &'a [FaceGreys],
+    rows: &'a Rows,
+    depth: &'a mut [f32],
+    grey: &'a mut [u8],
+}
+
+impl Column<'_> {
+    fn render(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
+        self.depth.fill(f32::INFINITY);
+        self.grey.fill(0);
         self.boxes(scene, c, dir);
         self.terrain_walk(scene, c, dir);
+        // Here, on contiguous memory, where the compiler vectorises it.
+        let (min_range, max_range) = (self.intrinsics.min_range, self.intrinsics.max_range);
+        for depth in self.depth.iter_mut() {
+            if !(*depth >= min_range && *depth <= max_range) {
+                *depth = f32::NAN;
+            }
+        }
     }
 
     /// Intersects every box crossed by this column's plane.
     fn boxes(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
         let intr = self.intrinsics;
-        for b in &scene.boxes {
+        let rows = self.rows;
+        for (b, faces) in scene.boxes.iter().zip(self.box_faces) {
             let Some((te, tx, side_normal)) = slab_2d(c, dir, b.min, b.max) else {
                 continue;
             };
@@ -135,29 +240,37 @@ impl ColumnRenderer {
             if v_hi < 0.0 {
                 continue;
             }
-            // Shade each face once per column, not once per pixel.
-            let grey_side = self.shading.grey(side_normal, b.albedo);
-            let grey_top = self.shading.grey([0.0, 0.0, 1.0], b.albedo);
-            let grey_bottom = self.shading.grey([0.0, 0.0, -1.0], b.albedo);
-            for v in v_lo..=v_hi as usize {
-                let slope = self.row_slopes[v];
-                let inv = self.inv_row_slopes[v];
-                let (tz_in, tz_out, cap_grey) = if slope > 0.0 {
-                    ((c[2] - zmax) * inv, (c[2] - zmin) * inv, grey_top)
-                } else if slope < 0.0 {
-                    ((c[2] - zmin) * inv, (c[2] - zmax) * inv, grey_bottom)
-                } else if c[2] >= zmin && c[2] <= zmax {
-                    (f32::NEG_INFINITY, f32::INFINITY, grey_side)
-                } else {
-                    continue;
-                };
-                let entry = te.max(tz_in);
-                if entry > tx.min(tz_out) || entry >= self.col_depth[v] {
-                    continue;
+            let v_end = v_hi as usize + 1;
+            let span = BoxSpan {
+                te,
+                tx,
+                grey_side: faces.facing(side_normal),
+            };
+            // Rows looking up enter through the bottom, rows looking down
+            // through the top, a level row only through a side.
+            let up = v_lo..v_end.min(rows.first_level);
+            span.cover(self.rows_mut(up), (c[2] - zmin, c[2] - zmax), faces.bottom);
+            let down = v_lo.max(rows.first_down)..v_end;
+            span.cover(self.rows_mut(down), (c[2] - zmax, c[2] - zmin), faces.top);
+            if c[2] >= zmin && c[2] <= zmax {
+                let level = v_lo.max(rows.first_level)..v_end.min(rows.first_down);
+                for v in level {
+                    if te < self.depth[v] {
+                        self.depth[v] = te;
+                        self.grey[v] = span.grey_side;
+                    }
                 }
-                self.col_depth[v] = entry;
-                self.col_grey[v] = if te >= tz_in { grey_side } else { cap_grey };
             }
+        }
+    }
+
+    /// The depth, grey and inverse slope of `rows` (empty if the range is).
+    fn rows_mut(&mut self, rows: std::ops::Range<usize>) -> ColumnRows<'_> {
+        let rows = rows.start.min(rows.end)..rows.end;
+        ColumnRows {
+            depth: &mut self.depth[rows.clone()],
+            grey: &mut self.grey[rows.clone()],
+            inv_slopes: &self.rows.inv_slopes[rows],
         }
     }
 
@@ -166,7 +279,8 @@ impl ColumnRenderer {
     fn terrain_walk(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
         let terrain = &*scene.terrain;
         let albedo = scene.world.terrain.albedo;
-        let shading = self.shading;
+        let shading = *self.shading;
+        let row_slopes = &self.rows.slopes;
         let grid_min = [terrain.x0, terrain.y0, 0.0];
         let grid_max = [
             terrain.x0 + terrain.dx * terrain.nx as f32,
@@ -179,19 +293,19 @@ impl ColumnRenderer {
         let t_end = grid_exit.min(self.intrinsics.max_range);
         let max_h = terrain.max_height;
         let line = GridLine::new(terrain, c, dir);
-        let mut next = self.row_slopes.len() as isize - 1;
+        let mut next = row_slopes.len() as isize - 1;
         let mut t = T_START.max(grid_enter);
         let mut cell = line.cell_at(t, terrain);
         'walk: while t < t_end {
             // Rows already hit by a box nearer than `t` are final.
-            while next >= 0 && self.col_depth[next as usize] <= t {
+            while next >= 0 && self.depth[next as usize] <= t {
                 next -= 1;
             }
             if next < 0 {
                 break;
             }
             // Skip ahead while even the steepest open ray is above every hill.
-            let slope = self.row_slopes[next as usize];
+            let slope = row_slopes[next as usize];
             if c[2] - t * slope > max_h {
                 if slope <= 0.0 {
                     break;
@@ -229,6 +343,7 @@ impl ColumnRenderer {
                 let mid = 0.5 * (segment_start + segment_end);
                 let upper = line.w_at(mid) <= k;
                 let plane = terrain.cell_plane(cell.ix, cell.iy, upper);
+                let normal = terrain.cell_normal(cell.ix, cell.iy, upper);
                 let h1 = plane.height(c[0] + segment_end * dir[0], c[1] + segment_end * dir[1]);
                 // Along the ray: ground = hc + t·s, ray = c.z − t·b.
                 let hc = plane.height(c[0], c[1]);
@@ -236,15 +351,22 @@ impl ColumnRenderer {
                 let mut grey = None;
                 while next >= 0 {
                     let row = next as usize;
-                    let slope = self.row_slopes[row];
+                    let slope = row_slopes[row];
                     if c[2] - segment_end * slope > h1 {
                         break; // above ground here, and so is every row above it
                     }
-                    let hit = ((c[2] - hc) / (slope + s)).clamp(segment_start, segment_end);
-                    if hit < self.col_depth[row] {
-                        self.col_depth[row] = hit;
-                        self.col_grey[row] =
-                            *grey.get_or_insert_with(|| shading.grey(plane.normal(), albedo));
+                    // `clamp` without its bounds assertion: start < end here.
+                    let hit = (c[2] - hc) / (slope + s);
+                    let hit = if hit < segment_start {
+                        segment_start
+                    } else if hit > segment_end {
+                        segment_end
+                    } else {
+                        hit
+                    };
+                    if hit < self.depth[row] {
+                        self.depth[row] = hit;
+                        self.grey[row] = *grey.get_or_insert_with(|| shading.grey(normal, albedo));
                     }
                     next -= 1;
                 }
@@ -257,6 +379,58 @@ impl ColumnRenderer {
             if !cell.advance(terrain) {
                 break;
             }
+        }
+    }
+}
+
+/// Where a box lies along a column: entered at `te` through a side, left
+/// at `tx`.
+struct BoxSpan {
+    te: f32,
+    tx: f32,
+    grey_side: u8,
+}
+
+/// Some consecutive rows of a column, all looking up or all looking down.
+struct ColumnRows<'a> {
+    depth: &'a mut [f32],
+    grey: &'a mut [u8],
+    inv_slopes: &'a [f32],
+}
+
+impl BoxSpan {
+    /// Where each row's ray meets the box, if nearer than what it saw: the
+    /// ray is between the box's cap heights for `t` in `[enter, leave] /
+    /// slope`, from `heights = (c.z − entered cap, c.z − left cap)`.
+    #[inline]
+    fn cover(&self, rows: ColumnRows<'_>, heights: (f32, f32), cap_grey: u8) {
+        let (te, tx) = (self.te, self.tx);
+        // Indexing within the shortest slice: no bounds checks in the loop.
+        let n = rows
+            .depth
+            .len()
+            .min(rows.grey.len())
+            .min(rows.inv_slopes.len());
+        let (depth, grey, inv_slopes) = (
+            &mut rows.depth[..n],
+            &mut rows.grey[..n],
+            &rows.inv_slopes[..n],
+        );
+        for i in 0..n {
+            let inv = inv_slopes[i];
+            let (tz_in, tz_out) = (heights.0 * inv, heights.1 * inv);
+            // Plain comparisons for max/min: no operand is NaN here.
+            let entry = if tz_in > te { tz_in } else { te };
+            let exit = if tz_out < tx { tz_out } else { tx };
+            // Without branches, so that the loop vectorises.
+            let nearer = entry <= exit && entry < depth[i];
+            let face = if te >= tz_in {
+                self.grey_side
+            } else {
+                cap_grey
+            };
+            depth[i] = if nearer { entry } else { depth[i] };
+            grey[i] = if nearer { face } else { grey[i] };
         }
     }
 }
