@@ -402,10 +402,18 @@ impl BoxSpan {
     /// Where each row's ray meets the box, if nearer than what it saw: the
     /// ray is between the box's cap heights for `t` in `[enter, leave] /
     /// slope`, from `heights = (c.z − entered cap, c.z − left cap)`.
+    ///
+    /// The rows' inverse slopes decrease along the rows (they all look up,
+    /// or all down), so `t_in = heights.0 · inv` and `t_out = heights.1 ·
+    /// inv` are monotone: the rows entering through the side (`t_in ≤ te`)
+    /// are one run, and those of them that see the side before leaving
+    /// through a cap (`t_out ≥ te`) another. Both runs are found by binary
+    /// search with the per-row comparisons themselves, so every pixel is
+    /// what a row-by-row test gives ([`reference_cover`] in the tests), and
+    /// the side's rows (a wall: most of a column) cost a compare each.
     #[inline]
     fn cover(&self, rows: ColumnRows<'_>, heights: (f32, f32), cap_grey: u8) {
         let (te, tx) = (self.te, self.tx);
-        // Indexing within the shortest slice: no bounds checks in the loop.
         let n = rows
             .depth
             .len()
@@ -416,22 +424,53 @@ impl BoxSpan {
             &mut rows.grey[..n],
             &rows.inv_slopes[..n],
         );
-        for i in 0..n {
-            let inv = inv_slopes[i];
-            let (tz_in, tz_out) = (heights.0 * inv, heights.1 * inv);
-            // Plain comparisons for max/min: no operand is NaN here.
-            let entry = if tz_in > te { tz_in } else { te };
-            let exit = if tz_out < tx { tz_out } else { tx };
-            // Without branches, so that the loop vectorises.
-            let nearer = entry <= exit && entry < depth[i];
-            let face = if te >= tz_in {
-                self.grey_side
-            } else {
-                cap_grey
-            };
-            depth[i] = if nearer { entry } else { depth[i] };
-            grey[i] = if nearer { face } else { grey[i] };
+        let t_in = |i: usize| heights.0 * inv_slopes[i];
+        let t_out = |i: usize| heights.1 * inv_slopes[i];
+        // t_in grows along the rows when heights.0 < 0: the side first.
+        let side = run(0..n, |i| te >= t_in(i), heights.0 < 0.0);
+        // t_out shrinks along the rows when heights.1 > 0: seen first.
+        let seen = run(side.clone(), |i| t_out(i) >= te, heights.1 > 0.0);
+        for i in seen {
+            if te < depth[i] {
+                depth[i] = te;
+                grey[i] = self.grey_side;
+            }
         }
+        // The other rows enter through the cap (t_in > te).
+        for i in (0..side.start).chain(side.end..n) {
+            let entry = t_in(i);
+            let exit = t_out(i).min(tx);
+            if entry <= exit && entry < depth[i] {
+                depth[i] = entry;
+                grey[i] = cap_grey;
+            }
+        }
+    }
+}
+
+/// The run of `range` where `holds`, a predicate that changes at most
+/// once along it: true then false if `true_first`, else false then true.
+fn run(
+    range: std::ops::Range<usize>,
+    holds: impl Fn(usize) -> bool,
+    true_first: bool,
+) -> std::ops::Range<usize> {
+    let first = |wanted: bool| {
+        let (mut lo, mut hi) = (range.start, range.end);
+        while lo < hi {
+            let mid = lo + (hi - lo) / 2;
+            if holds(mid) == wanted {
+                hi = mid;
+            } else {
+                lo = mid + 1;
+            }
+        }
+        lo
+    };
+    if true_first {
+        range.start..first(false)
+    } else {
+        first(true)..range.end
     }
 }
 
@@ -577,4 +616,100 @@ pub(crate) fn slab_2d(
         tx = tx.min(far);
     }
     (te < tx && tx > 0.0).then_some((te, tx, normal))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The row-by-row definition [`BoxSpan::cover`] must equal.
+    fn reference_cover(span: &BoxSpan, rows: ColumnRows<'_>, heights: (f32, f32), cap: u8) {
+        for ((depth, grey), &inv) in rows.depth.iter_mut().zip(rows.grey).zip(rows.inv_slopes) {
+            let (tz_in, tz_out) = (heights.0 * inv, heights.1 * inv);
+            let entry = span.te.max(tz_in);
+            if entry > span.tx.min(tz_out) || entry >= *depth {
+                continue;
+            }
+            *depth = entry;
+            *grey = if span.te >= tz_in {
+                span.grey_side
+            } else {
+                cap
+            };
+        }
+    }
+
+    /// Random boxes, camera heights and earlier depths over the rows of
+    /// several images (an odd height has a level row): the run-based cover
+    /// writes exactly what the row-by-row test writes.
+    #[test]
+    fn box_cover_equals_the_row_by_row_test() {
+        let light = crate::world::WorldSpec::builtin("monolith")
+            .expect("world")
+            .light;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for (w, h) in [(320, 240), (84, 84), (80, 61)] {
+            let spec = crate::world::WorldSpec::builtin("monolith")
+                .expect("world")
+                .camera;
+            let renderer = ColumnRenderer::new(Intrinsics::resized(&spec, w, h), &light);
+            let rows = &renderer.rows;
+            let halves = [0..rows.first_level, rows.first_down..h as usize];
+            for _ in 0..20_000 {
+                let half = halves[rng.random_range(0..2)].clone();
+                let a = rng.random_range(half.clone());
+                let b = rng.random_range(a..=half.end);
+                let cz: f32 = rng.random_range(0.0..0.4);
+                let zmin = *[0.0, cz, rng.random_range(0.0..0.3)]
+                    .get(rng.random_range(0..3))
+                    .expect("index");
+                let zmax = zmin
+                    + *[0.0, cz - zmin, rng.random_range(0.01..0.6)]
+                        .get(rng.random_range(0..3))
+                        .expect("index");
+                let te = rng.random_range(T_START..4.0);
+                let span = BoxSpan {
+                    te,
+                    tx: te + rng.random_range(1e-4..1.0),
+                    grey_side: 7,
+                };
+                let looking_down = half.start == rows.first_down;
+                let heights = if looking_down {
+                    (cz - zmax, cz - zmin)
+                } else {
+                    (cz - zmin, cz - zmax)
+                };
+                let depth: Vec<f32> = (a..b)
+                    .map(|_| match rng.random_range(0..3) {
+                        0 => f32::INFINITY,
+                        _ => rng.random_range(0.0..5.0),
+                    })
+                    .collect();
+                let grey: Vec<u8> = (a..b).map(|_| rng.random()).collect();
+                let (mut fast_depth, mut fast_grey) = (depth.clone(), grey.clone());
+                let (mut slow_depth, mut slow_grey) = (depth, grey);
+                let inv_slopes = &rows.inv_slopes[a..b];
+                let fast = ColumnRows {
+                    depth: &mut fast_depth,
+                    grey: &mut fast_grey,
+                    inv_slopes,
+                };
+                span.cover(fast, heights, 9);
+                let slow = ColumnRows {
+                    depth: &mut slow_depth,
+                    grey: &mut slow_grey,
+                    inv_slopes,
+                };
+                reference_cover(&span, slow, heights, 9);
+                let bits = |d: &[f32]| d.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&fast_depth),
+                    bits(&slow_depth),
+                    "{w}x{h} rows {a}..{b}"
+                );
+                assert_eq!(fast_grey, slow_grey, "{w}x{h} rows {a}..{b}");
+            }
+        }
+    }
 }
