@@ -31,9 +31,6 @@ pub struct Terrain {
     pub max_height: f32,
     /// The two triangle planes of every cell, `(iy·nx + ix)·2 + upper`.
     planes: Vec<TerrainPlane>,
-    /// The unit normal of every plane, same order (the renderer shades
-    /// with them; a square root and a division each, done once here).
-    normals: Vec<[f32; 3]>,
     /// Highest corner of every cell, `iy·nx + ix` (lets rays skip cells).
     cell_max: Vec<f32>,
 }
@@ -79,7 +76,6 @@ impl Terrain {
             heights,
             max_height,
             planes: Vec::new(),
-            normals: Vec::new(),
             cell_max: Vec::new(),
         };
         terrain.cell_max = (0..ny)
@@ -97,7 +93,6 @@ impl Terrain {
             .flat_map(|(ix, iy)| [false, true].map(|upper| (ix, iy, upper)))
             .map(|(ix, iy, upper)| terrain.compute_plane(ix, iy, upper))
             .collect();
-        terrain.normals = terrain.planes.iter().map(TerrainPlane::normal).collect();
         terrain
     }
 
@@ -131,13 +126,18 @@ impl Terrain {
     /// The plane of one triangle: `upper` is the half with x-frac ≤ y-frac.
     #[inline]
     pub fn cell_plane(&self, ix: usize, iy: usize, upper: bool) -> TerrainPlane {
-        self.planes[(iy * self.nx + ix) * 2 + upper as usize]
+        self.planes[self.plane_index(ix, iy, upper)]
     }
 
-    /// The unit normal of [`Terrain::cell_plane`]`(ix, iy, upper)`.
+    /// Every triangle's plane, at [`Terrain::plane_index`].
+    pub fn planes(&self) -> &[TerrainPlane] {
+        &self.planes
+    }
+
+    /// Where [`Terrain::planes`] holds the triangle of [`Terrain::cell_plane`].
     #[inline]
-    pub fn cell_normal(&self, ix: usize, iy: usize, upper: bool) -> [f32; 3] {
-        self.normals[(iy * self.nx + ix) * 2 + upper as usize]
+    pub fn plane_index(&self, ix: usize, iy: usize, upper: bool) -> usize {
+        (iy * self.nx + ix) * 2 + upper as usize
     }
 
     /// Highest corner of a cell.

@@ -11,6 +11,8 @@
 
 use super::{CameraPose, Intrinsics, PixelsMut, RgbdFrame, Shading};
 use crate::scene::Scene;
+use std::sync::Arc;
+
 use crate::terrain::Terrain;
 use crate::world::LightSpec;
 
@@ -28,6 +30,10 @@ pub struct ColumnRenderer {
     grey_by_column: Vec<u8>,
     /// The scene's boxes shaded, face by face, once per frame.
     box_faces: Vec<FaceGreys>,
+    /// The terrain's triangles shaded (at [`Terrain::plane_index`]), with
+    /// the terrain and albedo they were shaded for: held, so the terrain
+    /// cannot be freed and another built at its address while cached.
+    terrain_greys: Option<(Arc<Terrain>, f32, Vec<u8>)>,
 }
 
 /// The grey level of each face of an upright box.
@@ -99,6 +105,7 @@ impl ColumnRenderer {
             depth_by_column: vec![f32::INFINITY; pixels],
             grey_by_column: vec![0; pixels],
             box_faces: Vec::new(),
+            terrain_greys: None,
         }
     }
 
@@ -141,6 +148,16 @@ impl ColumnRenderer {
             .iter()
             .map(|b| FaceGreys::new(shading, b.albedo));
         self.box_faces.extend(faces);
+        let albedo = scene.world.terrain.albedo;
+        let shaded = |(terrain, shaded_albedo, _): &(Arc<Terrain>, f32, Vec<u8>)| {
+            Arc::ptr_eq(terrain, &scene.terrain) && *shaded_albedo == albedo
+        };
+        if !self.terrain_greys.as_ref().is_some_and(shaded) {
+            let planes = scene.terrain.planes().iter();
+            let greys = planes.map(|p| shading.grey(p.normal(), albedo)).collect();
+            self.terrain_greys = Some((scene.terrain.clone(), albedo, greys));
+        }
+        let terrain_greys = self.terrain_greys.as_ref().map_or(&[][..], |(_, _, g)| g);
         let columns = self
             .depth_by_column
             .chunks_exact_mut(h)
@@ -150,8 +167,8 @@ impl ColumnRenderer {
             let dir = [forward[0] + a * right[0], forward[1] + a * right[1]];
             let mut column = Column {
                 intrinsics: &intr,
-                shading: &self.shading,
                 box_faces: &self.box_faces,
+                terrain_greys,
                 rows: &self.rows,
                 depth,
                 grey,
@@ -188,9 +205,10 @@ impl ColumnRenderer {
 /// One image column being walked: its rows' nearest depth and grey so far.
 struct Column<'a> {
     intrinsics: &'a Intrinsics,
-    shading: &'a Shading,
     /// [`FaceGreys`] of `scene.boxes`, same order.
     box_faces: &'a [FaceGreys],
+    /// The terrain's triangles shaded, at [`Terrain::plane_index`].
+    terrain_greys: &'a [u8],
     rows: &'a Rows,
     depth: &'a mut [f32],
     grey: &'a mut [u8],
@@ -278,8 +296,6 @@ impl Column<'_> {
     /// cell (a grid DDA), splitting each cell at its diagonal.
     fn terrain_walk(&mut self, scene: &Scene, c: [f32; 3], dir: [f32; 2]) {
         let terrain = &*scene.terrain;
-        let albedo = scene.world.terrain.albedo;
-        let shading = *self.shading;
         let row_slopes = &self.rows.slopes;
         let grid_min = [terrain.x0, terrain.y0, 0.0];
         let grid_max = [
@@ -343,12 +359,11 @@ impl Column<'_> {
                 let mid = 0.5 * (segment_start + segment_end);
                 let upper = line.w_at(mid) <= k;
                 let plane = terrain.cell_plane(cell.ix, cell.iy, upper);
-                let normal = terrain.cell_normal(cell.ix, cell.iy, upper);
+                let grey = self.terrain_greys[terrain.plane_index(cell.ix, cell.iy, upper)];
                 let h1 = plane.height(c[0] + segment_end * dir[0], c[1] + segment_end * dir[1]);
                 // Along the ray: ground = hc + t·s, ray = c.z − t·b.
                 let hc = plane.height(c[0], c[1]);
                 let s = plane.gx * dir[0] + plane.gy * dir[1];
-                let mut grey = None;
                 while next >= 0 {
                     let row = next as usize;
                     let slope = row_slopes[row];
@@ -366,7 +381,7 @@ impl Column<'_> {
                     };
                     if hit < self.depth[row] {
                         self.depth[row] = hit;
-                        self.grey[row] = *grey.get_or_insert_with(|| shading.grey(normal, albedo));
+                        self.grey[row] = grey;
                     }
                     next -= 1;
                 }
@@ -711,5 +726,46 @@ mod tests {
                 assert_eq!(fast_grey, slow_grey, "{w}x{h} rows {a}..{b}");
             }
         }
+    }
+
+    /// One renderer over scenes with other terrains (a reset that draws a
+    /// new relief, another albedo): each frame equals a new renderer's.
+    #[test]
+    fn a_renderer_reshades_when_the_terrain_changes() {
+        let world = crate::world::WorldSpec::builtin("monolith_obstacle").expect("world");
+        let intrinsics = Intrinsics::resized(&world.camera, 84, 84);
+        let mut darker = world.clone();
+        darker.terrain.albedo *= 0.5;
+        let first = Scene::build(&world);
+        // The same terrain (one allocation) under another albedo.
+        let darker = Scene {
+            world: darker,
+            ..first.clone()
+        };
+        let scenes = [
+            first,
+            darker,
+            Scene::with_terrain(&world, Terrain::flat(&world.enclosure, 8, 6, 0.05)),
+            Scene::build(&world),
+        ];
+        let pose = CameraPose::level([-1.0, -0.5, 0.2], 0.3);
+        let mut reused = ColumnRenderer::new(intrinsics, &world.light);
+        let mut frames = Vec::new();
+        for scene in &scenes {
+            let mut frame = RgbdFrame::new(84, 84);
+            reused.render(scene, &pose, &mut frame);
+            let mut fresh = RgbdFrame::new(84, 84);
+            ColumnRenderer::new(intrinsics, &world.light).render(scene, &pose, &mut fresh);
+            assert_eq!(frame.rgb, fresh.rgb);
+            frames.push(frame);
+        }
+        assert_ne!(
+            frames[0].rgb, frames[1].rgb,
+            "the darker floor looks the same"
+        );
+        assert_ne!(
+            frames[0].rgb, frames[2].rgb,
+            "the flat floor looks the same"
+        );
     }
 }
