@@ -13,6 +13,7 @@ const EXAMPLES: &str = "\
 Examples:
   offworld serve --env sim/monolith-0=MonolithDiscrete --embedded-twins   # a gym server with its twin
   offworld twin --env sim/monolith-0                                      # a standalone twin
+  offworld emulate-enclosure                                              # the real stack on emulated hardware
   offworld monitor --all --viewer                                         # watch every env in rerun
   offworld recorder record --all runs                                     # record every episode
   offworld --db site.db users add alice                                   # prints alice's token once
@@ -47,6 +48,9 @@ enum Command {
     /// Emulate the enclosure's hardware with a sim twin: the robot's ROS 2
     /// topics and a raw tracker stream, for the real stack to drive.
     EmulateHardware(offworld_deploy::cli::hardware::Args),
+    /// Run the real stack (gym server, robot agent, base guard, tracker
+    /// agent) against an emulated enclosure, as separate processes.
+    EmulateEnclosure(offworld_deploy::cli::enclosure::Args),
     /// Serve a real enclosure's robot (`robot_agent`).
     Robot(offworld_robot_agent::cli::Args),
     /// Zero the robot's base when the robot agent dies, freezes or goes
@@ -89,6 +93,7 @@ fn main() -> ExitCode {
         Command::Controller(command) => offworld_env_controller::cli::run_command(cli.db, command),
         Command::Twin(args) => offworld_sim_twin::cli::run(args),
         Command::EmulateHardware(args) => offworld_deploy::cli::hardware::run(args),
+        Command::EmulateEnclosure(args) => offworld_deploy::cli::enclosure::run(args),
         Command::Robot(args) => offworld_robot_agent::cli::run(args),
         Command::Guard(args) => offworld_robot_agent::guard_cli::run(args),
         Command::Tracker(args) => offworld_tracker_agent::cli::run(args),

@@ -10,16 +10,22 @@
 //! - [`hardware`]: a twin behaving like the enclosure's hardware (the
 //!   robot's ROS 2 topics, a raw tracker line stream) for the real stack
 //!   to drive.
+//! - [`enclosure`]: the real stack (gym server, robot agent, base guard,
+//!   tracker agent) as processes against the emulated hardware.
+//! - [`process`]: components as child processes, the `offworld` command.
 //! - [`cli`]: `offworld serve`, the gym server with optional in-process
 //!   twins (`env_controller serve` is the same server without a
-//!   simulator), and `offworld emulate-hardware`.
+//!   simulator), `offworld emulate-hardware` and `offworld
+//!   emulate-enclosure`.
 //!
 //! The site's files (router configs, access roles, certificates, systemd
 //! units) live beside this crate, in `deploy/`.
 
 pub mod cli;
 pub mod embedded;
+pub mod enclosure;
 pub mod hardware;
+pub mod process;
 pub mod target;
 
 pub use embedded::{Embedded, SimEnv, TwinProfile};

@@ -1,7 +1,7 @@
 """`OffWorldMonolithDiscreteReal-v0` through gymnasium against the emulated
 enclosure: env_controller + robot_agent + tracker_agent as processes under
 `real/monolith-0`, driving `offworld emulate-hardware` in real time
-(started by the `emulated_enclosure` launcher)."""
+(started by `offworld emulate-enclosure`)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,8 @@ AGENT = textwrap.dedent(
 def test_real_id_trains_against_the_emulated_enclosure() -> None:
     result = subprocess.run(
         [
-            str(_binary("emulated_enclosure")),
+            str(_binary("offworld")),
+            "emulate-enclosure",
             "--task",
             "MonolithDiscrete",
             # This test is about the gym API on a real id; a wider watchdog

@@ -24,7 +24,7 @@ use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, SessionConfig};
 use offworld_tests::site::{Role, RouterSite, SimFarm};
-use offworld_tests::Process;
+use offworld_tests::{Process, Spawn};
 use zenoh::Session;
 
 fn seconds() -> f64 {

@@ -27,7 +27,7 @@ use anyhow::Context;
 
 use crate::emulated::{EmulatedEnclosure, Part};
 use crate::link::Impairment;
-use crate::Process;
+use crate::{Process, Spawn};
 
 /// What is done to a part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

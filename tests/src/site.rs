@@ -18,7 +18,7 @@ use offworld_runtime::session::free_loopback_port;
 use offworld_runtime::{EnvId, SessionConfig};
 
 use crate::netns::Namespaces;
-use crate::Process;
+use crate::{Process, Spawn};
 
 /// The roles of `deploy/roles/` (and of the router's ACL subjects).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

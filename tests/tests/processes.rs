@@ -7,7 +7,7 @@ use offworld_client::{self as client, ClientTimeouts, EnvClient};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig};
-use offworld_tests::Process;
+use offworld_tests::{Process, Spawn};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn controller_and_twin_processes_serve_a_full_episode() {

@@ -1,7 +1,7 @@
 """Fixtures of the web page's end-to-end tests: a deployment with two sim
 envs (`offworld serve --embedded-twins`) and `lab_web` in front of
 it, each a separate process on free loopback ports; the emulated enclosure
-(`emulated_enclosure`: controller, robot agent, tracker agent and the
+(`offworld emulate-enclosure`: controller, robot agent, tracker agent and the
 emulated hardware as processes) with `lab_web` in front of it; and a
 headless Debian chromium driven by Playwright."""
 
@@ -241,7 +241,7 @@ def enclosure_lab(tmp_path: Path):
     the tokens of the enclosure's researcher and operator, once the page
     lists all three envs and the enclosure's robot agent."""
     launcher = subprocess.Popen(
-        [str(binary("emulated_enclosure")), "--task", "MonolithDiscrete"],
+        [str(binary("offworld")), "emulate-enclosure", "--task", "MonolithDiscrete"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
@@ -255,7 +255,7 @@ def enclosure_lab(tmp_path: Path):
         wanted = ("OFFWORLD_GYM_CONNECT", "OFFWORLD_GYM_ACCESS_TOKEN", "OFFWORLD_OPERATOR_TOKEN")
         while not all(key in said for key in wanted):
             if launcher.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"emulated_enclosure did not come up ({launcher.returncode}): {said}")
+                raise RuntimeError(f"offworld emulate-enclosure did not come up ({launcher.returncode}): {said}")
             try:
                 line = lines.get(timeout=0.5).strip()
             except queue.Empty:
