@@ -76,7 +76,7 @@ impl Watchdog {
     pub fn fault(&self, now: Instant) -> Option<String> {
         if self.guard_present == Some(false) {
             return Some(
-                "no base guard on the robot: start `base_guard` for this env (or set \
+                "no base guard on the robot: start it for this env (`offworld guard --env …`, or set \
                  require_base_guard = false for a base with a verified command timeout)"
                     .into(),
             );
