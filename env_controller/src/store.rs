@@ -262,7 +262,7 @@ impl Store {
     pub fn open_existing(path: &Path) -> Result<Self, ControllerError> {
         if !path.is_file() {
             return Err(ControllerError::NotFound(format!(
-                "no database at {} (env_controller --db PATH or OFFWORLD_DB; `serve` and \
+                "no database at {} (name it with --db PATH or OFFWORLD_DB; `serve` and \
                  `users add` create one)",
                 path.display()
             )));

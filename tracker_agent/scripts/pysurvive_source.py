@@ -1,16 +1,16 @@
 #!/usr/bin/env python3
-"""Stream Vive tracker poses from libsurvive as tracker_agent protocol lines.
+r"""Stream Vive tracker poses from libsurvive as tracker_agent protocol lines.
 
     python3 pysurvive_source.py [--only SERIAL] [--unix-time] [libsurvive args...] \
-        | tracker_agent run --env real/monolith-0 --source stdin --calibration tracker.toml
+        | offworld tracker run --env real/monolith-0 --source stdin --calibration tracker.toml
 
 Each tracked device update becomes one line on stdout (flushed at once):
 
     <device_id> <timestamp_s> <x> <y> <z> <qx> <qy> <qz> <qw>
 
 - device_id: the device's serial number (e.g. LHR-1A2B3C4D) when libsurvive
-  reports one, else its name (T20, WM0, ...); pass it to `tracker_agent
-  --device` when several devices are tracked.
+  reports one, else its name (T20, WM0, ...); pass it to `offworld tracker
+  run --device` when several devices are tracked.
 - timestamp_s: libsurvive's pose time (seconds, monotonic), or the host's
   unix time with --unix-time.
 - position in metres and orientation in libsurvive's tracking frame;
@@ -81,8 +81,19 @@ def _split_args(argv):
 
 
 def main(argv):
+    if any(arg in ("-h", "--help") for arg in argv[1:]):
+        print(__doc__.strip())
+        return 0
     only, unix_time, survive_args = _split_args(argv)
-    import pysurvive  # imported late so --help-like misuse fails clearly
+    try:
+        import pysurvive  # imported here: --help works without libsurvive
+    except ImportError as e:
+        print(
+            "pysurvive_source.py: libsurvive's Python bindings are missing (%s): "
+            "`pip install pysurvive`, then run again" % e,
+            file=sys.stderr,
+        )
+        return 2
 
     ctx = pysurvive.SimpleContext(survive_args)
     last_time = {}

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! tracker_agent run --env real/monolith-0 --source tcp://127.0.0.1:6969 --calibration tracker.toml
-//! python3 pysurvive_source.py | tracker_agent run --env real/monolith-0 --source stdin --calibration tracker.toml
+//! python3 pysurvive_source.py | offworld tracker run --env real/monolith-0 --source stdin --calibration tracker.toml
 //! tracker_agent calibrate --reference marks.toml --source tcp://127.0.0.1:6969 --out tracker.toml
 //! tracker_agent calibrate --samples measured.toml --out tracker.toml
 //! ```
