@@ -8,7 +8,7 @@ use std::process::{Command, Output};
 use offworld_env_controller::Store;
 use offworld_test_support::ScratchDir;
 
-const SUBCOMMANDS: [&str; 14] = [
+const SUBCOMMANDS: [&str; 15] = [
     "serve",
     "users",
     "experiments",
@@ -16,6 +16,7 @@ const SUBCOMMANDS: [&str; 14] = [
     "estop",
     "twin",
     "emulate-hardware",
+    "emulate-enclosure",
     "robot",
     "guard",
     "tracker",
@@ -80,6 +81,42 @@ fn every_program_is_a_subcommand_with_its_own_help() {
     ] {
         assert!(twin.contains(flag), "twin {flag}:\n{twin}");
     }
+}
+
+/// The whole real-side deployment as processes, a command run against
+/// it with the deployment's address and tokens, and the command's exit
+/// status passed on; an unknown task is refused before anything starts.
+#[test]
+fn the_emulated_enclosure_runs_a_command_and_passes_on_its_status() {
+    let out = offworld(&[
+        "emulate-enclosure",
+        "--",
+        "sh",
+        "-c",
+        "test -n \"$OFFWORLD_GYM_ACCESS_TOKEN\" && echo \"$OFFWORLD_GYM_CONNECT\" && exit 3",
+    ]);
+    let said = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{said}");
+    let endpoint = text(&out.stdout).trim().to_owned();
+    assert!(endpoint.starts_with("tcp/127.0.0.1:"), "{endpoint}");
+    assert!(
+        said.contains(&format!("OFFWORLD_GYM_CONNECT={endpoint}")),
+        "{said}"
+    );
+    assert!(
+        said.contains("emulated enclosure real/monolith-0 serving MonolithDiscrete"),
+        "{said}"
+    );
+
+    let out = offworld(&["emulate-enclosure", "--task", "Monolith", "--", "true"]);
+    let said = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(said.contains("unknown task `Monolith`"), "{said}");
+    assert!(
+        said.contains("MonolithDiscrete"),
+        "the known tasks are listed: {said}"
+    );
+    assert!(!said.contains("starting"), "nothing started: {said}");
 }
 
 #[test]

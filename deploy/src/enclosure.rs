@@ -20,7 +20,7 @@ use std::process::Stdio;
 use std::time::Duration;
 
 use offworld_client as client;
-use offworld_env_controller::Store;
+use offworld_env_controller::{Store, Task};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{EnvState, TrackingStatus};
 use offworld_runtime::seal::SealKey;
@@ -47,6 +47,8 @@ pub struct Options {
     pub env: EnvId,
     /// Task name (`MonolithDiscrete`, `MonolithObstacleContinuous`, …).
     pub task: String,
+    /// The task's world (`tasks.toml`).
+    world: String,
     /// Robot agent watchdog window, ms.
     pub watchdog_ms: u64,
     /// The emulated base stops after this long without a velocity command
@@ -91,11 +93,13 @@ pub struct SiteRouter {
 }
 
 impl Options {
-    /// `task` on `real/<world>-0`, the env id Python's `…Real-v0` ids use
-    /// by default.
-    pub fn new(task: &str) -> Result<Self, offworld_runtime::ContractError> {
+    /// `task` (a task of `tasks.toml`) on `real/<world>-0`, the env id
+    /// Python's `…Real-v0` ids use by default.
+    pub fn new(task: &str) -> anyhow::Result<Self> {
+        let world = Task::by_name(task)?.world.name;
         Ok(Self {
-            env: EnvId::real(&format!("{}-0", world_of(task)))?,
+            env: EnvId::real(&format!("{world}-0"))?,
+            world,
             task: task.to_owned(),
             watchdog_ms: 200,
             base_cmd_timeout_ms: None,
@@ -110,16 +114,8 @@ impl Options {
         })
     }
 
-    fn world(&self) -> &'static str {
-        world_of(&self.task)
-    }
-}
-
-fn world_of(task: &str) -> &'static str {
-    if task.starts_with("MonolithObstacle") {
-        "monolith_obstacle"
-    } else {
-        "monolith"
+    fn world(&self) -> &str {
+        &self.world
     }
 }
 

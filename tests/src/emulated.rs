@@ -39,7 +39,7 @@ pub struct Options {
 
 impl Options {
     /// `task` on `real/<world>-0`, no faults.
-    pub fn new(task: &str) -> Result<Self, offworld_runtime::ContractError> {
+    pub fn new(task: &str) -> anyhow::Result<Self> {
         Ok(Self {
             deployment: offworld_deploy::enclosure::Options::new(task)?,
             pausable_tracker: false,
