@@ -208,11 +208,23 @@ impl Enclosure {
     /// Starts the router, hardware, gym server, tracker agent, base guard
     /// and robot agent (and a twin, if asked for) in that order.
     pub fn start(options: &Options) -> std::io::Result<Self> {
+        Self::start_with(options, |_, _| Ok(()))
+    }
+
+    /// Like [`Enclosure::start`], calling `after` once each part has
+    /// started (e.g. to put something between the hardware and the agents
+    /// that read it: [`Enclosure::tracker_source`]).
+    pub fn start_with(
+        options: &Options,
+        mut after: impl FnMut(&mut Self, Part) -> std::io::Result<()>,
+    ) -> std::io::Result<Self> {
         let mut enclosure = Self::prepare(options)?;
         for part in Part::ALL {
             enclosure.start_part(part)?;
+            after(&mut enclosure, part)?;
             if part == Part::Hardware {
                 enclosure.start_part(Part::Twin)?;
+                after(&mut enclosure, Part::Twin)?;
             }
         }
         Ok(enclosure)
@@ -221,7 +233,7 @@ impl Enclosure {
     /// Everything but the processes: the scratch directory, a database with
     /// a researcher and an operator, the site's keys, the tracker
     /// calibration, free ports. [`Enclosure::start_part`] starts them.
-    pub fn prepare(options: &Options) -> std::io::Result<Self> {
+    fn prepare(options: &Options) -> std::io::Result<Self> {
         let dir = std::env::temp_dir().join(format!(
             "offworld-emulated-{}-{}",
             std::process::id(),

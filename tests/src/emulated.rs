@@ -122,30 +122,26 @@ impl EmulatedEnclosure {
             }
             None => (None, None),
         };
-        let mut emulated = Self {
-            enclosure: Enclosure::prepare(&deployment)?,
-            tracker_proxy: None,
+        let mut tracker_proxy = None;
+        let enclosure = Enclosure::start_with(&deployment, |enclosure, part| {
+            if part == Part::Hardware && options.pausable_tracker {
+                let addr: SocketAddr = enclosure
+                    .tracker_listen
+                    .parse()
+                    .map_err(|e| std::io::Error::other(format!("{e}")))?;
+                let proxy = LineProxy::start(addr)?;
+                enclosure.tracker_source = Some(format!("tcp://{}", proxy.addr()));
+                tracker_proxy = Some(proxy);
+            }
+            Ok(())
+        })?;
+        Ok(Self {
+            enclosure,
+            tracker_proxy,
             robot_link,
             _site_router: site_router,
             _robot_netns: robot_netns,
-        };
-        for part in Part::ALL {
-            emulated.enclosure.start_part(part)?;
-            if part == Part::Hardware {
-                if options.pausable_tracker {
-                    let addr: SocketAddr = emulated
-                        .enclosure
-                        .tracker_listen
-                        .parse()
-                        .map_err(|e| std::io::Error::other(format!("{e}")))?;
-                    let proxy = LineProxy::start(addr)?;
-                    emulated.enclosure.tracker_source = Some(format!("tcp://{}", proxy.addr()));
-                    emulated.tracker_proxy = Some(proxy);
-                }
-                emulated.enclosure.start_part(Part::Twin)?;
-            }
-        }
-        Ok(emulated)
+        })
     }
 
     /// Sends a signal (`STOP`, `CONT`, …) to the controller process.

@@ -9,27 +9,27 @@ pub mod link;
 pub mod netns;
 pub mod site;
 
-use std::path::PathBuf;
+use std::path::Path;
 use std::process::Stdio;
 
 pub use offworld_deploy::process::{binary_dir, Process};
 
 /// Starting the workspace's binaries and `PATH` programs as [`Process`]es
 /// (test helpers over [`Process::start`]).
-pub trait Spawn: Sized {
+pub trait Spawn {
     /// Starts a workspace binary with arguments.
-    fn spawn(binary: &str, args: &[&str]) -> std::io::Result<Self> {
+    fn spawn(binary: &str, args: &[&str]) -> std::io::Result<Process> {
         Self::spawn_logged(binary, args, "warn")
     }
 
     /// Starts a workspace binary with arguments and a `RUST_LOG` filter.
-    fn spawn_logged(binary: &str, args: &[&str], log: &str) -> std::io::Result<Self> {
+    fn spawn_logged(binary: &str, args: &[&str], log: &str) -> std::io::Result<Process> {
         Self::spawn_in(None, binary, args, log)
     }
 
     /// Starts a program found on `PATH` (e.g. `zenohd`, installed by
     /// `.ci/setup`) with arguments and a `RUST_LOG` filter.
-    fn spawn_from_path(program: &str, args: &[&str], log: &str) -> std::io::Result<Self> {
+    fn spawn_from_path(program: &str, args: &[&str], log: &str) -> std::io::Result<Process> {
         Self::spawn_from_path_in(None, program, args, log)
     }
 
@@ -40,7 +40,9 @@ pub trait Spawn: Sized {
         program: &str,
         args: &[&str],
         log: &str,
-    ) -> std::io::Result<Self>;
+    ) -> std::io::Result<Process> {
+        Process::start(netns, Path::new(program), args, log, Stdio::null())
+    }
 
     /// Like [`Spawn::spawn_in`], with the child's standard output piped
     /// to the caller (`self.0.stdout`).
@@ -49,7 +51,9 @@ pub trait Spawn: Sized {
         binary: &str,
         args: &[&str],
         log: &str,
-    ) -> std::io::Result<Self>;
+    ) -> std::io::Result<Process> {
+        Process::start(netns, &binary_dir().join(binary), args, log, Stdio::piped())
+    }
 
     /// Like [`Spawn::spawn_logged`], inside network namespace `netns` if
     /// given (`ip netns exec` execs the binary: the child is the binary).
@@ -58,34 +62,9 @@ pub trait Spawn: Sized {
         binary: &str,
         args: &[&str],
         log: &str,
-    ) -> std::io::Result<Self>;
-}
-
-impl Spawn for Process {
-    fn spawn_from_path_in(
-        netns: Option<&str>,
-        program: &str,
-        args: &[&str],
-        log: &str,
-    ) -> std::io::Result<Self> {
-        Process::start(netns, &PathBuf::from(program), args, log, Stdio::null())
-    }
-
-    fn spawn_piped_in(
-        netns: Option<&str>,
-        binary: &str,
-        args: &[&str],
-        log: &str,
-    ) -> std::io::Result<Self> {
-        Process::start(netns, &binary_dir().join(binary), args, log, Stdio::piped())
-    }
-
-    fn spawn_in(
-        netns: Option<&str>,
-        binary: &str,
-        args: &[&str],
-        log: &str,
-    ) -> std::io::Result<Self> {
+    ) -> std::io::Result<Process> {
         Process::start(netns, &binary_dir().join(binary), args, log, Stdio::null())
     }
 }
+
+impl Spawn for Process {}

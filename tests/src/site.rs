@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use offworld_env_controller::Store;
 use offworld_runtime::session::free_loopback_port;
 use offworld_runtime::{EnvId, SessionConfig};
 
@@ -490,12 +491,7 @@ impl SimFarm {
             .map(|i| EnvId::sim(&format!("{name}-{i}")))
             .collect::<Result<_, _>>()?;
         let db = site.dir.join("gym.db").to_string_lossy().into_owned();
-        let added = Command::new(crate::binary_dir().join("env_controller"))
-            .args(["--db", &db, "users", "add", "alice"])
-            .stderr(Stdio::null())
-            .output()?;
-        anyhow::ensure!(added.status.success(), "env_controller users add failed");
-        let token = String::from_utf8(added.stdout)?.trim().to_owned();
+        let token = Store::open(std::path::Path::new(&db))?.add_user("alice", false)?;
         let mut processes = Vec::new();
         let profile = twin_profile.map(|p| p.to_string_lossy().into_owned());
         for env in &envs {

@@ -894,16 +894,7 @@ impl Deployment {
 }
 
 fn register_user(db: &Path) -> anyhow::Result<String> {
-    let out = Command::new(binary_dir().join("env_controller"))
-        .arg("--db")
-        .arg(db)
-        .args(["users", "add", "soak"])
-        .env("RUST_LOG", "warn")
-        .stderr(Stdio::null())
-        .output()
-        .context("env_controller users add")?;
-    anyhow::ensure!(out.status.success(), "env_controller users add failed");
-    Ok(String::from_utf8(out.stdout)?.trim().to_owned())
+    Ok(offworld_env_controller::Store::open(db)?.add_user("soak", false)?)
 }
 
 fn start(args: &Args) -> anyhow::Result<Deployment> {
