@@ -146,6 +146,41 @@ mod tests {
         assert!(checked >= 20, "only {checked} documented commands found");
     }
 
+    /// The project's own scripts (`.ci/*`) start `offworld` commands that
+    /// parse: `bash .ci/emulate` cannot drift from the command line either.
+    #[test]
+    fn the_scripts_start_commands_that_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .expect("workspace")
+            .join(".ci");
+        let mut checked = 0;
+        for entry in std::fs::read_dir(&dir).expect(".ci/") {
+            let path = entry.expect("entry").path();
+            let script = std::fs::read_to_string(&path).expect("readable");
+            // The one command, never a per-component binary that may go.
+            for (at, _) in script.match_indices("/release/") {
+                let program = &script[at + "/release/".len()..];
+                assert!(
+                    program.starts_with("offworld\""),
+                    "{}: runs {:?}, not `offworld`",
+                    path.display(),
+                    program.lines().next().unwrap_or_default()
+                );
+            }
+            // As a fenced block, with the binary's path as its name.
+            let code = script.replace("\"$CARGO_TARGET_DIR/release/offworld\"", "offworld");
+            for command in documented_commands(&format!("```\n{code}\n```")) {
+                let words = shell_words(&command);
+                if let Err(e) = Cli::try_parse_from(&words) {
+                    panic!("{}: `{command}` does not parse:\n{e}", path.display());
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked >= 1, "no `offworld` command in .ci/");
+    }
+
     /// Every unit of `deploy/systemd/` starts an `offworld` command that
     /// parses, with the example environment file's values (`${VAR}` one
     /// word, `$VAR` split into words, as systemd does).
