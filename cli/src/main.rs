@@ -14,6 +14,7 @@ Examples:
   offworld serve --env sim/monolith-0=MonolithDiscrete --embedded-twins   # a gym server with its twin
   offworld twin --env sim/monolith-0                                      # a standalone twin
   offworld emulate-enclosure                                              # the real stack on emulated hardware
+  offworld farm --twins 4                                                 # sim twins behind the site's router
   offworld monitor --all --viewer                                         # watch every env in rerun
   offworld recorder record --all runs                                     # record every episode
   offworld --db site.db users add alice                                   # prints alice's token once
@@ -51,6 +52,9 @@ enum Command {
     /// Run the real stack (gym server, robot agent, base guard, tracker
     /// agent) against an emulated enclosure, as separate processes.
     EmulateEnclosure(offworld_deploy::cli::enclosure::Args),
+    /// Run a sim farm (sim twins and a gym server) behind the zenohd
+    /// router, with the deployment's TLS, passwords and access control.
+    Farm(offworld_deploy::cli::farm::Args),
     /// Serve a real enclosure's robot (`robot_agent`).
     Robot(offworld_robot_agent::cli::Args),
     /// Zero the robot's base when the robot agent dies, freezes or goes
@@ -94,6 +98,7 @@ fn main() -> ExitCode {
         Command::Twin(args) => offworld_sim_twin::cli::run(args),
         Command::EmulateHardware(args) => offworld_deploy::cli::hardware::run(args),
         Command::EmulateEnclosure(args) => offworld_deploy::cli::enclosure::run(args),
+        Command::Farm(args) => offworld_deploy::cli::farm::run(args),
         Command::Robot(args) => offworld_robot_agent::cli::run(args),
         Command::Guard(args) => offworld_robot_agent::guard_cli::run(args),
         Command::Tracker(args) => offworld_tracker_agent::cli::run(args),

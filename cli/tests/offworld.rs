@@ -119,6 +119,52 @@ fn the_emulated_enclosure_runs_a_command_and_passes_on_its_status() {
     assert!(!said.contains("starting"), "nothing started: {said}");
 }
 
+/// A sim farm behind the real router: the command runs with the
+/// trainer's environment (its role file written by the farm, which needs
+/// no checkout), its status is passed on, and the farm's files are gone
+/// once it stops. A bad twin count is refused with the accepted range.
+#[test]
+fn the_farm_runs_a_command_with_the_trainer_environment() {
+    let out = offworld(&[
+        "farm",
+        "--twins",
+        "1",
+        "--",
+        "sh",
+        "-c",
+        "echo \"$OFFWORLD_ZENOH_CONFIG\"; echo \"$OFFWORLD_FARM_ENVS\"; \
+         echo \"$OFFWORLD_GYM_CONNECT\"; test -n \"$OFFWORLD_GYM_ACCESS_TOKEN\" && \
+         grep -q 'mode: \"client\"' \"$OFFWORLD_ZENOH_CONFIG\" && exit 4",
+    ]);
+    let said = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(4), "{said}");
+    let stdout = text(&out.stdout);
+    let lines: Vec<&str> = stdout.lines().collect();
+    let [role_file, envs, connect] = lines[..] else {
+        panic!("three lines expected: {stdout}");
+    };
+    assert!(role_file.ends_with("/roles/trainer.json5"), "{role_file}");
+    assert!(
+        !std::path::Path::new(role_file).exists(),
+        "the farm's files are removed when it stops"
+    );
+    assert_eq!(envs, "sim/farm-0");
+    assert!(connect.starts_with("quic/127.0.0.2:"), "{connect}");
+    assert!(
+        said.contains("sim farm serving sim/farm-0 (MonolithDiscrete)"),
+        "{said}"
+    );
+    assert!(
+        !said.contains("multiple network interfaces"),
+        "zenoh's interface warning is not shown: {said}"
+    );
+
+    let out = offworld(&["farm", "--twins", "0", "--", "true"]);
+    let said = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{said}");
+    assert!(said.contains("0 is not in 1..=64"), "{said}");
+}
+
 #[test]
 fn site_records_are_kept_through_it() {
     let scratch = ScratchDir::new("cli-users");

@@ -12,20 +12,27 @@
 //!   to drive.
 //! - [`enclosure`]: the real stack (gym server, robot agent, base guard,
 //!   tracker agent) as processes against the emulated hardware.
+//! - [`site`]: the real `zenohd` router with the deployment's files
+//!   (TLS, mutual TLS, passwords, access control) and components
+//!   connecting in their roles.
+//! - [`farm`]: sim twins and a gym server as processes behind that router.
 //! - [`process`]: components as child processes, the `offworld` command.
 //! - [`cli`]: `offworld serve`, the gym server with optional in-process
 //!   twins (`env_controller serve` is the same server without a
-//!   simulator), `offworld emulate-hardware` and `offworld
-//!   emulate-enclosure`.
+//!   simulator), `offworld emulate-hardware`, `offworld
+//!   emulate-enclosure` and `offworld farm`.
 //!
 //! The site's files (router configs, access roles, certificates, systemd
-//! units) live beside this crate, in `deploy/`.
+//! units) live beside this crate, in `deploy/`; the router's, the roles'
+//! and the certificate generator are compiled in ([`site`]).
 
 pub mod cli;
 pub mod embedded;
 pub mod enclosure;
+pub mod farm;
 pub mod hardware;
 pub mod process;
+pub mod site;
 pub mod target;
 
 pub use embedded::{Embedded, SimEnv, TwinProfile};

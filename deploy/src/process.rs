@@ -98,16 +98,20 @@ pub fn offworld_command() -> PathBuf {
     }
 }
 
-/// The address of a `tcp/HOST:PORT` endpoint.
+/// The address of a `PROTOCOL/HOST:PORT` endpoint (`tcp/`, `tls/`, …;
+/// `#…` options ignored).
 pub fn endpoint_addr(endpoint: &str) -> std::io::Result<SocketAddr> {
-    endpoint
-        .trim_start_matches("tcp/")
+    let (_, addr) = endpoint.split_once('/').unwrap_or(("", endpoint));
+    addr.split('#')
+        .next()
+        .unwrap_or(addr)
         .parse()
         .map_err(|e| std::io::Error::other(format!("{endpoint}: {e}")))
 }
 
-/// Waits (bounded) until something accepts TCP connections at
-/// `tcp/HOST:PORT`; inside network namespace `netns` if given.
+/// Waits (bounded) until something accepts TCP connections at a
+/// `tcp/HOST:PORT` or `tls/HOST:PORT` endpoint; inside network namespace
+/// `netns` if given.
 pub fn wait_until_listening(
     netns: Option<&str>,
     endpoint: &str,

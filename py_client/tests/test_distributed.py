@@ -1,7 +1,7 @@
 """Through the real zenohd router with the repository's deployment files
-(QUIC with TLS 1.3, passwords, ACL): a sim farm of two twin processes and a controller
-(`sim_farm`, tests/src/bin/sim_farm.rs). Discovery, vector envs across
-processes, bookings from Python and the CLI."""
+(QUIC with TLS 1.3, passwords, ACL): a sim farm of two twin processes and a
+gym server (`offworld farm`). Discovery, vector envs across processes,
+bookings from Python and the CLI."""
 
 from __future__ import annotations
 
@@ -26,27 +26,25 @@ from offworld_gym import errors
 def farm():
     """Yields (environment for a trainer, env ids) of a running sim farm."""
     proc = subprocess.Popen(
-        [str(_binary("sim_farm")), "--twins", "2"],
-        stdin=subprocess.PIPE,
+        [str(_binary("offworld")), "farm", "--twins", "2"],
         stdout=subprocess.PIPE,
         text=True,
     )
     env: dict[str, str] = {}
     assert proc.stdout is not None
     deadline = time.monotonic() + 120
+    # How to connect, as KEY=VALUE lines; the farm's env list comes last.
     for line in proc.stdout:
-        line = line.strip()
-        if line == "ready":
-            break
-        key, _, value = line.partition("=")
+        key, _, value = line.strip().partition("=")
         env[key] = value
-        assert time.monotonic() < deadline, "sim_farm did not come up"
+        if key == "OFFWORLD_FARM_ENVS":
+            break
+        assert time.monotonic() < deadline, "offworld farm did not come up"
     else:
-        pytest.fail(f"sim_farm exited: {proc.wait()}")
+        pytest.fail(f"offworld farm exited: {proc.wait()}")
     yield env, env["OFFWORLD_FARM_ENVS"].split(",")
-    assert proc.stdin is not None
-    proc.stdin.close()  # the farm stops when its stdin closes
-    proc.wait(timeout=60)
+    proc.terminate()  # SIGTERM: the farm stops its processes and router
+    assert proc.wait(timeout=60) == 0
 
 
 @pytest.fixture()

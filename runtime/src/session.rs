@@ -241,6 +241,11 @@ impl SessionConfig {
         let listen = config.get_json("listen/endpoints").unwrap_or_default();
         let connect = config.get_json("connect/endpoints").unwrap_or_default();
         let client = is_client(&config);
+        // The mode in effect (a config file's, if it names one).
+        let mode = config
+            .get_json("mode")
+            .map(|m| m.trim_matches('"').to_owned())
+            .unwrap_or_default();
         let waits = within.is_none() && self.waits_for_its_endpoint(&config);
         if client {
             let waiting = match within {
@@ -271,7 +276,12 @@ impl SessionConfig {
         } else {
             zenoh::open(config).await.map_err(ContractError::from)?
         };
-        tracing::info!(mode = self.mode.as_str(), %listen, %connect, "zenoh session open");
+        if client {
+            // A client listens nowhere, whatever the config's defaults say.
+            tracing::info!(%mode, %connect, "zenoh session open");
+        } else {
+            tracing::info!(%mode, %listen, %connect, "zenoh session open");
+        }
         if !client && !self.connect.is_empty() && !answered(&session).await {
             tracing::warn!(
                 "nobody answers at {} yet: still trying (is the address right, and is \

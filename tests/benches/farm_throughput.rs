@@ -20,10 +20,11 @@
 use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
+use offworld_deploy::farm::SimFarm;
+use offworld_deploy::site::{Role, RouterSite};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, SessionConfig};
-use offworld_tests::site::{Role, RouterSite, SimFarm};
 use offworld_tests::{Process, Spawn};
 use zenoh::Session;
 

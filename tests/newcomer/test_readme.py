@@ -202,3 +202,18 @@ def test_the_pieces_run_as_processes_as_written(tmp_path: Path):
                 path.unlink(missing_ok=True)
         if out not in existed and out.exists() and not any(out.iterdir()):
             out.rmdir()
+
+
+def test_the_sim_farm_runs_as_written():
+    """`## Beyond one machine`: the router, twins and gym server as
+    processes, a trainer's listing through the router."""
+    block = code_blocks(section("Beyond one machine"), "bash")[0]
+    setup, farm = commands(block)
+    assert setup == "source .ci/env"
+    assert farm == "offworld farm --twins 4 -- python3 -m offworld_gym envs"
+    # One shell, as pasted: the farm needs what `source` put on PATH.
+    listed = run(f"{setup} && {farm}", REPO, timeout=300)
+    for i in range(4):
+        assert re.search(rf"^sim/farm-{i}\s+MonolithDiscrete\s+free\s+controller,sim_twin$", listed, re.M), listed
+    assert len(listed.splitlines()) == 4, listed
+    assert "sim/farm-0   MonolithDiscrete   free   controller,sim_twin" in block, "the documented listing"

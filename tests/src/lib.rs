@@ -7,7 +7,6 @@ pub mod emulated;
 pub mod faults;
 pub mod link;
 pub mod netns;
-pub mod site;
 
 use std::path::Path;
 use std::process::Stdio;

@@ -55,6 +55,17 @@ impl Namespaces {
         Ok(ns)
     }
 
+    /// Where a router site runs in these namespaces
+    /// ([`offworld_deploy::site::RouterSite::start_namespaced`]).
+    pub fn placement(&self) -> offworld_deploy::site::Namespaced {
+        offworld_deploy::site::Namespaced {
+            router: self.router.clone(),
+            site: self.site.clone(),
+            router_host_ip: self.router_host_ip.clone(),
+            router_site_ip: self.router_site_ip.clone(),
+        }
+    }
+
     /// Whether namespace `ns` has a route to `addr` (`ip route get`).
     pub fn routes(ns: &str, addr: &str) -> bool {
         ip(&["-n", ns, "route", "get", addr]).is_ok()

@@ -3,7 +3,7 @@
 //! components, user/password for every connection, access control). Every
 //! component is a separate process on its own loopback address pair, and in
 //! the last test the router and the site live in network namespaces of
-//! their own; see `offworld_tests::site`.
+//! their own; see `offworld_deploy::site`.
 //!
 //! Every "denied" claim has a positive control: the same observer sees the
 //! allowed role do the same thing.
@@ -14,13 +14,14 @@ use std::time::Duration;
 use offworld_client::operator::{press_estop, EStopScope, PressError};
 
 use offworld_client::{ClientTimeouts, EnvClient};
+use offworld_deploy::farm::SimFarm;
+use offworld_deploy::site::{generate_certificates, Role, RouterSite};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::*;
 use offworld_runtime::wire;
 use offworld_runtime::{ContractError, ErrorCode};
 use offworld_tests::netns::Namespaces;
-use offworld_tests::site::{role_file, Role, RouterSite, SimFarm};
 use zenoh::sample::Sample;
 use zenoh::Session;
 
@@ -285,12 +286,7 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
     refused(anonymous_tcp).await?;
     // A certificate signed by another CA.
     let other_ca = site.dir.join("other-ca");
-    let status = std::process::Command::new("bash")
-        .arg(offworld_tests::site::deploy_dir().join("certs/generate.sh"))
-        .arg(&other_ca)
-        .stderr(std::process::Stdio::null())
-        .status()?;
-    assert!(status.success());
+    generate_certificates(&other_ca, None)?;
     let mut forged = site.session(Role::SimTwin);
     forged.overrides.push(format!(
         "transport/link/tls/connect_certificate:{:?}",
@@ -738,15 +734,16 @@ async fn a_router_restart_mid_training_is_a_typed_error_then_training_resumes() 
 async fn in_network_namespaces_trainers_reach_the_site_only_through_the_router(
 ) -> anyhow::Result<()> {
     let _one = ONE_SITE.lock().await;
-    let site = match RouterSite::start_in_namespaces("netns") {
-        Ok(site) => site,
+    let ns = match Namespaces::create() {
+        Ok(ns) => ns,
         Err(e) => {
             // The same rules are proven on loopback addresses above.
             eprintln!("SKIPPED: network namespaces are unavailable here: {e}");
             return Ok(());
         }
     };
-    let ns = site.namespaces().expect("namespaces");
+    // Declared after `ns`: the site stops before its namespaces go.
+    let site = RouterSite::start_namespaced("netns", ns.placement())?;
     // The site has no route to the host: only the router's session links
     // them (the router's namespace has a route to both).
     assert!(!Namespaces::routes(&ns.site, &ns.host_ip));
@@ -1007,8 +1004,7 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
             })
         };
         let (passed, refused) = (decided("is authorized"), decided("is unauthorized"));
-        let own_acl =
-            std::fs::read_to_string(role_file(*role)).is_ok_and(|f| f.contains("access_control"));
+        let own_acl = role.config().contains("access_control");
         let name = role.name();
         if *allowed {
             assert!(
@@ -1039,10 +1035,9 @@ async fn the_robot_agent_joins_the_mtls_router_with_its_role_file() -> anyhow::R
     let env = EnvId::real("mtls-0")?;
     let latch = site.dir.join("robot_agent.estop");
     let _agent = site.spawn(
-        "robot_agent",
         Role::RobotAgent,
-        &[],
         &[
+            "robot",
             "--env",
             &env.to_string(),
             "--estop-latch",

@@ -92,26 +92,24 @@ async fn emulate(args: Args) -> anyhow::Result<ExitCode> {
     eprintln!("  OFFWORLD_GYM_CONNECT={}", deployment.endpoint);
     eprintln!("  OFFWORLD_GYM_ACCESS_TOKEN={}", deployment.token);
     eprintln!("  OFFWORLD_OPERATOR_TOKEN={}", deployment.operator_token);
-    let Some((program, rest)) = args.command.split_first() else {
+    if args.command.is_empty() {
         eprintln!("Ctrl-C to stop");
         offworld_runtime::shutdown::signalled().await?;
         return Ok(ExitCode::SUCCESS);
-    };
-    let mut command = std::process::Command::new(program);
-    command
-        .args(rest)
-        .env("OFFWORLD_GYM_CONNECT", &deployment.endpoint)
-        .env("OFFWORLD_GYM_ACCESS_TOKEN", &deployment.token)
-        .env("OFFWORLD_OPERATOR_TOKEN", &deployment.operator_token);
-    let status = tokio::task::spawn_blocking(move || command.status())
-        .await?
-        .with_context(|| format!("running {program}"))?;
-    drop(deployment);
-    if !status.success() {
-        eprintln!("{program} failed: {status}");
-        return Ok(ExitCode::from(
-            status.code().unwrap_or(1).clamp(1, 255) as u8
-        ));
     }
-    Ok(ExitCode::SUCCESS)
+    let environment = vec![
+        (
+            "OFFWORLD_GYM_CONNECT".to_owned(),
+            deployment.endpoint.clone(),
+        ),
+        (
+            "OFFWORLD_GYM_ACCESS_TOKEN".to_owned(),
+            deployment.token.clone(),
+        ),
+        (
+            "OFFWORLD_OPERATOR_TOKEN".to_owned(),
+            deployment.operator_token.clone(),
+        ),
+    ];
+    super::run_against(&args.command, environment).await
 }

@@ -45,13 +45,13 @@ use anyhow::Context;
 use clap::{Parser, ValueEnum};
 use futures::stream::{FuturesUnordered, StreamExt};
 use offworld_client::{self as client, ClientTimeouts, EnvClient};
+use offworld_deploy::site::{Role, RouterSite};
 use offworld_runtime::msg::{
     Action, ActionSpace, BookingRequest, Channels, DepthFormat, EnvSpec, EnvState, ObsOptions,
     OpenRequest, Seed,
 };
 use offworld_runtime::session::{free_loopback_port, loopback_endpoint};
 use offworld_runtime::{EnvId, ErrorCode, SessionConfig, WireError};
-use offworld_tests::site::{Role, RouterSite};
 use offworld_tests::{binary_dir, Process};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -1,25 +1,36 @@
-//! A distributed deployment for tests, built from the repository's own
-//! deployment files: the real `zenohd` router (installed by `.ci/setup`)
-//! with `deploy/router/zenohd.json5` (TLS, mutual TLS for site components,
-//! user/password for everyone, access control), and every component as a
-//! separate process connecting with its role file from `deploy/roles/`.
-//! Certificates come from `deploy/certs/generate.sh`; only paths, passwords
-//! and addresses are overridden (`--cfg`), never the rules.
+//! A site behind the real `zenohd` router, built from the deployment's own
+//! files (`deploy/router/zenohd.json5`: TLS, mutual TLS for site
+//! components, user/password for everyone, access control; one role file
+//! per component in `deploy/roles/`; certificates from
+//! `deploy/certs/generate.sh`). The files are compiled into this crate and
+//! written beside the site's certificates, so an installed `offworld`
+//! needs no checkout; only paths, passwords and addresses are overridden
+//! (`--cfg`), never the rules.
 //!
-//! The router listens on two loopback addresses other than 127.0.0.1:
-//! `127.0.0.2` for trainers (server-authenticated TLS) and `127.0.0.3` for
-//! site components (mutual TLS).
+//! On one machine the router listens on two loopback addresses other than
+//! 127.0.0.1: `127.0.0.2` for trainers (server-authenticated TLS) and
+//! `127.0.0.3` for site components (mutual TLS). With [`Namespaced`] the
+//! router and the site components run in network namespaces made
+//! beforehand instead.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use offworld_env_controller::Store;
 use offworld_runtime::session::free_loopback_port;
-use offworld_runtime::{EnvId, SessionConfig};
+use offworld_runtime::SessionConfig;
 
-use crate::netns::Namespaces;
-use crate::{Process, Spawn};
+use crate::process::{offworld_command, wait_until_listening, Process};
+
+/// The router's configuration (`deploy/router/zenohd.json5`).
+const ROUTER_CONFIG: &str = include_str!("../router/zenohd.json5");
+
+/// How long the router may take to open its listeners.
+const ROUTER_START_LIMIT: Duration = Duration::from_secs(20);
+
+/// The certificate generator (`deploy/certs/generate.sh`).
+const GENERATE_CERTIFICATES: &str = include_str!("../certs/generate.sh");
 
 /// The roles of `deploy/roles/` (and of the router's ACL subjects).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -43,6 +54,18 @@ pub enum Role {
 }
 
 impl Role {
+    /// Every role.
+    pub const ALL: [Role; 8] = [
+        Role::Trainer,
+        Role::Controller,
+        Role::SimController,
+        Role::SimTwin,
+        Role::RobotAgent,
+        Role::TrackerAgent,
+        Role::Operator,
+        Role::LabWeb,
+    ];
+
     /// The role's user name, certificate common name and file stem.
     pub fn name(self) -> &'static str {
         match self {
@@ -62,27 +85,49 @@ impl Role {
         self != Role::Trainer
     }
 
-    const ALL: [Role; 8] = [
-        Role::Trainer,
-        Role::Controller,
-        Role::SimController,
-        Role::SimTwin,
-        Role::RobotAgent,
-        Role::TrackerAgent,
-        Role::Operator,
-        Role::LabWeb,
-    ];
+    /// The role's Zenoh configuration (`deploy/roles/<role>.json5`).
+    pub fn config(self) -> &'static str {
+        match self {
+            Role::Trainer => include_str!("../roles/trainer.json5"),
+            Role::Controller => include_str!("../roles/env_controller.json5"),
+            Role::SimController => include_str!("../roles/sim_controller.json5"),
+            Role::SimTwin => include_str!("../roles/sim_twin.json5"),
+            Role::RobotAgent => include_str!("../roles/robot_agent.json5"),
+            Role::TrackerAgent => include_str!("../roles/tracker_agent.json5"),
+            Role::Operator => include_str!("../roles/operator.json5"),
+            Role::LabWeb => include_str!("../roles/lab_web.json5"),
+        }
+    }
 }
 
-/// The repository's `deploy/` folder.
-pub fn deploy_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap_or_else(|| Path::new(".."))
-        .join("deploy")
+/// Writes a certificate authority, the router's certificate (for
+/// `router_san`, default localhost and 127.0.0.1–9), one client
+/// certificate per site role and the site's seal keys into `dir`
+/// (`deploy/certs/generate.sh`; needs `bash` and `openssl`).
+pub fn generate_certificates(dir: &Path, router_san: Option<&str>) -> anyhow::Result<()> {
+    let mut command = Command::new("bash");
+    command.args(["-s", "--"]).arg(dir);
+    if let Some(san) = router_san {
+        command.arg(san);
+    }
+    let mut child = command
+        .stdin(Stdio::piped())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .map_err(|e| anyhow::anyhow!("bash (to generate certificates): {e}"))?;
+    if let Some(mut stdin) = child.stdin.take() {
+        stdin.write_all(GENERATE_CERTIFICATES.as_bytes())?;
+    }
+    let out = child.wait_with_output()?;
+    anyhow::ensure!(
+        out.status.success(),
+        "generating certificates (deploy/certs/generate.sh, needs openssl) failed: {}",
+        String::from_utf8_lossy(&out.stderr).trim()
+    );
+    Ok(())
 }
 
-/// A free TCP port on `ip`.
 fn json_string(s: &str) -> String {
     serde_json::to_string(s).unwrap_or_else(|_| format!("\"{s}\""))
 }
@@ -90,9 +135,30 @@ fn json_string(s: &str) -> String {
 /// zenohd's access-control module: its decisions are logged at trace level.
 pub const ACL_LOG_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
 
+/// The log filter of the router and the components (`ZENOHD_LOG` overrides
+/// the router's): warnings, except the access-control module's warning on
+/// every link that rules naming network interfaces may misapply
+/// (eclipse-zenoh/zenoh#1204): the deployment's rules name none.
+pub const SITE_LOG: &str = "warn,zenoh::net::routing::interceptor::access_control=error";
+
+/// Where a namespaced site runs: network namespaces made beforehand (`ip
+/// netns add`; needs CAP_NET_ADMIN), the router reachable from this host
+/// and from the site namespace on addresses of its own.
+#[derive(Debug, Clone)]
+pub struct Namespaced {
+    /// The router's namespace.
+    pub router: String,
+    /// The site components' namespace.
+    pub site: String,
+    /// The router's address on the host link (trainers connect here).
+    pub router_host_ip: String,
+    /// The router's address on the site link (site components connect here).
+    pub router_site_ip: String,
+}
+
 /// The router and the files of one deployment (removed on drop).
 pub struct RouterSite {
-    /// Certificates, users.txt, databases.
+    /// Certificates, users.txt, role files, databases.
     pub dir: PathBuf,
     /// Where trainers connect: `quic/127.0.0.2:<port>`.
     pub trainer_endpoint: String,
@@ -108,59 +174,36 @@ pub struct RouterSite {
     router_cfg: Vec<String>,
     /// Where the router's log goes when audited ([`RouterSite::audit_router`]).
     router_log: Option<PathBuf>,
-    /// Declared last: removed after the router and the processes stopped.
-    netns: Option<Namespaces>,
+    namespaced: Option<Namespaced>,
 }
 
 impl RouterSite {
-    /// Generates certificates and passwords, starts `zenohd` and waits until
-    /// both listeners accept connections.
+    /// Generates certificates and passwords, writes the deployment's files,
+    /// starts `zenohd` and waits until both listeners accept connections.
     pub fn start(name: &str) -> anyhow::Result<Self> {
         Self::create(name, None)
     }
 
     /// Like [`RouterSite::start`], with the router and the site in network
-    /// namespaces of their own (see [`Namespaces`]): in-test sessions are
-    /// trainers and operators on the host, [`RouterSite::spawn`]ed
-    /// components live in the site namespace. Fails with the reason when
-    /// namespaces cannot be made (no `ip`, no CAP_NET_ADMIN).
-    pub fn start_in_namespaces(name: &str) -> anyhow::Result<Self> {
-        Self::create(name, Some(Namespaces::create()?))
+    /// namespaces: in-process sessions are trainers and operators on the
+    /// host, [`RouterSite::spawn`]ed components live in the site namespace.
+    pub fn start_namespaced(name: &str, namespaced: Namespaced) -> anyhow::Result<Self> {
+        Self::create(name, Some(namespaced))
     }
 
-    /// The namespaces, if the site has them.
-    pub fn namespaces(&self) -> Option<&Namespaces> {
-        self.netns.as_ref()
+    /// The namespaces, if the site runs in some.
+    pub fn namespaced(&self) -> Option<&Namespaced> {
+        self.namespaced.as_ref()
     }
 
-    fn create(name: &str, netns: Option<Namespaces>) -> anyhow::Result<Self> {
+    fn create(name: &str, namespaced: Option<Namespaced>) -> anyhow::Result<Self> {
         let dir = std::env::temp_dir().join(format!(
             "offworld-site-{name}-{}-{}",
             std::process::id(),
             offworld_runtime::keys::random_id()
         ));
-        std::fs::create_dir_all(&dir)?;
-        let mut generate = Command::new("bash");
-        generate
-            .arg(deploy_dir().join("certs/generate.sh"))
-            .arg(&dir);
-        if let Some(ns) = &netns {
-            generate.arg(format!("IP:{},IP:{}", ns.router_host_ip, ns.router_site_ip));
-        }
-        let status = generate
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .status()?;
-        anyhow::ensure!(
-            status.success(),
-            "deploy/certs/generate.sh failed: {status}"
-        );
-        let users: String = Role::ALL
-            .iter()
-            .map(|r| format!("{}:{}\n", r.name(), Self::password(r.name())))
-            .collect();
-        std::fs::write(dir.join("users.txt"), users)?;
-        let mut site = match &netns {
+        std::fs::create_dir_all(dir.join("roles"))?;
+        let mut site = match &namespaced {
             None => {
                 let trainer = format!("quic/127.0.0.2:{}", free_loopback_port("127.0.0.2")?);
                 let site = format!("quic/127.0.0.3:{}", free_loopback_port("127.0.0.3")?);
@@ -173,7 +216,7 @@ impl RouterSite {
                     router: None,
                     router_cfg: Vec::new(),
                     router_log: None,
-                    netns,
+                    namespaced,
                 }
             }
             // A fresh namespace: the deployment's own ports are free.
@@ -186,11 +229,31 @@ impl RouterSite {
                 router: None,
                 router_cfg: Vec::new(),
                 router_log: None,
-                netns,
+                namespaced,
             },
         };
+        // From here on `site` owns the directory: an error removes it.
+        let san = site
+            .namespaced
+            .as_ref()
+            .map(|ns| format!("IP:{},IP:{}", ns.router_host_ip, ns.router_site_ip));
+        generate_certificates(&site.dir, san.as_deref())?;
+        let users: String = Role::ALL
+            .iter()
+            .map(|r| format!("{}:{}\n", r.name(), Self::password(r.name())))
+            .collect();
+        std::fs::write(site.dir.join("users.txt"), users)?;
+        std::fs::write(site.dir.join("zenohd.json5"), ROUTER_CONFIG)?;
+        for role in Role::ALL {
+            std::fs::write(site.role_file(role), role.config())?;
+        }
         site.start_router()?;
         Ok(site)
+    }
+
+    /// This site's copy of `deploy/roles/<role>.json5`.
+    pub fn role_file(&self, role: Role) -> PathBuf {
+        self.dir.join(format!("roles/{}.json5", role.name()))
     }
 
     /// Every role connects through the router's TLS-over-TCP listeners
@@ -206,7 +269,8 @@ impl RouterSite {
         endpoint.replacen("quic/", "tls/", 1)
     }
 
-    /// The test password of a user (users.txt).
+    /// The password of a user on this site (users.txt): a trial site's,
+    /// derived from the user name.
     pub fn password(user: &str) -> String {
         format!("{user}-secret")
     }
@@ -244,16 +308,13 @@ impl RouterSite {
         ];
         let mut args = vec![
             "-c".to_owned(),
-            deploy_dir()
-                .join("router/zenohd.json5")
-                .to_string_lossy()
-                .into_owned(),
+            self.dir.join("zenohd.json5").to_string_lossy().into_owned(),
         ];
         for o in overrides.iter().chain(&self.router_cfg) {
             args.push("--cfg".into());
             args.push(o.clone());
         }
-        let mut command = match &self.netns {
+        let mut command = match &self.namespaced {
             Some(ns) => {
                 let mut c = Command::new("ip");
                 c.args(["netns", "exec", &ns.router]).arg(zenohd());
@@ -261,19 +322,26 @@ impl RouterSite {
             }
             None => Command::new(zenohd()),
         };
-        let mut log = std::env::var("ZENOHD_LOG").unwrap_or_else(|_| "warn".into());
-        let (stdout, stderr) = match &self.router_log {
+        let chosen = std::env::var("ZENOHD_LOG").ok();
+        let (log, stdout, stderr) = match &self.router_log {
             Some(path) => {
                 // zenohd logs each access-control decision at trace level,
                 // on stdout.
-                log += &format!(",{ACL_LOG_TARGET}=trace");
+                let log = format!(
+                    "{},{ACL_LOG_TARGET}=trace",
+                    chosen.as_deref().unwrap_or("warn")
+                );
                 let file = std::fs::OpenOptions::new()
                     .create(true)
                     .append(true)
                     .open(path)?;
-                (Stdio::from(file.try_clone()?), Stdio::from(file))
+                (log, Stdio::from(file.try_clone()?), Stdio::from(file))
             }
-            None => (Stdio::null(), Stdio::inherit()),
+            None => (
+                chosen.unwrap_or_else(|| SITE_LOG.to_owned()),
+                Stdio::null(),
+                Stdio::inherit(),
+            ),
         };
         let child = command
             .args(&args)
@@ -284,12 +352,13 @@ impl RouterSite {
             .stdout(stdout)
             .stderr(stderr)
             .spawn()
-            .map_err(|e| anyhow::anyhow!("zenohd (installed by .ci/setup): {e}"))?;
+            .map_err(|e| anyhow::anyhow!("zenohd (`.ci/setup` installs it): {e}"))?;
         self.router = Some(Process(child));
         // zenohd opens its listeners together: the TCP ones answering
         // means the QUIC ones are up too.
         for endpoint in [&self.trainer_endpoint, &self.site_endpoint] {
-            wait_listening(&Self::over_tcp(endpoint), Duration::from_secs(20))?;
+            wait_until_listening(None, &Self::over_tcp(endpoint), ROUTER_START_LIMIT)
+                .map_err(|e| anyhow::anyhow!("zenohd: {e}"))?;
         }
         Ok(())
     }
@@ -356,7 +425,7 @@ impl RouterSite {
     }
 
     /// The Zenoh flags of a component process of `role`:
-    /// `-c deploy/roles/<role>.json5 --connect <endpoint> --cfg …`.
+    /// `-c <site>/roles/<role>.json5 --connect <endpoint> --cfg …`.
     pub fn role_args(&self, role: Role) -> Vec<String> {
         self.role_args_to(role, self.endpoint(role))
     }
@@ -364,7 +433,7 @@ impl RouterSite {
     fn role_args_to(&self, role: Role, endpoint: &str) -> Vec<String> {
         let mut args = vec![
             "-c".to_owned(),
-            role_file(role).to_string_lossy().into_owned(),
+            self.role_file(role).to_string_lossy().into_owned(),
             "--connect".to_owned(),
             endpoint.to_owned(),
         ];
@@ -375,37 +444,60 @@ impl RouterSite {
         args
     }
 
-    /// The session config of an in-test participant of `role`.
+    /// The session config of an in-process participant of `role`.
     pub fn session(&self, role: Role) -> SessionConfig {
         SessionConfig {
-            config_file: Some(role_file(role)),
+            config_file: Some(self.role_file(role)),
             connect: vec![self.endpoint(role).to_owned()],
             overrides: self.overrides(role),
             ..SessionConfig::default()
         }
     }
 
-    /// Starts a workspace binary as `role` with extra arguments after the
-    /// Zenoh flags.
-    pub fn spawn(
-        &self,
-        binary: &str,
-        role: Role,
-        before: &[&str],
-        after: &[&str],
-    ) -> anyhow::Result<Process> {
-        // Site components live in the site namespace, if there is one.
-        let (netns, endpoint) = match &self.netns {
+    /// What a trainer process needs in its environment to reach the site:
+    /// `OFFWORLD_ZENOH_CONFIG` (the trainer role file), `OFFWORLD_ZENOH_CFG`
+    /// (certificate path and password) and `OFFWORLD_GYM_CONNECT`.
+    pub fn trainer_env(&self) -> Vec<(String, String)> {
+        vec![
+            (
+                offworld_runtime::session::ENV_CONFIG.to_owned(),
+                self.role_file(Role::Trainer).to_string_lossy().into_owned(),
+            ),
+            (
+                offworld_runtime::session::ENV_CFG.to_owned(),
+                self.overrides(Role::Trainer).join(";"),
+            ),
+            (
+                "OFFWORLD_GYM_CONNECT".to_owned(),
+                self.trainer_endpoint.clone(),
+            ),
+        ]
+    }
+
+    /// Starts `offworld <command…>` as `role`, its Zenoh flags appended
+    /// (site components in the site namespace, if there is one).
+    pub fn spawn(&self, role: Role, command: &[&str]) -> anyhow::Result<Process> {
+        self.spawn_logged(role, command, SITE_LOG)
+    }
+
+    /// Like [`RouterSite::spawn`] with the child's `RUST_LOG` filter.
+    pub fn spawn_logged(&self, role: Role, command: &[&str], log: &str) -> anyhow::Result<Process> {
+        let (netns, endpoint) = match &self.namespaced {
             Some(ns) if role.is_site() => {
                 (Some(ns.site.as_str()), self.site_endpoint_inside.as_str())
             }
             _ => (None, self.endpoint(role)),
         };
-        let mut args: Vec<String> = before.iter().map(|s| s.to_string()).collect();
+        let mut args: Vec<String> = command.iter().map(|s| s.to_string()).collect();
         args.extend(self.role_args_to(role, endpoint));
-        args.extend(after.iter().map(|s| s.to_string()));
         let refs: Vec<&str> = args.iter().map(String::as_str).collect();
-        Ok(Process::spawn_in(netns, binary, &refs, "warn")?)
+        Ok(Process::start(
+            netns,
+            &offworld_command(),
+            &refs,
+            log,
+            Stdio::null(),
+        )?)
     }
 }
 
@@ -416,143 +508,10 @@ impl Drop for RouterSite {
     }
 }
 
-/// `deploy/roles/<role>.json5`.
-pub fn role_file(role: Role) -> PathBuf {
-    deploy_dir().join(format!("roles/{}.json5", role.name()))
-}
-
 /// The router binary: `$ZENOHD` or `zenohd` on `PATH` (`.ci/env` puts the
 /// project's install first).
 pub fn zenohd() -> PathBuf {
     std::env::var_os("ZENOHD")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from("zenohd"))
-}
-
-fn wait_listening(endpoint: &str, timeout: Duration) -> anyhow::Result<()> {
-    let addr = endpoint
-        .split_once('/')
-        .map(|(_, a)| a)
-        .unwrap_or(endpoint)
-        .to_owned();
-    let deadline = Instant::now() + timeout;
-    loop {
-        if std::net::TcpStream::connect(&addr).is_ok() {
-            return Ok(());
-        }
-        anyhow::ensure!(
-            Instant::now() < deadline,
-            "zenohd is not listening on {addr}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-/// A sim farm behind the router: `twins` `sim_twin` processes (agent role,
-/// 84×84) under `sim/<name>-<i>` and one `env_controller` process
-/// (controller role) serving them all, with one registered user.
-pub struct SimFarm {
-    /// The router and the files (declared first: dropped last).
-    pub site: RouterSite,
-    /// The envs served.
-    pub envs: Vec<EnvId>,
-    /// Access token of the registered user `alice`.
-    pub token: String,
-    _processes: Vec<Process>,
-}
-
-impl SimFarm {
-    /// Starts the router, the twins and the controller (not waiting for
-    /// them to answer: see [`SimFarm::ready`]).
-    pub fn start(name: &str, twins: usize, task: &str) -> anyhow::Result<Self> {
-        Self::start_on(RouterSite::start(name)?, name, twins, task)
-    }
-
-    /// Like [`SimFarm::start`] behind an already started router.
-    pub fn start_on(
-        site: RouterSite,
-        name: &str,
-        twins: usize,
-        task: &str,
-    ) -> anyhow::Result<Self> {
-        Self::start_profiled(site, name, twins, task, None)
-    }
-
-    /// Like [`SimFarm::start_on`], every twin built with the twin profile
-    /// `twin_profile` (`sim_twin --profile`, `docs/twin-profile.md`).
-    pub fn start_profiled(
-        site: RouterSite,
-        name: &str,
-        twins: usize,
-        task: &str,
-        twin_profile: Option<&std::path::Path>,
-    ) -> anyhow::Result<Self> {
-        let envs: Vec<EnvId> = (0..twins.max(1))
-            .map(|i| EnvId::sim(&format!("{name}-{i}")))
-            .collect::<Result<_, _>>()?;
-        let db = site.dir.join("gym.db").to_string_lossy().into_owned();
-        let token = Store::open(std::path::Path::new(&db))?.add_user("alice", false)?;
-        let mut processes = Vec::new();
-        let profile = twin_profile.map(|p| p.to_string_lossy().into_owned());
-        for env in &envs {
-            let env = env.to_string();
-            let mut args = vec!["--env", &env, "--resolution", "84x84"];
-            if let Some(profile) = &profile {
-                args.extend(["--profile", profile]);
-            }
-            processes.push(site.spawn("sim_twin", Role::SimTwin, &[], &args)?);
-        }
-        let mut serve = vec!["--db".to_owned(), db, "serve".to_owned()];
-        for env in &envs {
-            serve.push("--env".into());
-            serve.push(format!("{env}={task}"));
-        }
-        let serve: Vec<&str> = serve.iter().map(String::as_str).collect();
-        processes.push(site.spawn("env_controller", Role::Controller, &serve, &[])?);
-        Ok(Self {
-            site,
-            envs,
-            token,
-            _processes: processes,
-        })
-    }
-
-    /// Waits until every env answers `spec` through the router as a trainer.
-    pub async fn ready(&self, timeout: Duration) -> anyhow::Result<()> {
-        let session = self.site.session(Role::Trainer).open().await?;
-        let deadline = Instant::now() + timeout;
-        for env in &self.envs {
-            while offworld_client::spec(&session, env, Duration::from_secs(2))
-                .await
-                .is_err()
-            {
-                anyhow::ensure!(Instant::now() < deadline, "{env} did not come up");
-                tokio::time::sleep(Duration::from_millis(100)).await;
-            }
-        }
-        session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
-        Ok(())
-    }
-
-    /// What a trainer process needs in its environment to reach the farm:
-    /// `OFFWORLD_ZENOH_CONFIG` (the trainer role file), `OFFWORLD_ZENOH_CFG`
-    /// (certificate path and password), `OFFWORLD_GYM_CONNECT`,
-    /// `OFFWORLD_GYM_ACCESS_TOKEN`.
-    pub fn trainer_env(&self) -> Vec<(String, String)> {
-        vec![
-            (
-                offworld_runtime::session::ENV_CONFIG.to_owned(),
-                role_file(Role::Trainer).to_string_lossy().into_owned(),
-            ),
-            (
-                offworld_runtime::session::ENV_CFG.to_owned(),
-                self.site.overrides(Role::Trainer).join(";"),
-            ),
-            (
-                "OFFWORLD_GYM_CONNECT".to_owned(),
-                self.site.trainer_endpoint.clone(),
-            ),
-            ("OFFWORLD_GYM_ACCESS_TOKEN".to_owned(), self.token.clone()),
-        ]
-    }
 }
