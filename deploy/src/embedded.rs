@@ -91,8 +91,12 @@ impl Embedded {
             config.profile = sim.profile;
             let twin = SimTwin::new(config).map_err(|e| ControllerError::Config(e.to_string()))?;
             twins.push(
-                TwinNode::spawn(session, sim.env.clone(), twin, Clock::Lockstep)
-                    .map_err(|e| ControllerError::Zenoh(e.to_string()))?,
+                TwinNode::spawn(session, sim.env.clone(), twin, Clock::Lockstep).map_err(|e| {
+                    ControllerError::Offline(format!(
+                        "the twin of {} could not start: {e}",
+                        sim.env
+                    ))
+                })?,
             );
             let options = EnvOptions {
                 allow_anonymous: true,
@@ -102,7 +106,7 @@ impl Embedded {
             let server: std::sync::Arc<EnvServer> =
                 controller.serve(sim.env.clone(), task, options).await?;
             if !server.link().wait_online(ONLINE_TIMEOUT).await {
-                return Err(ControllerError::Zenoh(format!(
+                return Err(ControllerError::Offline(format!(
                     "the twin of {} never came online",
                     sim.env
                 )));

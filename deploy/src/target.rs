@@ -69,10 +69,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
             record,
             twin_profile,
         } => {
-            let session = SessionConfig::isolated()
-                .open()
-                .await
-                .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+            let session = SessionConfig::isolated().open().await?;
             let prefix = offworld_runtime::keys::random_id();
             let envs: Vec<EnvId> = (0..count.max(1))
                 .map(|i| EnvId::sim(&format!("embedded-{}-{i}", &prefix[..8])))
@@ -139,10 +136,9 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
 
 async fn open_remote(config: &SessionConfig) -> Result<Session, ControllerError> {
     // An unreachable endpoint is an error naming it, not an empty deployment.
-    config
+    Ok(config
         .open_reaching(offworld_runtime::session::REACH_WITHIN)
-        .await
-        .map_err(|e| ControllerError::Zenoh(e.to_string()))
+        .await?)
 }
 
 /// `count` free envs of `task` in `realm`, in env id order. Waits up to
@@ -155,9 +151,7 @@ async fn pick_free(
 ) -> Result<Vec<EnvId>, ControllerError> {
     let deadline = tokio::time::Instant::now() + DISCOVERY;
     loop {
-        let listings = client::discover(session, std::time::Duration::from_secs(2))
-            .await
-            .map_err(|e| ControllerError::Zenoh(e.message))?;
+        let listings = client::discover(session, std::time::Duration::from_secs(2)).await?;
         let free: Vec<EnvId> = listings
             .iter()
             .filter(|l| {

@@ -21,9 +21,21 @@ pub enum ControllerError {
     /// Something that must not exist does.
     #[error("{0}")]
     Conflict(String),
-    /// Zenoh refused an operation.
+    /// Zenoh refused an operation (declaring a key expression, a
+    /// publisher, a subscriber or a queryable).
     #[error("zenoh: {0}")]
-    Zenoh(String),
+    Zenoh(#[from] zenoh::Error),
+    /// What an env needs never came online, or could not start (its twin,
+    /// its robot); the message names it.
+    #[error("{0}")]
+    Offline(String),
+    /// A session could not be opened on the deployment (unreachable,
+    /// misconfigured).
+    #[error(transparent)]
+    Session(#[from] offworld_runtime::ContractError),
+    /// The deployment answered a request with an error.
+    #[error(transparent)]
+    Remote(#[from] WireError),
     /// Someone else holds it (a booked slot).
     #[error("{0}")]
     Busy(String),
@@ -49,7 +61,10 @@ impl From<ControllerError> for WireError {
                 tracing::error!("store failure: {m}");
                 WireError::internal("the experiment store failed; the episode was not recorded")
             }
-            ControllerError::Zenoh(m) => WireError::internal(format!("zenoh: {m}")),
+            ControllerError::Zenoh(e) => WireError::internal(format!("zenoh: {e}")),
+            ControllerError::Offline(m) => WireError::unavailable(m),
+            ControllerError::Session(e) => WireError::from(e),
+            ControllerError::Remote(e) => e,
             ControllerError::Record(e) => WireError::internal(e.to_string()),
         }
     }

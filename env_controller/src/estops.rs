@@ -34,7 +34,6 @@ pub struct EnvEStops {
 impl EnvEStops {
     /// Learns the latches from the network, then follows both e-stop keys.
     pub async fn follow(session: &Session, env: &EnvId) -> Result<Self, ControllerError> {
-        let zerr = |e: zenoh::Error| ControllerError::Zenoh(e.to_string());
         let recalled = estop::recall(session, env, RECALL).await;
         if let Some(reason) = recalled.refusal() {
             tracing::warn!(%env, %reason, "e-stop in force at start (from the network)");
@@ -65,17 +64,12 @@ impl EnvEStops {
                 }
             })
         };
-        let env_sub = subscribe(env.key(Topic::EStop), Latch::Env)
-            .await
-            .map_err(zerr)?;
-        let site_sub = subscribe(global_estop_key(), Latch::Site)
-            .await
-            .map_err(zerr)?;
+        let env_sub = subscribe(env.key(Topic::EStop), Latch::Env).await?;
+        let site_sub = subscribe(global_estop_key(), Latch::Site).await?;
         let queryable = session
             .declare_queryable(env.key(Topic::EStopState))
             .callback(estop::state_replier(env, state.clone()))
-            .await
-            .map_err(zerr)?;
+            .await?;
         Ok(Self {
             state,
             _subscribers: [env_sub, site_sub],

@@ -202,7 +202,6 @@ impl RobotLink {
         timeouts: LinkTimeouts,
         seals: &LinkSeals,
     ) -> Result<Self, ControllerError> {
-        let zerr = |e: zenoh::Error| ControllerError::Zenoh(e.to_string());
         let (frame_tx, frames) = watch::channel(None);
         let pending = Pending::default();
         let building = pending.clone();
@@ -236,8 +235,7 @@ impl RobotLink {
                     Err(e) => tracing::warn!("rejected a malformed frame: {e}"),
                 },
             )
-            .await
-            .map_err(zerr)?;
+            .await?;
         let (fault_tx, faults) = watch::channel(None);
         let fault = subscribe_decoded(
             session,
@@ -248,8 +246,7 @@ impl RobotLink {
                 fault_tx.send_replace(Some(fault));
             },
         )
-        .await
-        .map_err(zerr)?;
+        .await?;
         let pose = subscribe_decoded(
             session,
             env.key(Topic::Pose),
@@ -264,8 +261,7 @@ impl RobotLink {
                 }));
             },
         )
-        .await
-        .map_err(zerr)?;
+        .await?;
         let lost = tracking_lost.clone();
         let tracking = subscribe_decoded(
             session,
@@ -276,8 +272,7 @@ impl RobotLink {
                 lost.send_replace(!status.tracking);
             },
         )
-        .await
-        .map_err(zerr)?;
+        .await?;
         // The env is online while a sim twin or a robot agent declares itself.
         let (alive_tx, embodiment_alive) = watch::channel(false);
         let twin_key = env.alive_key(Component::SimTwin);
@@ -306,20 +301,17 @@ impl RobotLink {
                 };
                 alive_tx.send_replace(!set.is_empty());
             })
-            .await
-            .map_err(zerr)?;
+            .await?;
         let (heard_tx, heard) = watch::channel(None);
         let echo = session
             .declare_subscriber(env.key(Topic::HeartbeatEcho))
             .callback(move |_: Sample| {
                 heard_tx.send_replace(Some(Instant::now()));
             })
-            .await
-            .map_err(zerr)?;
+            .await?;
         let cmd = wire::publisher(session, env.key(Topic::Cmd), Delivery::Every)
             .priority(wire::CONTROL_PRIORITY)
-            .await
-            .map_err(|e| ControllerError::Zenoh(e.to_string()))?;
+            .await?;
         Ok(Self {
             session: session.clone(),
             env: env.clone(),

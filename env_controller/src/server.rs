@@ -256,7 +256,6 @@ impl Controller {
             )
             .await?,
         );
-        let zerr = |e: zenoh::Error| ControllerError::Zenoh(e.to_string());
         let mut tasks = Vec::new();
         let (serving, serving_rx) = watch::channel(());
         let admission = Arc::new(Admission {
@@ -286,8 +285,7 @@ impl Controller {
                 self.session
                     .declare_queryable(env.key(topic))
                     .callback(move |query| admission.take_supervised(topic, query))
-                    .await
-                    .map_err(zerr)?,
+                    .await?,
             );
         }
         // Client liveliness: a vanished lease holder stops the robot; one
@@ -296,8 +294,7 @@ impl Controller {
             .session
             .liveliness()
             .declare_subscriber(format!("{}/alive/client/*", env.prefix()))
-            .await
-            .map_err(zerr)?;
+            .await?;
         let watcher = server.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(sample) = clients.recv_async().await {
@@ -350,8 +347,7 @@ impl Controller {
             .session
             .liveliness()
             .declare_token(env.alive_key(Component::Controller))
-            .await
-            .map_err(zerr)?;
+            .await?;
         tracing::info!(%env, task = %server.spec().task, "serving");
         self.envs.push(ServedEnv {
             server: server.clone(),

@@ -522,8 +522,7 @@ where
         // An unreachable endpoint is an error naming it, not an empty deployment.
         let session = config
             .open_reaching(offworld_runtime::session::REACH_WITHIN)
-            .await
-            .map_err(|e| WireError::new(offworld_runtime::ErrorCode::Unavailable, e.to_string()))?;
+            .await?;
         let answer = work(session.clone()).await;
         let _ = session.close().await;
         answer

@@ -201,3 +201,19 @@ impl From<zenoh::Error> for ContractError {
         ContractError::Zenoh(e.to_string())
     }
 }
+
+/// A contract failure as a caller sees it: what it asked for is malformed
+/// (`BadRequest`), or the deployment cannot be reached (`Unavailable`,
+/// transient: worth trying again).
+impl From<ContractError> for WireError {
+    fn from(e: ContractError) -> Self {
+        let code = match e {
+            ContractError::InvalidEnvId(_)
+            | ContractError::InvalidRosName(_)
+            | ContractError::InvalidResolution(_)
+            | ContractError::Config(_) => ErrorCode::BadRequest,
+            ContractError::Zenoh(_) | ContractError::Unreachable { .. } => ErrorCode::Unavailable,
+        };
+        WireError::new(code, e.to_string())
+    }
+}

@@ -308,9 +308,7 @@ impl EnvServer {
         let link = RobotLink::connect(session, &env, options.timeouts, seals).await?;
         let estops = EnvEStops::follow(session, &env).await?;
         // Spectators' view: a slow one must never stall a step.
-        let events = wire::publisher(session, env.key(Topic::Reward), Delivery::Latest)
-            .await
-            .map_err(|e| crate::ControllerError::Zenoh(e.to_string()))?;
+        let events = wire::publisher(session, env.key(Topic::Reward), Delivery::Latest).await?;
         let recorder = match record {
             Some(dir) => {
                 let sim = env.realm() == offworld_runtime::Realm::Sim;
