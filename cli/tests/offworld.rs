@@ -2,13 +2,15 @@
 //! project's programs, each with its own flags, version and help, and the
 //! exit status and messages of the program it runs.
 
-use std::path::PathBuf;
-use std::process::{Command, Output};
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
 
 use offworld_env_controller::Store;
 use offworld_test_support::ScratchDir;
 
-const SUBCOMMANDS: [&str; 15] = [
+const SUBCOMMANDS: [&str; 16] = [
     "serve",
     "users",
     "experiments",
@@ -17,6 +19,7 @@ const SUBCOMMANDS: [&str; 15] = [
     "twin",
     "emulate-hardware",
     "emulate-enclosure",
+    "farm",
     "robot",
     "guard",
     "tracker",
@@ -163,6 +166,55 @@ fn the_farm_runs_a_command_with_the_trainer_environment() {
     let said = text(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{said}");
     assert!(said.contains("0 is not in 1..=64"), "{said}");
+}
+
+/// A stop signal while a command runs against the farm stops the command
+/// and the farm with it (exit 130): no router, twin or file is left behind.
+#[test]
+fn a_stopped_farm_takes_its_command_and_processes_down() {
+    let mut farm = Command::new(env!("CARGO_BIN_EXE_offworld"))
+        .args(["farm", "--twins", "1", "--", "sh", "-c"])
+        .arg("echo \"$OFFWORLD_ZENOH_CONFIG\"; exec sleep 60")
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("offworld runs");
+    let mut role_file = String::new();
+    std::io::BufReader::new(farm.stdout.take().expect("piped"))
+        .read_line(&mut role_file)
+        .expect("the command's first line");
+    let site = Path::new(role_file.trim())
+        .parent()
+        .and_then(Path::parent)
+        .expect("<site>/roles/trainer.json5")
+        .to_owned();
+    assert!(site.is_dir(), "{}", site.display());
+    let pid = farm.id().to_string();
+    let status = Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .expect("kill");
+    assert!(status.success());
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let status = loop {
+        if let Some(status) = farm.try_wait().expect("wait") {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "the farm did not stop");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.code(), Some(130));
+    assert!(!site.exists(), "the farm's files are removed");
+    let children = Command::new("pgrep")
+        .args(["-f", &site.to_string_lossy()])
+        .output()
+        .expect("pgrep");
+    assert_eq!(
+        text(&children.stdout),
+        "",
+        "no process of the farm is left (router, twin, gym server)"
+    );
 }
 
 #[test]

@@ -10,12 +10,20 @@ pub mod hardware;
 pub mod serve;
 
 use std::process::ExitCode;
+use std::time::Duration;
 
 use anyhow::Context;
 
+use crate::process::Process;
+
+/// How long a command told to stop (SIGTERM) has before it is killed.
+const COMMAND_STOP_LIMIT: Duration = Duration::from_secs(5);
+
 /// Runs `command` (program and arguments, non-empty) with `environment`
 /// added, while the caller's deployment keeps serving; its exit status
-/// becomes this program's (a failure is said on standard error).
+/// becomes this program's (a failure is said on standard error). A stop
+/// signal (Ctrl-C, SIGTERM) ends the command too and returns 130, so the
+/// caller takes its deployment down instead of dying and leaving it behind.
 async fn run_against(
     command: &[String],
     environment: Vec<(String, String)>,
@@ -23,11 +31,30 @@ async fn run_against(
     let Some((program, rest)) = command.split_first() else {
         anyhow::bail!("no command to run");
     };
-    let mut child = std::process::Command::new(program);
-    child.args(rest).envs(environment);
-    let status = tokio::task::spawn_blocking(move || child.status())
-        .await?
-        .with_context(|| format!("running {program}"))?;
+    let mut child = Process(
+        std::process::Command::new(program)
+            .args(rest)
+            .envs(environment)
+            .spawn()
+            .with_context(|| format!("running {program}"))?,
+    );
+    let stop = offworld_runtime::shutdown::signalled();
+    tokio::pin!(stop);
+    let status = loop {
+        if let Some(status) = child.0.try_wait()? {
+            break status;
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(Duration::from_millis(50)) => {}
+            signal = &mut stop => {
+                child.signal("TERM");
+                child.wait_exit(COMMAND_STOP_LIMIT);
+                let signal = signal.map_or_else(|e| e.to_string(), |s| s.to_string());
+                eprintln!("stopped ({signal}): {program} was stopped too");
+                return Ok(ExitCode::from(130));
+            }
+        }
+    };
     if status.success() {
         return Ok(ExitCode::SUCCESS);
     }
