@@ -83,6 +83,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.num_envs < 1 or args.iterations < 1 or args.steps_per_iteration < 1:
         parser.error("--num-envs, --iterations and --steps-per-iteration must be at least 1")
+    if args.resolution[0] < GRID[0] or args.resolution[1] < GRID[1]:
+        parser.error(f"--resolution must be at least {GRID[0]} {GRID[1]} (the policy pools the image to that grid)")
 
     options = {"env_id": args.env_id} if args.env_id else {}
     envs = gymnasium.make_vec(
