@@ -1,6 +1,6 @@
 //! A sim farm behind the site's router: sim twin processes (agent role,
-//! 84×84) under `sim/<name>-<i>` and one gym server process (controller
-//! role) serving them all, with one registered user — what a lab runs to
+//! 84×84) under `sim/<name>-<i>` and one gym server process (the sim-farm
+//! controller role, confined to `sim/`) serving them all, with one registered user — what a lab runs to
 //! give researchers many simulated enclosures through one router.
 
 use std::path::Path;
@@ -75,7 +75,7 @@ impl SimFarm {
             serve.push(format!("{env}={task}"));
         }
         let serve: Vec<&str> = serve.iter().map(String::as_str).collect();
-        processes.push(site.spawn(Role::Controller, &serve)?);
+        processes.push(site.spawn(Role::SimController, &serve)?);
         Ok(Self {
             _processes: processes,
             site,

@@ -132,14 +132,21 @@ fn json_string(s: &str) -> String {
     serde_json::to_string(s).unwrap_or_else(|_| format!("\"{s}\""))
 }
 
+/// zenohd's access-control module (a macro: [`SITE_LOG`] is built from it).
+macro_rules! acl_log_target {
+    () => {
+        "zenoh::net::routing::interceptor::access_control"
+    };
+}
+
 /// zenohd's access-control module: its decisions are logged at trace level.
-pub const ACL_LOG_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+pub const ACL_LOG_TARGET: &str = acl_log_target!();
 
 /// The log filter of the router and the components (`ZENOHD_LOG` overrides
 /// the router's): warnings, except the access-control module's warning on
 /// every link that rules naming network interfaces may misapply
 /// (eclipse-zenoh/zenoh#1204): the deployment's rules name none.
-pub const SITE_LOG: &str = "warn,zenoh::net::routing::interceptor::access_control=error";
+pub const SITE_LOG: &str = concat!("warn,", acl_log_target!(), "=error");
 
 /// Where a namespaced site runs: network namespaces made beforehand (`ip
 /// netns add`; needs CAP_NET_ADMIN), the router reachable from this host
@@ -202,7 +209,6 @@ impl RouterSite {
             std::process::id(),
             offworld_runtime::keys::random_id()
         ));
-        std::fs::create_dir_all(dir.join("roles"))?;
         let mut site = match &namespaced {
             None => {
                 let trainer = format!("quic/127.0.0.2:{}", free_loopback_port("127.0.0.2")?);
@@ -232,7 +238,8 @@ impl RouterSite {
                 namespaced,
             },
         };
-        // From here on `site` owns the directory: an error removes it.
+        // Made once `site` owns it: an error from here on removes it.
+        std::fs::create_dir_all(site.dir.join("roles"))?;
         let san = site
             .namespaced
             .as_ref()

@@ -56,7 +56,7 @@ impl From<ControllerError> for WireError {
             ControllerError::Config(m) => WireError::bad_request(m),
             ControllerError::Busy(m) => WireError::busy(m),
             ControllerError::Unauthorized(m) => WireError::unauthorized(m),
-            // Store and Zenoh details stay in the server log.
+            // Store details stay in the server log; a Zenoh refusal is named.
             ControllerError::Store(m) => {
                 tracing::error!("store failure: {m}");
                 WireError::internal("the experiment store failed; the episode was not recorded")
