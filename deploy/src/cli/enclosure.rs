@@ -89,27 +89,19 @@ async fn emulate(args: Args) -> anyhow::Result<ExitCode> {
     );
     eprintln!("  gym server:   {}", deployment.endpoint);
     eprintln!("  robot router: {}", deployment.robot_endpoint);
-    eprintln!("  OFFWORLD_GYM_CONNECT={}", deployment.endpoint);
-    eprintln!("  OFFWORLD_GYM_ACCESS_TOKEN={}", deployment.token);
-    eprintln!("  OFFWORLD_OPERATOR_TOKEN={}", deployment.operator_token);
+    let environment = [
+        ("OFFWORLD_GYM_CONNECT", &deployment.endpoint),
+        ("OFFWORLD_GYM_ACCESS_TOKEN", &deployment.token),
+        ("OFFWORLD_OPERATOR_TOKEN", &deployment.operator_token),
+    ]
+    .map(|(key, value)| (key.to_owned(), value.clone()));
+    for (key, value) in &environment {
+        eprintln!("  {key}={value}");
+    }
     if args.command.is_empty() {
         eprintln!("Ctrl-C to stop");
         offworld_runtime::shutdown::signalled().await?;
         return Ok(ExitCode::SUCCESS);
     }
-    let environment = vec![
-        (
-            "OFFWORLD_GYM_CONNECT".to_owned(),
-            deployment.endpoint.clone(),
-        ),
-        (
-            "OFFWORLD_GYM_ACCESS_TOKEN".to_owned(),
-            deployment.token.clone(),
-        ),
-        (
-            "OFFWORLD_OPERATOR_TOKEN".to_owned(),
-            deployment.operator_token.clone(),
-        ),
-    ];
-    super::run_against(&args.command, environment).await
+    super::run_against(&args.command, environment.to_vec()).await
 }
