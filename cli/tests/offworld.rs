@@ -204,17 +204,80 @@ fn a_stopped_farm_takes_its_command_and_processes_down() {
         assert!(Instant::now() < deadline, "the farm did not stop");
         std::thread::sleep(Duration::from_millis(50));
     };
-    assert_eq!(status.code(), Some(130));
-    assert!(!site.exists(), "the farm's files are removed");
-    let children = Command::new("pgrep")
-        .args(["-f", &site.to_string_lossy()])
-        .output()
-        .expect("pgrep");
     assert_eq!(
-        text(&children.stdout),
+        status.code(),
+        Some(128 + 15),
+        "a shell's status for SIGTERM"
+    );
+    assert!(!site.exists(), "the farm's files are removed");
+    assert_eq!(
+        processes_naming(&site),
         "",
         "no process of the farm is left (router, twin, gym server)"
     );
+}
+
+/// The processes whose command line names `dir` (`pgrep -f`), one a line.
+fn processes_naming(dir: &Path) -> String {
+    let found = Command::new("pgrep")
+        .args(["-a", "-f", &dir.to_string_lossy()])
+        .output()
+        .expect("pgrep");
+    text(&found.stdout)
+}
+
+#[test]
+fn a_farm_stopped_while_starting_leaves_nothing_behind() {
+    // The site's directory and every process's files live under TMPDIR.
+    let scratch = ScratchDir::new("cli-farm-start");
+    let mut farm = Command::new(env!("CARGO_BIN_EXE_offworld"))
+        .args(["farm", "--twins", "2", "--", "true"])
+        .env("RUST_LOG", "warn")
+        .env("TMPDIR", scratch.path())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("offworld runs");
+    // Stopped once the gym server, the last process it starts, is running:
+    // the farm is then waiting for everything to come up.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !processes_naming(scratch.path()).contains(" serve") {
+        assert!(farm.try_wait().expect("wait").is_none(), "the farm exited");
+        assert!(Instant::now() < deadline, "the gym server never started");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let pid = farm.id().to_string();
+    assert!(Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .expect("kill")
+        .success());
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let status = loop {
+        if let Some(status) = farm.try_wait().expect("wait") {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "the farm did not stop");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut farm.stderr.take().expect("piped"), &mut stderr)
+        .expect("stderr");
+    assert_eq!(status.code(), Some(128 + 15), "{stderr}");
+    assert!(
+        stderr.contains("stopped (SIGTERM) while starting"),
+        "{stderr}"
+    );
+    assert_eq!(
+        processes_naming(scratch.path()),
+        "",
+        "router, twins, gym server"
+    );
+    let left: Vec<_> = std::fs::read_dir(scratch.path())
+        .expect("scratch")
+        .map(|entry| entry.expect("entry").path())
+        .collect();
+    assert!(left.is_empty(), "the farm's files are removed: {left:?}");
 }
 
 #[test]

@@ -13,6 +13,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
+use offworld_runtime::shutdown::ShutdownSignals;
 
 use crate::enclosure::{Enclosure, Options};
 
@@ -72,17 +73,24 @@ async fn emulate(args: Args) -> anyhow::Result<ExitCode> {
         ),
         None => None,
     };
+    // Before anything starts: a stop during the start is answered.
+    let mut signals = ShutdownSignals::install()?;
     eprintln!(
         "starting the emulated enclosure {} ({})…",
         options.env, args.task
     );
     let deployment = Enclosure::start(&options)
         .context("starting the deployment (is `zenohd` on PATH? `.ci/setup` installs it)")?;
-    deployment
-        .ready(READY_LIMIT)
-        .await
-        .map_err(anyhow::Error::msg)
-        .context("the deployment did not come up")?;
+    let ready = async {
+        deployment
+            .ready(READY_LIMIT)
+            .await
+            .map_err(anyhow::Error::msg)
+            .context("the deployment did not come up")
+    };
+    if let Err(stopped) = super::ready_or_stopped(&mut signals, ready).await? {
+        return Ok(stopped);
+    }
     eprintln!(
         "emulated enclosure {} serving {}",
         deployment.env, args.task
@@ -100,8 +108,9 @@ async fn emulate(args: Args) -> anyhow::Result<ExitCode> {
     }
     if args.command.is_empty() {
         eprintln!("Ctrl-C to stop");
-        offworld_runtime::shutdown::signalled().await?;
+        let signal = signals.recv().await;
+        eprintln!("stopped ({signal})");
         return Ok(ExitCode::SUCCESS);
     }
-    super::run_against(&args.command, environment.to_vec()).await
+    super::run_against(&mut signals, &args.command, environment.to_vec()).await
 }

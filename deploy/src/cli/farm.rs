@@ -13,6 +13,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
+use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_sim_twin::TwinProfile;
 
 use crate::farm::SimFarm;
@@ -76,6 +77,8 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
         }
         None => None,
     };
+    // Before anything starts: a stop during the start is answered.
+    let mut signals = ShutdownSignals::install()?;
     eprintln!(
         "starting a sim farm of {} twins ({})…",
         args.twins, args.task
@@ -90,9 +93,14 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
         profile.as_deref(),
     )
     .context("starting the farm")?;
-    farm.ready(READY_LIMIT)
-        .await
-        .context("the farm did not come up")?;
+    let ready = async {
+        farm.ready(READY_LIMIT)
+            .await
+            .context("the farm did not come up")
+    };
+    if let Err(stopped) = super::ready_or_stopped(&mut signals, ready).await? {
+        return Ok(stopped);
+    }
     let envs: Vec<String> = farm.envs.iter().map(ToString::to_string).collect();
     let mut environment = farm.trainer_env();
     environment.push(("OFFWORLD_FARM_ENVS".to_owned(), envs.join(",")));
@@ -107,8 +115,9 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
         out.flush()?;
         drop(out);
         eprintln!("Ctrl-C to stop");
-        offworld_runtime::shutdown::signalled().await?;
+        let signal = signals.recv().await;
+        eprintln!("stopped ({signal})");
         return Ok(ExitCode::SUCCESS);
     }
-    super::run_against(&args.command, environment).await
+    super::run_against(&mut signals, &args.command, environment).await
 }

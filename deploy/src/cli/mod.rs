@@ -9,22 +9,59 @@ pub mod farm;
 pub mod hardware;
 pub mod serve;
 
+use std::future::Future;
+use std::os::unix::process::ExitStatusExt;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
+use offworld_runtime::shutdown::{ShutdownSignal, ShutdownSignals};
 
 use crate::process::Process;
 
-/// How long a command told to stop (SIGTERM) has before it is killed.
+/// How long a command told to stop has before it is killed.
 const COMMAND_STOP_LIMIT: Duration = Duration::from_secs(5);
+
+/// A signal's name for `kill` and the exit status a shell gives for it
+/// (128 + its number).
+fn signal_name_and_status(signal: ShutdownSignal) -> (&'static str, u8) {
+    match signal {
+        ShutdownSignal::Interrupt => ("INT", 128 + 2),
+        ShutdownSignal::Terminate => ("TERM", 128 + 15),
+        ShutdownSignal::Hangup => ("HUP", 128 + 1),
+    }
+}
+
+/// Waits for a deployment to come up (`ready`) unless a stop signal comes
+/// first. The caller installed `signals` before starting anything, so a
+/// stop during the start (certificates, router, the ready wait) is kept and
+/// answered here: `Err` carries the exit status, and the caller, returning
+/// it, takes down what it started instead of dying and leaving it behind.
+async fn ready_or_stopped<T>(
+    signals: &mut ShutdownSignals,
+    ready: impl Future<Output = anyhow::Result<T>>,
+) -> anyhow::Result<Result<T, ExitCode>> {
+    tokio::select! {
+        ready = ready => ready.map(Ok),
+        signal = signals.recv() => {
+            eprintln!("stopped ({signal}) while starting");
+            Ok(Err(ExitCode::from(signal_name_and_status(signal).1)))
+        }
+    }
+}
 
 /// Runs `command` (program and arguments, non-empty) with `environment`
 /// added, while the caller's deployment keeps serving; its exit status
-/// becomes this program's (a failure is said on standard error). A stop
-/// signal (Ctrl-C, SIGTERM) ends the command too and returns 130, so the
-/// caller takes its deployment down instead of dying and leaving it behind.
+/// becomes this program's (a failure is said on standard error; a command
+/// killed by a signal gives 128 + its number, as a shell does). A stop
+/// signal (Ctrl-C, SIGTERM, SIGHUP) is passed on to the command, which is
+/// killed if it has not exited within 5 s, and gives 128 + the signal's
+/// number, so the caller takes its deployment down instead of dying and
+/// leaving it behind. The signal reaches the command alone, not processes
+/// it started (it shares this program's terminal and process group, so
+/// Ctrl-C at a terminal reaches them all anyway).
 async fn run_against(
+    signals: &mut ShutdownSignals,
     command: &[String],
     environment: Vec<(String, String)>,
 ) -> anyhow::Result<ExitCode> {
@@ -38,20 +75,18 @@ async fn run_against(
             .spawn()
             .with_context(|| format!("running {program}"))?,
     );
-    let stop = offworld_runtime::shutdown::signalled();
-    tokio::pin!(stop);
     let status = loop {
         if let Some(status) = child.0.try_wait()? {
             break status;
         }
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_millis(50)) => {}
-            signal = &mut stop => {
-                child.signal("TERM");
+            signal = signals.recv() => {
+                let (name, status) = signal_name_and_status(signal);
+                child.signal(name);
                 child.wait_exit(COMMAND_STOP_LIMIT);
-                let signal = signal.map_or_else(|e| e.to_string(), |s| s.to_string());
                 eprintln!("stopped ({signal}): {program} was stopped too");
-                return Ok(ExitCode::from(130));
+                return Ok(ExitCode::from(status));
             }
         }
     };
@@ -59,7 +94,10 @@ async fn run_against(
         return Ok(ExitCode::SUCCESS);
     }
     eprintln!("{program} failed: {status}");
-    Ok(ExitCode::from(
-        status.code().unwrap_or(1).clamp(1, 255) as u8
-    ))
+    let code = match (status.code(), status.signal()) {
+        (Some(code), _) => code.clamp(1, 255),
+        (None, Some(signal)) => (128 + signal).min(255),
+        (None, None) => 1,
+    };
+    Ok(ExitCode::from(code as u8))
 }
