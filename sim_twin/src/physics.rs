@@ -173,6 +173,14 @@ impl RobotPhysics {
         let mut world = PhysicsWorld::new();
         world.gravity = Vector::new(0.0, 0.0, -9.81);
         world.integration_parameters.dt = DT;
+        // One body, driven by a velocity servo and sliding against static
+        // boxes: one solver iteration per substep holds it outside walls and
+        // boulders (`tests/physics.rs`) at 64 % of rapier's default four's
+        // instructions (docs/performance.md, "The twin's physics"). Its
+        // speed (≤ 0.7 m/s, ~1 cm a substep) cannot tunnel through a 10 cm
+        // wall or a boulder, so continuous collision detection is off.
+        world.integration_parameters.num_solver_iterations = 1;
+        world.integration_parameters.max_ccd_substeps = 0;
         for b in &self.scene_boxes {
             let [hx, hy, hz] = b.half_extents();
             let [x, y, z] = b.center();
