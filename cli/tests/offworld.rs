@@ -169,7 +169,8 @@ fn the_farm_runs_a_command_with_the_trainer_environment() {
 }
 
 /// A stop signal while a command runs against the farm stops the command
-/// and the farm with it (exit 130): no router, twin or file is left behind.
+/// and the farm with it (exit 128 + 15, as a shell gives for SIGTERM): no
+/// router, twin or file is left behind.
 #[test]
 fn a_stopped_farm_takes_its_command_and_processes_down() {
     let mut farm = Command::new(env!("CARGO_BIN_EXE_offworld"))

@@ -4,12 +4,12 @@
 
 mod convert;
 mod errors;
+mod live_monitor;
 
 use std::sync::OnceLock;
 
 use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_deploy::{Connection, Target, TwinProfile};
-use offworld_monitor::{Monitor, MonitorConfig, MonitorHandle, Scope, Sink};
 use offworld_runtime::msg::{ActionSpace, Channels, OpenRequest, Seed};
 use offworld_runtime::{EnvId, Resolution, SessionConfig, WireError};
 use pyo3::exceptions::PyValueError;
@@ -132,7 +132,7 @@ struct NativeEnvs {
     /// The access token the envs were opened with (for `experiments`).
     token: String,
     // Closed after the clients so the recording sees the last episode end.
-    monitor: Option<MonitorHandle>,
+    monitor: Option<live_monitor::Handle>,
     // Dropped after the clients: keeps an embedded deployment alive.
     connection: Connection,
 }
@@ -192,10 +192,7 @@ impl NativeEnvs {
         }
         let obs = convert::obs_options(channels, height, width, &depth_format)?;
         let wait = convert::wait(wait_s)?;
-        let sink = rerun
-            .map(|s| s.parse::<Sink>())
-            .transpose()
-            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let sink = rerun.as_deref().map(live_monitor::parse_sink).transpose()?;
         let request = OpenRequest {
             token: token.clone(),
             client_id: String::new(),
@@ -257,15 +254,11 @@ impl NativeEnvs {
         // Watching starts before the envs open, so the recording holds every episode.
         let monitor = sink
             .map(|sink| {
-                let config = MonitorConfig::new(sink).scope(Scope::Envs(connection.envs.clone()));
-                let session = connection.session.clone();
-                block_on_pool(py, move || Monitor::spawn(&session, config))
+                let (session, envs) = (connection.session.clone(), connection.envs.clone());
+                block_on_pool(py, move || live_monitor::start(&session, envs, sink))
             })
             .transpose()
-            .and_then(|m| {
-                m.transpose()
-                    .map_err(|e| errors::local(format!("monitor: {e}")))
-            });
+            .and_then(Option::transpose);
         // On a failure (or Ctrl-C) from here on, what is open is dropped in
         // the background: closing a session or a recording waits on the network.
         let monitor = match monitor {
@@ -486,8 +479,7 @@ impl NativeEnvs {
         let envs = &mut self.envs;
         let closed = block_on_interruptibly(py, envs.close())?.map_err(errors::to_py);
         if let Some(monitor) = self.monitor.take() {
-            block_on_pool(py, move || monitor.shutdown())?
-                .map_err(|e| errors::local(format!("monitor: {e}")))?;
+            block_on_pool(py, move || live_monitor::finish(monitor))??;
         }
         closed
     }

@@ -177,8 +177,10 @@ impl RobotPhysics {
         // boxes: one solver iteration per substep holds it outside walls and
         // boulders (`tests/physics.rs`) at 64 % of rapier's default four's
         // instructions (docs/performance.md, "The twin's physics"). Its
-        // speed (≤ 0.7 m/s, ~1 cm a substep) cannot tunnel through a 10 cm
-        // wall or a boulder, so continuous collision detection is off.
+        // speeds (≤ 0.7 m/s driving, ~1 cm a substep; a settle after a
+        // reset drops it millimetres) cannot tunnel through a 10 cm wall or
+        // a boulder, and the terrain is not a collider (the wheel rays), so
+        // continuous collision detection is off.
         world.integration_parameters.num_solver_iterations = 1;
         world.integration_parameters.max_ccd_substeps = 0;
         for b in &self.scene_boxes {

@@ -79,18 +79,20 @@ async fn emulate(args: Args) -> anyhow::Result<ExitCode> {
         "starting the emulated enclosure {} ({})…",
         options.env, args.task
     );
-    let deployment = Enclosure::start(&options)
-        .context("starting the deployment (is `zenohd` on PATH? `.ci/setup` installs it)")?;
-    let ready = async {
+    let start = async {
+        let deployment = Enclosure::start(&options)
+            .context("starting the deployment (is `zenohd` on PATH? `.ci/setup` installs it)")?;
         deployment
             .ready(READY_LIMIT)
             .await
             .map_err(anyhow::Error::msg)
-            .context("the deployment did not come up")
+            .context("the deployment did not come up")?;
+        Ok(deployment)
     };
-    if let Err(stopped) = super::ready_or_stopped(&mut signals, ready).await? {
-        return Ok(stopped);
-    }
+    let deployment = match super::started_unless_stopped(&mut signals, start).await? {
+        Ok(deployment) => deployment,
+        Err(stopped) => return Ok(stopped),
+    };
     eprintln!(
         "emulated enclosure {} serving {}",
         deployment.env, args.task

@@ -83,24 +83,26 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
         "starting a sim farm of {} twins ({})…",
         args.twins, args.task
     );
-    let site = RouterSite::start(FARM_NAME)
-        .context("starting the router (is `zenohd` on PATH? `.ci/setup` installs it)")?;
-    let farm = SimFarm::start_profiled(
-        site,
-        FARM_NAME,
-        usize::from(args.twins),
-        &args.task,
-        profile.as_deref(),
-    )
-    .context("starting the farm")?;
-    let ready = async {
+    let start = async {
+        let site = RouterSite::start(FARM_NAME)
+            .context("starting the router (is `zenohd` on PATH? `.ci/setup` installs it)")?;
+        let farm = SimFarm::start_profiled(
+            site,
+            FARM_NAME,
+            usize::from(args.twins),
+            &args.task,
+            profile.as_deref(),
+        )
+        .context("starting the farm")?;
         farm.ready(READY_LIMIT)
             .await
-            .context("the farm did not come up")
+            .context("the farm did not come up")?;
+        Ok(farm)
     };
-    if let Err(stopped) = super::ready_or_stopped(&mut signals, ready).await? {
-        return Ok(stopped);
-    }
+    let farm = match super::started_unless_stopped(&mut signals, start).await? {
+        Ok(farm) => farm,
+        Err(stopped) => return Ok(stopped),
+    };
     let envs: Vec<String> = farm.envs.iter().map(ToString::to_string).collect();
     let mut environment = farm.trainer_env();
     environment.push(("OFFWORLD_FARM_ENVS".to_owned(), envs.join(",")));

@@ -22,6 +22,16 @@ use crate::process::Process;
 /// How long a command told to stop has before it is killed.
 const COMMAND_STOP_LIMIT: Duration = Duration::from_secs(5);
 
+/// How long a signal that has just arrived may take to be seen: the
+/// runtime reads it from its signal pipe, not at once.
+const SIGNAL_GRACE: Duration = Duration::from_millis(200);
+
+/// How long a command has to stop on its own after Ctrl-C, which a terminal
+/// sends to the whole process group (the command too) before this program
+/// passes it on: a Python trainer would otherwise get a second
+/// `KeyboardInterrupt` in the middle of its cleanup.
+const INTERRUPT_GRACE: Duration = Duration::from_secs(1);
+
 /// A signal's name for `kill` and the exit status a shell gives for it
 /// (128 + its number).
 fn signal_name_and_status(signal: ShutdownSignal) -> (&'static str, u8) {
@@ -32,21 +42,33 @@ fn signal_name_and_status(signal: ShutdownSignal) -> (&'static str, u8) {
     }
 }
 
-/// Waits for a deployment to come up (`ready`) unless a stop signal comes
-/// first. The caller installed `signals` before starting anything, so a
-/// stop during the start (certificates, router, the ready wait) is kept and
-/// answered here: `Err` carries the exit status, and the caller, returning
-/// it, takes down what it started instead of dying and leaving it behind.
-async fn ready_or_stopped<T>(
+/// Starts a deployment (`start`: its processes, then the wait until it
+/// serves) unless a stop signal comes first. The caller installed
+/// `signals` before, so a stop during the start is kept and answered here:
+/// `Err` carries the exit status (128 + the signal's number), and what was
+/// started is dropped, so taken down, instead of this program dying and
+/// leaving it behind. A start that fails just after a stop (Ctrl-C at a
+/// terminal reaches the router and the other children too) is reported as
+/// the stop.
+async fn started_unless_stopped<T>(
     signals: &mut ShutdownSignals,
-    ready: impl Future<Output = anyhow::Result<T>>,
+    start: impl Future<Output = anyhow::Result<T>>,
 ) -> anyhow::Result<Result<T, ExitCode>> {
-    tokio::select! {
-        ready = ready => ready.map(Ok),
-        signal = signals.recv() => {
-            eprintln!("stopped ({signal}) while starting");
-            Ok(Err(ExitCode::from(signal_name_and_status(signal).1)))
-        }
+    let stopped = |signal: ShutdownSignal| {
+        eprintln!("stopped ({signal}) while starting");
+        Ok(Err(ExitCode::from(signal_name_and_status(signal).1)))
+    };
+    let started = tokio::select! {
+        biased;
+        signal = signals.recv() => return stopped(signal),
+        started = start => started,
+    };
+    match started {
+        Ok(deployment) => Ok(Ok(deployment)),
+        Err(e) => match tokio::time::timeout(SIGNAL_GRACE, signals.recv()).await {
+            Ok(signal) => stopped(signal),
+            Err(_) => Err(e),
+        },
     }
 }
 
@@ -57,9 +79,11 @@ async fn ready_or_stopped<T>(
 /// signal (Ctrl-C, SIGTERM, SIGHUP) is passed on to the command, which is
 /// killed if it has not exited within 5 s, and gives 128 + the signal's
 /// number, so the caller takes its deployment down instead of dying and
-/// leaving it behind. The signal reaches the command alone, not processes
-/// it started (it shares this program's terminal and process group, so
-/// Ctrl-C at a terminal reaches them all anyway).
+/// leaving it behind (Ctrl-C, which a terminal sends to the command too, is
+/// passed on only if the command has not exited 1 s later). The signal
+/// reaches the command alone, not processes it started (it shares this
+/// program's terminal and process group, so Ctrl-C at a terminal reaches
+/// them all anyway).
 async fn run_against(
     signals: &mut ShutdownSignals,
     command: &[String],
@@ -83,8 +107,12 @@ async fn run_against(
             _ = tokio::time::sleep(Duration::from_millis(50)) => {}
             signal = signals.recv() => {
                 let (name, status) = signal_name_and_status(signal);
-                child.signal(name);
-                child.wait_exit(COMMAND_STOP_LIMIT);
+                let exited = signal == ShutdownSignal::Interrupt
+                    && child.wait_exit(INTERRUPT_GRACE).is_some();
+                if !exited {
+                    child.signal(name);
+                    child.wait_exit(COMMAND_STOP_LIMIT);
+                }
                 eprintln!("stopped ({signal}): {program} was stopped too");
                 return Ok(ExitCode::from(status));
             }

@@ -92,7 +92,8 @@ def resolve(
     ``rerun``: stream the envs to the rerun viewer while they run — a
     ``.rrd`` path (complete after ``close()``), a viewer URL such as
     ``rerun+http://127.0.0.1:9876/proxy``, or ``serve``/``serve:<ip>:<port>``
-    to host a server viewers connect to.
+    to host a server viewers connect to. The demo's lean build has no
+    monitor and refuses it (``BadRequest``, saying how to get the full one).
 
     ``record``: a directory where every episode of the embedded envs is
     recorded as an MCAP file (``docs/recording.md``); a deployment's
