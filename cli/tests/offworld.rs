@@ -191,20 +191,7 @@ fn a_stopped_farm_takes_its_command_and_processes_down() {
         .expect("<site>/roles/trainer.json5")
         .to_owned();
     assert!(site.is_dir(), "{}", site.display());
-    let pid = farm.id().to_string();
-    let status = Command::new("kill")
-        .args(["-TERM", &pid])
-        .status()
-        .expect("kill");
-    assert!(status.success());
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let status = loop {
-        if let Some(status) = farm.try_wait().expect("wait") {
-            break status;
-        }
-        assert!(Instant::now() < deadline, "the farm did not stop");
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let status = terminate(&mut farm);
     assert_eq!(
         status.code(),
         Some(128 + 15),
@@ -216,6 +203,21 @@ fn a_stopped_farm_takes_its_command_and_processes_down() {
         "",
         "no process of the farm is left (router, twin, gym server)"
     );
+}
+
+/// Sends `farm` SIGTERM and waits (bounded) for it to exit.
+fn terminate(farm: &mut std::process::Child) -> std::process::ExitStatus {
+    let pid = farm.id().to_string();
+    let sent = Command::new("kill").args(["-TERM", &pid]).status();
+    assert!(sent.expect("kill").success());
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Some(status) = farm.try_wait().expect("wait") {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "the farm did not stop");
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
 
 /// The processes whose command line names `dir` (`pgrep -f`), one a line.
@@ -247,20 +249,7 @@ fn a_farm_stopped_while_starting_leaves_nothing_behind() {
         assert!(Instant::now() < deadline, "the gym server never started");
         std::thread::sleep(Duration::from_millis(20));
     }
-    let pid = farm.id().to_string();
-    assert!(Command::new("kill")
-        .args(["-TERM", &pid])
-        .status()
-        .expect("kill")
-        .success());
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let status = loop {
-        if let Some(status) = farm.try_wait().expect("wait") {
-            break status;
-        }
-        assert!(Instant::now() < deadline, "the farm did not stop");
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let status = terminate(&mut farm);
     let mut stderr = String::new();
     std::io::Read::read_to_string(&mut farm.stderr.take().expect("piped"), &mut stderr)
         .expect("stderr");
