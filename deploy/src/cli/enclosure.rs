@@ -108,11 +108,5 @@ async fn emulate(args: Args) -> anyhow::Result<ExitCode> {
     for (key, value) in &environment {
         eprintln!("  {key}={value}");
     }
-    if args.command.is_empty() {
-        eprintln!("Ctrl-C to stop");
-        let signal = signals.recv().await;
-        eprintln!("stopped ({signal})");
-        return Ok(ExitCode::SUCCESS);
-    }
-    super::run_against(&mut signals, &args.command, environment.to_vec()).await
+    super::serve_or_run(&mut signals, &args.command, environment.to_vec()).await
 }

@@ -116,10 +116,6 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
         }
         out.flush()?;
         drop(out);
-        eprintln!("Ctrl-C to stop");
-        let signal = signals.recv().await;
-        eprintln!("stopped ({signal})");
-        return Ok(ExitCode::SUCCESS);
     }
-    super::run_against(&mut signals, &args.command, environment).await
+    super::serve_or_run(&mut signals, &args.command, environment).await
 }

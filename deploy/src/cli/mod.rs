@@ -72,6 +72,23 @@ async fn started_unless_stopped<T>(
     }
 }
 
+/// What a started deployment does next: serves until a stop signal (a
+/// normal end: exit 0) when `command` is empty, else runs it against the
+/// deployment ([`run_against`]).
+async fn serve_or_run(
+    signals: &mut ShutdownSignals,
+    command: &[String],
+    environment: Vec<(String, String)>,
+) -> anyhow::Result<ExitCode> {
+    if command.is_empty() {
+        eprintln!("Ctrl-C to stop");
+        let signal = signals.recv().await;
+        eprintln!("stopped ({signal})");
+        return Ok(ExitCode::SUCCESS);
+    }
+    run_against(signals, command, environment).await
+}
+
 /// Runs `command` (program and arguments, non-empty) with `environment`
 /// added, while the caller's deployment keeps serving; its exit status
 /// becomes this program's (a failure is said on standard error; a command
