@@ -20,8 +20,10 @@ Examples:
   offworld --db site.db users add alice                                   # prints alice's token once
   offworld estop --env real/monolith-0 --reason \"person inside\"           # stop a robot
   offworld web --http 0.0.0.0:8080                                        # the lab's web page
+  offworld gym envs --connect quic/router.example:7447                    # a deployment's envs, as a trainer
+  offworld gym book --env real/monolith-0 --start 2026-12-01T14:00 --minutes 60
 
-Python: `python -m offworld_gym envs | whoami | bookings`; docs: README.md";
+`offworld gym …` is `python -m offworld_gym …`; docs: README.md";
 
 /// OffWorld Gym on Zenoh: serve envs, run twins and robots, watch, record
 /// and administer a site.
@@ -72,6 +74,10 @@ enum Command {
     Parity(offworld_parity::cli::Args),
     /// Serve the lab's web page (`lab_web`).
     Web(offworld_web::cli::Args),
+    /// A trainer's view of a deployment: envs, bookings, who you are, your
+    /// experiments and episodes, the leaderboard (`python -m offworld_gym`).
+    #[command(after_help = offworld_client::cli::EXAMPLES)]
+    Gym(offworld_client::cli::Args),
 }
 
 fn main() -> ExitCode {
@@ -106,6 +112,7 @@ fn main() -> ExitCode {
         Command::Recorder(args) => offworld_recorder::cli::run(args),
         Command::Parity(args) => offworld_parity::cli::run(args),
         Command::Web(args) => offworld_web::cli::run(args),
+        Command::Gym(args) => offworld_client::cli::run(args),
     }
 }
 

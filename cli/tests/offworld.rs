@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use offworld_env_controller::Store;
 use offworld_test_support::ScratchDir;
 
-const SUBCOMMANDS: [&str; 16] = [
+const SUBCOMMANDS: [&str; 17] = [
     "serve",
     "users",
     "experiments",
@@ -27,6 +27,7 @@ const SUBCOMMANDS: [&str; 16] = [
     "recorder",
     "parity",
     "web",
+    "gym",
 ];
 
 fn offworld(args: &[&str]) -> Output {
@@ -120,6 +121,58 @@ fn the_emulated_enclosure_runs_a_command_and_passes_on_its_status() {
         "the known tasks are listed: {said}"
     );
     assert!(!said.contains("starting"), "nothing started: {said}");
+}
+
+/// The trainer's commands (`offworld gym`; `python -m offworld_gym` runs
+/// the same code) against the real stack on emulated hardware, with the
+/// token and endpoint the enclosure gives its command: who the token is, a
+/// slot booked and listed, empty records said so, a refusal typed.
+#[test]
+fn a_trainer_books_and_asks_with_offworld_gym() {
+    let script = format!(
+        "set -e; g() {{ '{}' gym \"$@\"; }}; \
+         start=$(date -u -d '+1 hour' +%Y-%m-%dT%H:%M:00Z); \
+         g whoami; g book --env real/monolith-0 --start \"$start\" --minutes 30 --json; \
+         g envs; g leaderboard --env real/monolith-0; \
+         g episodes --env real/monolith-0 --id 1 || echo \"episodes: $?\"",
+        env!("CARGO_BIN_EXE_offworld")
+    );
+    let out = offworld(&["emulate-enclosure", "--", "sh", "-c", &script]);
+    let (stdout, said) = (text(&out.stdout), text(&out.stderr));
+    assert!(out.status.success(), "{said}");
+    let (who, rest) = stdout.split_once('\n').expect("whoami's line");
+    assert_eq!(who, "researcher");
+    let json_end = rest.find("\n]\n").expect("the booking as JSON") + 3;
+    let booked: serde_json::Value = serde_json::from_str(&rest[..json_end]).expect("JSON");
+    let slot = &booked[0];
+    assert_eq!(
+        (
+            &slot["env_id"],
+            &slot["user"],
+            booked.as_array().map(Vec::len)
+        ),
+        (&"real/monolith-0".into(), &"researcher".into(), Some(1))
+    );
+    let length = slot["end_unix_ms"]
+        .as_i64()
+        .zip(slot["start_unix_ms"].as_i64());
+    assert_eq!(length.map(|(end, start)| end - start), Some(1_800_000));
+    let listing = &rest[json_end..];
+    let env_line = listing.lines().next().expect("the env's line");
+    assert!(
+        env_line.starts_with("real/monolith-0 ")
+            && env_line.contains(" MonolithDiscrete ")
+            && env_line.contains(" free ")
+            && env_line.ends_with("base_guard,controller,robot_agent,tracker_agent"),
+        "{listing}"
+    );
+    assert!(listing.contains("    booked by researcher "), "{listing}");
+    assert!(listing.ends_with("episodes: 1\n"), "{listing}");
+    assert!(said.contains("\nno test-mode experiments yet\n"), "{said}");
+    assert!(
+        said.contains("\nerror: NotFound (404): no experiment 1 of yours on real/monolith-0\n"),
+        "{said}"
+    );
 }
 
 /// A sim farm behind the real router: the command runs with the

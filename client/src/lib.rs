@@ -10,7 +10,11 @@
 //! - [`discover`], [`envs_here`]: what a deployment serves.
 //! - [`spec`], [`status`], [`leaderboard`], [`book`], [`admin`],
 //!   [`experiments`]: one request each, outside a session.
+//! - [`open_deployment`], [`whoami`], [`my_bookings`]: a trainer's
+//!   requests to a deployment as a whole.
 //! - [`operator`]: pressing e-stops and hearing who obeyed.
+//! - [`cli`]: the trainer's commands (`offworld gym`, `python -m
+//!   offworld_gym`).
 
 use std::time::Duration;
 
@@ -24,7 +28,13 @@ use offworld_runtime::{ErrorCode, WireError};
 use zenoh::liveliness::LivelinessToken;
 use zenoh::Session;
 
+pub mod cli;
+mod deployment;
 pub mod operator;
+
+pub use deployment::{
+    deployment_session, my_bookings, open_deployment, whoami, CONNECT_ENV, TOKEN_ENV,
+};
 
 /// Deadlines of client requests.
 #[derive(Debug, Clone, Copy)]

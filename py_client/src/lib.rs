@@ -489,12 +489,7 @@ impl NativeEnvs {
 /// environment (a client unless it names a mode), with `connect` replacing
 /// its endpoints.
 fn remote_session(connect: Option<String>) -> PyResult<SessionConfig> {
-    let mut session =
-        SessionConfig::connecting_from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
-    if let Some(endpoint) = connect {
-        session.connect = vec![endpoint];
-    }
-    Ok(session)
+    offworld_client::deployment_session(connect).map_err(|e| PyValueError::new_err(e.to_string()))
 }
 
 /// Opens a session on a remote deployment (`connect`, else the
@@ -509,12 +504,11 @@ where
     T: Send + 'static,
     Fut: std::future::Future<Output = Result<T, WireError>> + Send + 'static,
 {
-    let config = remote_session(connect)?;
+    // A config mistake is a ValueError before anything is tried.
+    remote_session(connect.clone())?;
     spawn_interruptibly(py, async move {
         // An unreachable endpoint is an error naming it, not an empty deployment.
-        let session = config
-            .open_reaching(offworld_runtime::session::REACH_WITHIN)
-            .await?;
+        let session = offworld_client::open_deployment(connect).await?;
         let answer = work(session.clone()).await;
         let _ = session.close().await;
         answer
@@ -676,26 +670,54 @@ fn cancel_booking<'py>(
     booking_request(py, connect, env_id, request, timeout_s)
 }
 
-/// Who `token` is, as `env_id`'s controller says: `{user, operator}`.
+/// Who `token` is, as `env_id`'s controller says (default: a real env's,
+/// else any env's): `{user, operator}`.
 #[pyfunction]
 #[pyo3(signature = (env_id, token, connect=None, timeout_s=5.0))]
 fn whoami<'py>(
     py: Python<'py>,
-    env_id: &str,
+    env_id: Option<&str>,
     token: String,
     connect: Option<String>,
     timeout_s: f64,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let env = parse_env(env_id)?;
+    let env = env_id.map(parse_env).transpose()?;
     let timeout = convert::timeout(timeout_s)?;
-    let request = offworld_runtime::msg::AdminRequest::Identify { token };
     let reply = on_deployment(py, connect, move |session| async move {
-        offworld_client::admin(&session, &env, &request, timeout).await
+        offworld_client::whoami(&session, env.as_ref(), &token, timeout).await
     })?;
     let dict = PyDict::new(py);
     dict.set_item("user", &reply.user)?;
     dict.set_item("operator", reply.operator)?;
     Ok(dict)
+}
+
+/// Every slot booked with `token` on any env that has not ended, earliest
+/// first, as dicts.
+#[pyfunction]
+#[pyo3(signature = (token, connect=None, timeout_s=5.0))]
+fn my_bookings<'py>(
+    py: Python<'py>,
+    token: String,
+    connect: Option<String>,
+    timeout_s: f64,
+) -> PyResult<Bound<'py, PyList>> {
+    let timeout = convert::timeout(timeout_s)?;
+    let mine = on_deployment(py, connect, move |session| async move {
+        offworld_client::my_bookings(&session, &token, timeout).await
+    })?;
+    let out = PyList::empty(py);
+    for b in &mine {
+        out.append(convert::booking(py, b)?)?;
+    }
+    Ok(out)
+}
+
+/// `python -m offworld_gym`: runs the trainer's commands (`argv` as
+/// `sys.argv`) with the GIL released; returns the exit status.
+#[pyfunction]
+fn run_command_line(py: Python<'_>, argv: Vec<String>) -> u8 {
+    py.detach(move || offworld_client::cli::run_from(argv))
 }
 
 /// The names of the tasks the controller serves (`env_controller/tasks.toml`),
@@ -715,6 +737,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(bookings, m)?)?;
     m.add_function(wrap_pyfunction!(cancel_booking, m)?)?;
     m.add_function(wrap_pyfunction!(whoami, m)?)?;
+    m.add_function(wrap_pyfunction!(my_bookings, m)?)?;
+    m.add_function(wrap_pyfunction!(run_command_line, m)?)?;
     m.add_function(wrap_pyfunction!(experiments, m)?)?;
     m.add_function(wrap_pyfunction!(experiment_episodes, m)?)?;
     m.add_function(wrap_pyfunction!(leaderboard, m)?)?;

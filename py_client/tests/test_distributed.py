@@ -201,7 +201,7 @@ def test_bookings_from_python_and_the_cli(trainer):
     assert (empty.stdout, empty.stderr) == ("", "nothing booked\n")
     # `bookings` needs an env or --mine.
     neither = subprocess.run([sys.executable, "-m", "offworld_gym", "bookings"], capture_output=True, text=True)
-    assert neither.returncode == 2 and "--env ENV_ID" in neither.stderr
+    assert neither.returncode == 2 and "<--env <ENV_ID>|--mine>" in neither.stderr
     # Without a token: a clear error before anything is sent.
     with pytest.raises(errors.ConfigurationError, match="token"):
         offworld_gym.book(env_id, start, start + 60, token="")

@@ -230,7 +230,7 @@ def test_the_sim_farm_runs_as_written():
     block = code_blocks(section("Beyond one machine"), "bash")[0]
     setup, farm = commands(block)
     assert setup == "source .ci/env"
-    assert farm == "offworld farm --twins 4 -- python3 -m offworld_gym envs"
+    assert farm == "offworld farm --twins 4 -- offworld gym envs"
     # One shell, as pasted: the farm needs what `source` put on PATH.
     listed = run(f"{setup} && {farm}", REPO, timeout=300)
     for i in range(4):

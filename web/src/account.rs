@@ -404,7 +404,7 @@ fn slot_from(form: &[(String, String)]) -> Result<(i64, i64), String> {
 }
 
 /// `POST /envs/<realm>/<name>/bookings`: books a slot, as
-/// `python -m offworld_gym book` does.
+/// `offworld gym book` does.
 pub async fn make_booking(
     State(state): State<AppState>,
     path: Result<Path<(String, String)>, PathRejection>,
@@ -474,7 +474,7 @@ pub async fn make_booking(
 }
 
 /// `POST /envs/<realm>/<name>/bookings/<id>/cancel`: cancels one of the
-/// user's slots, as `python -m offworld_gym cancel-booking` does (the
+/// user's slots, as `offworld gym cancel-booking` does (the
 /// controller refuses someone else's).
 pub async fn cancel_booking(
     State(state): State<AppState>,

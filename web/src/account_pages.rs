@@ -176,7 +176,7 @@ pub struct SlotForm {
 }
 
 /// `/envs/<realm>/<name>/bookings`: the env's slots (anyone may list
-/// them, as `python -m offworld_gym bookings` does) and, for the signed
+/// them, as `offworld gym bookings` does) and, for the signed
 /// in, the booking form and a cancel button per slot.
 pub fn bookings_page(
     env: &EnvView,
@@ -195,7 +195,7 @@ pub fn bookings_page(
             h1 { "Bookings of " (env.id) }
             p.lead {
                 "Slots that have not ended, earliest first. During a slot only its holder can take the lease. "
-                "Same rules and errors as " code { "python -m offworld_gym book" } "."
+                "Same rules and errors as " code { "offworld gym book" } "."
             }
             (notice(n))
             @match slots {

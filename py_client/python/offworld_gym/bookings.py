@@ -12,7 +12,7 @@ from typing import TypedDict
 
 from offworld_gym import _native
 from offworld_gym._config import CONNECT_ENV, TOKEN_ENV
-from offworld_gym.errors import ConfigurationError, NotFound, Timeout, Unavailable
+from offworld_gym.errors import ConfigurationError
 
 
 class Booking(TypedDict):
@@ -79,32 +79,10 @@ def whoami(*, env_id: str | None = None, token: str | None = None, connect: str 
     """Who ``token`` (default: ``OFFWORLD_GYM_ACCESS_TOKEN``) is, as the
     controller of ``env_id`` says (default: a real env's first, else any env's);
     ``Unauthorized`` for an unknown or revoked token."""
-    from offworld_gym.discovery import list_envs  # discovery imports this module
-
-    token = _token(token)
-    connect = connect or os.environ.get(CONNECT_ENV)
-    if env_id is not None:
-        candidates = [env_id]
-    else:
-        served = [e["env_id"] for e in list_envs(connect) if "controller" in e["components"]]
-        candidates = sorted(served, key=lambda env: not env.startswith("real/"))[:3]
-        if not candidates:
-            raise NotFound("no controller is reachable to say who this token is (is the deployment up?)")
-    last: Exception = NotFound("no controller answered")
-    for candidate in candidates:
-        try:
-            return _native.whoami(candidate, token, connect)  # type: ignore[return-value]
-        except (Timeout, Unavailable, NotFound) as e:  # that controller is away: ask the next
-            last = e
-    raise last
+    return _native.whoami(env_id, _token(token), connect or os.environ.get(CONNECT_ENV))  # type: ignore[return-value]
 
 
 def my_bookings(*, token: str | None = None, connect: str | None = None) -> list[Booking]:
     """Every slot booked with ``token`` (default: ``OFFWORLD_GYM_ACCESS_TOKEN``)
     on any env of the deployment that has not ended, earliest first."""
-    from offworld_gym.discovery import list_envs  # discovery imports this module
-
-    me = whoami(token=token, connect=connect)["user"]
-    mine = [b for env in list_envs(connect) for b in env["bookings"] if b["user"] == me]
-    return sorted(mine, key=lambda b: (b["start_unix_ms"], b["env_id"]))
-
+    return _native.my_bookings(_token(token), connect or os.environ.get(CONNECT_ENV))  # type: ignore[return-value]
