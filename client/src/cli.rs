@@ -354,8 +354,7 @@ impl Command {
                     start_unix_ms: start,
                     end_unix_ms: start.saturating_add(length_ms),
                 };
-                let slots = booking_request(deployment.connect, env, request).await?;
-                print_bookings(&slots, deployment.json)
+                change_bookings(deployment, env, request).await
             }
             Command::CancelBooking {
                 env,
@@ -367,8 +366,7 @@ impl Command {
                     token: token.required("cancel-booking")?,
                     id,
                 };
-                let remaining = booking_request(deployment.connect, env, request).await?;
-                print_bookings(&remaining, deployment.json)
+                change_bookings(deployment, env, request).await
             }
             Command::Experiments {
                 env,
@@ -416,19 +414,23 @@ impl Command {
                     crate::leaderboard(&session, &env, REQUEST_TIMEOUT).await
                 })
                 .await?;
-                let ranked: Vec<Ranked> = board
-                    .entries
-                    .iter()
-                    .enumerate()
-                    .map(|(index, entry)| Ranked {
-                        rank: index + 1,
-                        entry,
-                    })
-                    .collect();
                 if deployment.json {
+                    let ranked: Vec<Ranked> = board
+                        .entries
+                        .iter()
+                        .enumerate()
+                        .map(|(index, entry)| Ranked {
+                            rank: index + 1,
+                            entry,
+                        })
+                        .collect();
                     return print_json(&ranked);
                 }
-                print_leaderboard(&ranked);
+                if board.entries.is_empty() {
+                    eprintln!("no test-mode experiments yet");
+                } else {
+                    print_leaderboard_table(&board.entries);
+                }
                 Ok(())
             }
         }
@@ -445,6 +447,17 @@ async fn booking_request(
     })
     .await?;
     Ok(answer.bookings)
+}
+
+/// Makes or cancels a slot; prints the env's slots the controller answers
+/// with (the one made; those left after a cancellation).
+async fn change_bookings(
+    deployment: Deployment,
+    env: EnvId,
+    request: BookingRequest,
+) -> Result<(), Failure> {
+    let slots = booking_request(deployment.connect, env, request).await?;
+    print_bookings(&slots, deployment.json)
 }
 
 /// A positive, finite number of seconds as a duration, else an error
@@ -667,18 +680,17 @@ fn print_episodes(experiment: &ExperimentRecord, episodes: &[EpisodeRecordEntry]
     }
 }
 
-fn print_leaderboard(ranked: &[Ranked<'_>]) {
-    if ranked.is_empty() {
-        eprintln!("no test-mode experiments yet");
-        return;
-    }
+/// A leaderboard as a table, best first, ranked from 1 (`offworld gym
+/// leaderboard`; `offworld leaderboard` from the site's database).
+pub fn print_leaderboard_table(entries: &[LeaderboardEntry]) {
     println!(
         "{:>4}  {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",
         "rank", "experiment", "user", "type", "episodes", "success", "return"
     );
-    for Ranked { rank, entry: e } in ranked {
+    for (index, e) in entries.iter().enumerate() {
         println!(
-            "{rank:>4}  {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
+            "{:>4}  {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
+            index + 1,
             e.experiment,
             e.user,
             e.learning_type,
@@ -698,17 +710,29 @@ struct Identity<'a> {
     operator: bool,
 }
 
+/// A discovered env as `offworld gym envs --json` prints it and
+/// `offworld_gym.list_envs` returns it (`offworld_gym.discovery.EnvInfo`).
 #[derive(Serialize)]
-struct EnvInfo<'a> {
-    env_id: String,
-    task: &'a str,
-    state: &'static str,
-    until_unix_ms: Option<i64>,
-    message: &'a str,
-    who: Option<&'a str>,
-    components: &'a [String],
-    bookings: &'a [Booking],
-    estops: BTreeMap<&'static str, &'a str>,
+pub struct EnvInfo<'a> {
+    /// `sim/monolith-0`, …
+    pub env_id: String,
+    /// Its task; empty without a live controller.
+    pub task: &'a str,
+    /// `free`, `leased`, `maintenance` or `offline`.
+    pub state: &'static str,
+    /// Lease expiry while leased; the announced end of a maintenance.
+    pub until_unix_ms: Option<i64>,
+    /// Maintenance message or why the env is offline.
+    pub message: &'a str,
+    /// The lease holder, or who put the env into maintenance.
+    pub who: Option<&'a str>,
+    /// Live components, sorted.
+    pub components: &'a [String],
+    /// Booked slots in progress or ahead.
+    pub bookings: &'a [Booking],
+    /// The engaged e-stop latches (`site`, `env`) with their reasons.
+    pub estops: BTreeMap<&'static str, &'a str>,
+    /// How well its last reset put the robot at its spawn pose.
     last_reset: Option<ResetInfo>,
 }
 

@@ -471,22 +471,7 @@ async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Res
                 return Ok(());
             }
             println!("leaderboard of {env} (test-mode experiments)");
-            println!(
-                "{:<4} {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",
-                "rank", "experiment", "user", "type", "episodes", "success", "return"
-            );
-            for (i, e) in board.iter().enumerate() {
-                println!(
-                    "{:<4} {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
-                    i + 1,
-                    e.experiment,
-                    e.user,
-                    e.learning_type,
-                    e.episodes,
-                    e.success_rate * 100.0,
-                    e.mean_return
-                );
-            }
+            offworld_client::cli::print_leaderboard_table(&board);
         }
     }
     Ok(())

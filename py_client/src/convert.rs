@@ -158,46 +158,22 @@ pub fn listing<'py>(
     py: Python<'py>,
     listing: &offworld_client::EnvListing,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use offworld_runtime::msg::EnvState;
+    // The same shape as `offworld gym envs --json`.
+    let info = offworld_client::cli::EnvInfo::from(listing);
     let dict = PyDict::new(py);
-    dict.set_item("env_id", listing.env.to_string())?;
-    dict.set_item("task", &listing.task)?;
-    let (state, until, message, who) = match &listing.state {
-        EnvState::Free => ("free", None, "", None),
-        EnvState::Leased {
-            until_unix_ms,
-            holder,
-        } => ("leased", Some(*until_unix_ms), "", Some(holder)),
-        EnvState::Maintenance {
-            message,
-            by,
-            back_unix_ms,
-        } => (
-            "maintenance",
-            (*back_unix_ms > 0).then_some(*back_unix_ms),
-            message.as_str(),
-            Some(by),
-        ),
-        EnvState::Offline { reason } => ("offline", None, reason.as_str(), None),
-    };
-    dict.set_item("state", state)?;
-    dict.set_item("until_unix_ms", until)?;
-    dict.set_item("message", message)?;
-    dict.set_item("who", who)?;
-    dict.set_item("components", &listing.components)?;
+    dict.set_item("env_id", &info.env_id)?;
+    dict.set_item("task", info.task)?;
+    dict.set_item("state", info.state)?;
+    dict.set_item("until_unix_ms", info.until_unix_ms)?;
+    dict.set_item("message", info.message)?;
+    dict.set_item("who", info.who)?;
+    dict.set_item("components", info.components)?;
     let bookings = PyList::empty(py);
-    for b in &listing.bookings {
+    for b in info.bookings {
         bookings.append(booking(py, b)?)?;
     }
     dict.set_item("bookings", bookings)?;
-    // Engaged e-stop latches only: `{"site": reason, "env": reason}`.
-    let estops = PyDict::new(py);
-    for (latch, state) in [("site", &listing.estop.site), ("env", &listing.estop.env)] {
-        if state.engaged {
-            estops.set_item(latch, &state.reason)?;
-        }
-    }
-    dict.set_item("estops", estops)?;
+    dict.set_item("estops", info.estops)?;
     dict.set_item("last_reset", reset_accuracy(py, &listing.last_reset)?)?;
     Ok(dict)
 }
