@@ -34,6 +34,13 @@ const TRAVEL: f32 = 0.04;
 /// Substeps `drive` waits for the servo to stop beyond the ramp and the
 /// latency (a guard: the ramp always ends).
 const STOP_MARGIN_STEPS: usize = 600;
+/// The chassis' angular damping, 1/s.
+const ANGULAR_DAMPING: f32 = 2.0;
+/// How close (m) the chassis' bounding box may come to a wall, the
+/// monolith or a boulder before rapier steps it: farther, nothing can touch
+/// within a substep (≤ 0.7 m/s driving, ~1.2 cm a substep; rapier's contact
+/// prediction distance is 2 mm), so the chassis moves freely.
+const CONTACT_MARGIN: f32 = 0.03;
 
 /// A planar robot state in the world frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -81,6 +88,9 @@ pub struct RobotPhysics {
     spec: RobotSpec,
     terrain: Arc<Terrain>,
     scene_boxes: Vec<crate::scene::SceneBox>,
+    /// The chassis box: its centre in base_link and its half extents, m.
+    chassis_offset: Vector,
+    chassis_half: Vector,
     wheels: [Vector; 4],
     /// Static sag so that the chassis rests with base_link at wheel-radius height.
     sag: f32,
@@ -116,6 +126,8 @@ impl RobotPhysics {
             spec,
             terrain: scene.terrain.clone(),
             scene_boxes: scene.boxes.clone(),
+            chassis_offset: Vector::ZERO,
+            chassis_half: Vector::ZERO,
             wheels: [
                 Vector::new(hw, ht, 0.0),
                 Vector::new(hw, -ht, 0.0),
@@ -197,6 +209,8 @@ impl RobotPhysics {
         // base_link is at axle height: the box spans from ground clearance
         // above the wheel bottoms to the top of the robot.
         let chassis_z = -r + self.spec.ground_clearance + chassis_h * 0.5;
+        self.chassis_offset = Vector::new(0.0, 0.0, chassis_z);
+        self.chassis_half = Vector::new(sx * 0.5, sy * 0.5, chassis_h * 0.5);
         let z = self.terrain.height_at(pose.x, pose.y) + r;
         let body = RigidBodyBuilder::dynamic()
             .pose(Pose::from_parts(
@@ -204,7 +218,11 @@ impl RobotPhysics {
                 Rotation::from_rotation_z(pose.yaw),
             ))
             .can_sleep(false)
-            .angular_damping(2.0);
+            // Off so that free motion (`move_freely`) and rapier's steps
+            // integrate the same equations: the chassis turns slowly about
+            // its axes, and the gyroscopic torque of that is negligible.
+            .gyroscopic_forces_enabled(false)
+            .angular_damping(ANGULAR_DAMPING);
         let collider = ColliderBuilder::cuboid(sx * 0.5, sy * 0.5, chassis_h * 0.5)
             .translation(Vector::new(0.0, 0.0, chassis_z))
             .mass(self.spec.mass())
@@ -333,9 +351,58 @@ impl RobotPhysics {
             let yaw_rate = self.servo.angular * self.motion.angular_gain;
             body.set_angvel(Vector::new(w.x, w.y, yaw_rate), true);
         }
-        self.world.step();
+        if self.may_touch_a_box() {
+            self.world.step();
+        } else {
+            self.move_freely();
+        }
         self.time += f64::from(DT);
         self.steps += 1;
+    }
+
+    /// Whether the chassis is near enough a wall, the monolith or a boulder
+    /// to touch one within a substep: its box's world bounds, grown by
+    /// [`CONTACT_MARGIN`], overlap the other box.
+    fn may_touch_a_box(&self) -> bool {
+        let Some(body) = self.world.bodies.get(self.robot) else {
+            return true;
+        };
+        let pose = body.position();
+        let centre = pose.transform_point(self.chassis_offset);
+        let (q, h) = (pose.rotation, self.chassis_half);
+        let (x, y, z) = (
+            (q * Vector::X).abs(),
+            (q * Vector::Y).abs(),
+            (q * Vector::Z).abs(),
+        );
+        let reach = x * h.x + y * h.y + z * h.z + Vector::splat(CONTACT_MARGIN);
+        let (low, high) = ((centre - reach).to_array(), (centre + reach).to_array());
+        self.scene_boxes
+            .iter()
+            .any(|b| (0..3).all(|i| low[i] <= b.max[i] && b.min[i] <= high[i]))
+    }
+
+    /// One substep of the chassis touching nothing, without rapier: what
+    /// its solver does for a lone body (semi-implicit Euler: gravity into
+    /// the velocity, the pose turned and moved about the centre of mass,
+    /// then the angular damping), at a small fraction of its fixed cost
+    /// per step (docs/performance.md, "Free motion").
+    fn move_freely(&mut self) {
+        let gravity = self.world.gravity;
+        let Some(body) = self.world.bodies.get_mut(self.robot) else {
+            return;
+        };
+        let linvel = body.linvel() + gravity * (body.gravity_scale() * DT);
+        let angvel = body.angvel();
+        let pose = *body.position();
+        let local_com = body.local_center_of_mass();
+        let centre = pose.transform_point(local_com);
+        let rotation = (Rotation::from_scaled_axis(angvel * DT) * pose.rotation).normalize();
+        let translation = centre + linvel * DT - rotation * local_com;
+        body.set_position(Pose::from_parts(translation, rotation), false);
+        let damping = |rate: f32| 1.0 / (1.0 + DT * rate);
+        body.set_linvel(linvel * damping(body.linear_damping()), false);
+        body.set_angvel(angvel * damping(body.angular_damping()), false);
     }
 
     fn ramp_servo(&mut self) {
