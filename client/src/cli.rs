@@ -558,13 +558,13 @@ fn print_listing(listing: &EnvListing) {
             back_unix_ms,
             ..
         } => {
-            let mut text = format!("maintenance ({message})");
+            let mut text = format!("maintenance{}", in_brackets(message));
             if *back_unix_ms > 0 {
                 text += &format!(" back at {}", when(*back_unix_ms));
             }
             text
         }
-        EnvState::Offline { reason } => format!("offline ({reason})"),
+        EnvState::Offline { reason } => format!("offline{}", in_brackets(reason)),
     };
     for (latch, reason) in engaged_estops(listing) {
         state += &format!(" E-STOP {latch} ({reason})");
@@ -589,6 +589,15 @@ fn print_listing(listing: &EnvListing) {
             when(slot.start_unix_ms),
             when(slot.end_unix_ms)
         );
+    }
+}
+
+/// ` (why)`, or nothing when nobody said why.
+fn in_brackets(why: &str) -> String {
+    if why.is_empty() {
+        String::new()
+    } else {
+        format!(" ({why})")
     }
 }
 
