@@ -329,10 +329,15 @@ impl Command {
                 })
                 .await?;
                 if deployment.json {
-                    return print_json(&Identity {
+                    // One line, as before.
+                    let identity = Identity {
                         user: &me.user,
                         operator: me.operator,
-                    });
+                    };
+                    let line = serde_json::to_string(&identity)
+                        .map_err(|e| Failure::Invalid(format!("cannot print JSON: {e}")))?;
+                    println!("{line}");
+                    return Ok(());
                 }
                 let role = if me.operator { " (operator)" } else { "" };
                 println!("{}{role}", me.user);
@@ -373,8 +378,9 @@ impl Command {
                 deployment,
                 token,
             } => {
+                // No token: anonymous, which sim deployments admit.
                 let request = ExperimentsRequest::List {
-                    token: token.required("experiments")?,
+                    token: token.token.unwrap_or_default(),
                 };
                 let found = on_deployment(deployment.connect, |session| async move {
                     crate::experiments(&session, &env, &request, REQUEST_TIMEOUT).await
@@ -393,7 +399,7 @@ impl Command {
                 deployment,
                 token,
             } => {
-                let token = token.required("episodes")?;
+                let token = token.token.unwrap_or_default();
                 let (experiment, episodes) =
                     on_deployment(deployment.connect, |session| async move {
                         crate::experiment_episodes(&session, &env, &token, id, REQUEST_TIMEOUT)

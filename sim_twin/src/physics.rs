@@ -37,10 +37,11 @@ const STOP_MARGIN_STEPS: usize = 600;
 /// The chassis' angular damping, 1/s.
 const ANGULAR_DAMPING: f32 = 2.0;
 /// How close (m) the chassis' bounding box may come to a wall, the
-/// monolith or a boulder before rapier steps it: farther, nothing can touch
-/// within a substep (≤ 0.7 m/s driving, ~1.2 cm a substep; rapier's contact
-/// prediction distance is 2 mm), so the chassis moves freely.
-const CONTACT_MARGIN: f32 = 0.03;
+/// monolith or a boulder before rapier steps it: rapier's default contact
+/// prediction distance (2 cm) plus two substeps at top speed (≤ 0.7 m/s,
+/// ~1.2 cm each), rounded up. Farther, rapier would make no contact, so the
+/// chassis moves freely.
+const CONTACT_MARGIN: f32 = 0.05;
 
 /// A planar robot state in the world frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -384,8 +385,8 @@ impl RobotPhysics {
 
     /// One substep of the chassis touching nothing, without rapier: what
     /// its solver does for a lone body (semi-implicit Euler: gravity into
-    /// the velocity, the pose turned and moved about the centre of mass,
-    /// then the angular damping), at a small fraction of its fixed cost
+    /// the velocity, the pose turned (linearised) and moved about the
+    /// centre of mass, then the damping), at a small fraction of its fixed cost
     /// per step (docs/performance.md, "Free motion").
     fn move_freely(&mut self) {
         let gravity = self.world.gravity;
@@ -397,7 +398,11 @@ impl RobotPhysics {
         let pose = *body.position();
         let local_com = body.local_center_of_mass();
         let centre = pose.transform_point(local_com);
-        let rotation = (Rotation::from_scaled_axis(angvel * DT) * pose.rotation).normalize();
+        // Rapier's solver turns a body by the linearised rotation
+        // (`integrate_linearized`): identity + half the angle, normalised.
+        let half_turn = angvel * (DT * 0.5);
+        let turn = Rotation::from_xyzw(half_turn.x, half_turn.y, half_turn.z, 1.0);
+        let rotation = (turn * pose.rotation).normalize();
         let translation = centre + linvel * DT - rotation * local_com;
         body.set_position(Pose::from_parts(translation, rotation), false);
         let damping = |rate: f32| 1.0 / (1.0 + DT * rate);

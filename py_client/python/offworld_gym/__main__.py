@@ -25,11 +25,12 @@ from offworld_gym import _native
 
 def main(argv: list[str] | None = None) -> int:
     """Runs one command (``argv`` without the program, default ``sys.argv[1:]``);
-    returns its exit status."""
-    # A native command: Ctrl-C ends it at once, as it would `offworld gym`.
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    returns its exit status. It prints on the process's stdout and stderr."""
     return _native.run_command_line(["python -m offworld_gym", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
+    # A native command: Ctrl-C ends it at once, as it would `offworld gym`
+    # (only as a program: an interpreter that calls `main` keeps its handler).
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     sys.exit(main())
