@@ -5,7 +5,6 @@
 //! are `error: …` on stderr and exit status 1, usage mistakes 2.
 
 use std::collections::BTreeMap;
-use std::future::Future;
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -17,9 +16,8 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::WireError;
 use serde::Serialize;
-use zenoh::Session;
 
-use crate::deployment::{open_deployment, CONNECT_ENV, TOKEN_ENV};
+use crate::deployment::{on_deployment, CONNECT_ENV, TOKEN_ENV};
 use crate::EnvListing;
 
 /// Every request but the listing's: a controller answers within this long.
@@ -253,20 +251,6 @@ fn execute(command: Command) -> u8 {
             1
         }
     }
-}
-
-/// Opens a session on the deployment, runs `work` on it and closes it.
-async fn on_deployment<T, Fut>(
-    connect: Option<String>,
-    work: impl FnOnce(Session) -> Fut,
-) -> Result<T, Failure>
-where
-    Fut: Future<Output = Result<T, WireError>>,
-{
-    let session = open_deployment(connect).await?;
-    let answer = work(session.clone()).await;
-    let _ = session.close().await;
-    Ok(answer?)
 }
 
 impl Command {

@@ -39,6 +39,21 @@ pub async fn open_deployment(connect: Option<String>) -> Result<Session, WireErr
         .await?)
 }
 
+/// Opens a session on the deployment ([`open_deployment`]), runs `work`
+/// on it and closes it: one request or a few, outside an env's session.
+pub async fn on_deployment<T, Fut>(
+    connect: Option<String>,
+    work: impl FnOnce(Session) -> Fut,
+) -> Result<T, WireError>
+where
+    Fut: std::future::Future<Output = Result<T, WireError>>,
+{
+    let session = open_deployment(connect).await?;
+    let answer = work(session.clone()).await;
+    let _ = session.close().await;
+    answer
+}
+
 /// Who `token` is (`user`, `operator`), as `env`'s controller says; without
 /// an env, as a real env's controller says, else any env's: the first
 /// three served envs are asked in turn while one is away.

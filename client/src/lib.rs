@@ -33,7 +33,7 @@ mod deployment;
 pub mod operator;
 
 pub use deployment::{
-    deployment_session, my_bookings, open_deployment, whoami, CONNECT_ENV, TOKEN_ENV,
+    deployment_session, my_bookings, on_deployment, open_deployment, whoami, CONNECT_ENV, TOKEN_ENV,
 };
 
 /// Deadlines of client requests.

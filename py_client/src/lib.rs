@@ -506,14 +506,8 @@ where
 {
     // A config mistake is a ValueError before anything is tried.
     remote_session(connect.clone())?;
-    spawn_interruptibly(py, async move {
-        // An unreachable endpoint is an error naming it, not an empty deployment.
-        let session = offworld_client::open_deployment(connect).await?;
-        let answer = work(session.clone()).await;
-        let _ = session.close().await;
-        answer
-    })?
-    .map_err(errors::to_py)
+    // An unreachable endpoint is an error naming it, not an empty deployment.
+    spawn_interruptibly(py, offworld_client::on_deployment(connect, work))?.map_err(errors::to_py)
 }
 
 fn parse_env(env_id: &str) -> PyResult<EnvId> {
