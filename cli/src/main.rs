@@ -98,6 +98,9 @@ fn main() -> ExitCode {
             )
             .exit();
     }
+    if prints_and_ends(&cli.command) {
+        offworld_program::end_quietly_when_output_closes();
+    }
     match cli.command {
         Command::Serve(args) => offworld_deploy::cli::serve::run(cli.db, args),
         Command::Controller(command) => offworld_env_controller::cli::run_command(cli.db, command),
@@ -114,6 +117,12 @@ fn main() -> ExitCode {
         Command::Web(args) => offworld_web::cli::run(args),
         Command::Gym(args) => offworld_client::cli::run(args),
     }
+}
+
+/// Commands that print a result and end (the site's records, a trainer's
+/// view, an e-stop's acknowledgements), as opposed to the servers.
+fn prints_and_ends(command: &Command) -> bool {
+    matches!(command, Command::Controller(_) | Command::Gym(_))
 }
 
 #[cfg(test)]

@@ -361,6 +361,20 @@ fn site_records_are_kept_through_it() {
     let listed = text(&listed.stdout);
     assert!(listed.lines().any(|l| l.starts_with("alice ")), "{listed}");
     assert!(!listed.contains(&token), "a list never shows a token");
+    // A reader that has stopped reading (`offworld users list | head -0`):
+    // the command ends as `ls` would, killed by SIGPIPE, not by a panic.
+    let (reader, writer) = std::io::pipe().expect("a pipe");
+    drop(reader);
+    let unread = Command::new(env!("CARGO_BIN_EXE_offworld"))
+        .args(["--db", db_arg, "users", "list"])
+        .env("RUST_LOG", "warn")
+        .stdout(writer)
+        .stderr(Stdio::piped())
+        .output()
+        .expect("offworld runs");
+    use std::os::unix::process::ExitStatusExt;
+    assert_eq!(unread.status.signal(), Some(13), "SIGPIPE: {unread:?}");
+    assert_eq!(text(&unread.stderr), "");
     // The database can also come from the environment, as for env_controller.
     let from_env = Command::new(env!("CARGO_BIN_EXE_offworld"))
         .args(["experiments", "list"])

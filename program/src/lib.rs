@@ -137,6 +137,22 @@ impl SealArgs {
     }
 }
 
+/// For a command that prints and ends (a listing, a table): a reader that
+/// stops reading early (`offworld gym envs | head -1`) ends the program
+/// quietly, as it ends `ls`, where `println!` would panic on the closed
+/// pipe. Only for such commands: a server keeps Rust's default (ignore the
+/// signal, see the error), though its sockets are safe either way (Rust
+/// writes to sockets with `MSG_NOSIGNAL`).
+#[allow(unsafe_code)] // one libc call, see SAFETY below
+pub fn end_quietly_when_output_closes() {
+    #[cfg(unix)]
+    // SAFETY: `signal` with SIG_DFL installs no handler code; it only
+    // restores the disposition every non-Rust program starts with.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 /// Logging for binaries and examples: `RUST_LOG` or `info`, on stderr
 /// (stdout stays for a command's output, e.g. a printed token).
 pub fn init_logging() {
