@@ -184,6 +184,7 @@ impl ColumnRenderer {
         let intr = &self.intrinsics;
         let scratch = Scratch {
             size: (intr.width as usize, intr.height as usize),
+            range: (intr.min_range, intr.max_range),
             depth: &self.depth_by_column,
             grey: &self.grey_by_column,
         };
@@ -196,6 +197,8 @@ impl ColumnRenderer {
 struct Scratch<'s> {
     /// Width, height.
     size: (usize, usize),
+    /// The depths the camera reports (min, max); others are written NaN.
+    range: (f32, f32),
     depth: &'s [f32],
     grey: &'s [u8],
 }
@@ -209,7 +212,12 @@ impl Scratch<'_> {
             let columns = if v < tiled.1 { tiled.0..w } else { 0..w };
             for u in columns {
                 let (from, to) = (u * h + v, v * w + u);
-                frame.depth[to] = self.depth[from];
+                let depth = self.depth[from];
+                frame.depth[to] = if depth >= self.range.0 && depth <= self.range.1 {
+                    depth
+                } else {
+                    f32::NAN
+                };
                 frame.rgb[to * 3..to * 3 + 3].copy_from_slice(&[self.grey[from]; 3]);
             }
         }
@@ -217,14 +225,14 @@ impl Scratch<'_> {
 }
 
 /// The frame's transposition in 8 × 8 tiles with AVX2: each tile column
-/// loaded as one vector, eight shuffled into eight tile rows, each stored
-/// as one; one pixel at a time cost ~13 instructions (a strided load and
-/// four stores).
+/// loaded as one vector, eight shuffled into eight tile rows, each range
+/// checked and stored as one; one pixel at a time cost ~13 instructions
+/// (a strided load and four stores) and the range check ~4 more.
 #[cfg(target_arch = "x86_64")]
 mod tiles {
     use super::Scratch;
     use crate::camera::PixelsMut;
-    use core::arch::x86_64::{__m128i, __m256, __m256i};
+    use core::arch::x86_64::{__m128i, __m256, __m256i, _CMP_GE_OQ, _CMP_LE_OQ};
     use pulp::{x86::V3, Simd};
 
     const TILE: usize = 8;
@@ -267,6 +275,11 @@ mod tiles {
             let tiled = (w - w % TILE, h - h % TILE);
             // Per 128-bit half: the grey byte of each of 4 pixels three times.
             let grey_to_rgb: __m256i = pulp::cast(GREY_TO_RGB);
+            let avx = simd.avx;
+            let (min_range, max_range) = scratch.range;
+            let (min_range, max_range) =
+                (avx._mm256_set1_ps(min_range), avx._mm256_set1_ps(max_range));
+            let nan = avx._mm256_set1_ps(f32::NAN);
             let groups = scratch.depth.chunks_exact(TILE * h);
             let groups = groups.zip(scratch.grey.chunks_exact(TILE * h));
             for (g, (depth_group, grey_group)) in groups.enumerate() {
@@ -289,6 +302,12 @@ mod tiles {
                         .zip(transpose(simd, grey));
                     for (r, (depth, grey)) in rows.enumerate() {
                         let start = (t * TILE + r) * w + g * TILE;
+                        // Out of range or NaN → NaN, as `depth >= min && depth <= max` decides.
+                        let in_range = avx._mm256_and_ps(
+                            avx._mm256_cmp_ps::<_CMP_GE_OQ>(depth, min_range),
+                            avx._mm256_cmp_ps::<_CMP_LE_OQ>(depth, max_range),
+                        );
+                        let depth = avx._mm256_blendv_ps(nan, depth, in_range);
                         let depth: [f32; TILE] = pulp::cast(depth);
                         frame.depth[start..start + TILE].copy_from_slice(&depth);
                         let rgb = simd
@@ -380,14 +399,9 @@ impl Column<'_> {
         self.depth.fill(f32::INFINITY);
         self.grey.fill(0);
         self.boxes(scene, c, dir);
+        // Depths out of the camera's range become NaN as the frame is
+        // written (`Scratch`), eight at a time.
         self.terrain_walk(scene, c, dir);
-        // Here, on contiguous memory, where the compiler vectorises it.
-        let (min_range, max_range) = (self.intrinsics.min_range, self.intrinsics.max_range);
-        for depth in self.depth.iter_mut() {
-            if !(*depth >= min_range && *depth <= max_range) {
-                *depth = f32::NAN;
-            }
-        }
     }
 
     /// Intersects every box crossed by this column's plane.
@@ -817,7 +831,7 @@ mod tests {
     }
 
     /// The tiled transposition writes every pixel's bits as one pixel at a
-    /// time does, NaNs included, at sizes with and without partial tiles
+    /// time does, NaNs, infinities and range limits included, at sizes with and without partial tiles
     /// (on a CPU without AVX2 both are the pixel path).
     #[test]
     fn the_tiled_frame_equals_the_pixel_by_pixel_one() {
@@ -833,17 +847,17 @@ mod tests {
         ] {
             let n = w * h;
             let depth: Vec<f32> = (0..n)
-                .map(|i| {
-                    if i % 7 == 0 {
-                        f32::NAN
-                    } else {
-                        rng.random_range(0.0..9.0)
-                    }
+                .map(|i| match i % 11 {
+                    0 => f32::NAN,
+                    1 => f32::INFINITY,
+                    2 => 0.5,
+                    _ => rng.random_range(0.0..9.0),
                 })
                 .collect();
             let grey: Vec<u8> = (0..n).map(|_| rng.random()).collect();
             let scratch = Scratch {
                 size: (w, h),
+                range: (0.5, 8.0),
                 depth: &depth,
                 grey: &grey,
             };
@@ -861,11 +875,18 @@ mod tests {
             });
             let one_at_a_time = frame(&|pixels| scratch.write_pixels_outside((0, 0), pixels));
             assert!(tiled == one_at_a_time, "{w}×{h}");
-            // And it is the transpose, grey as RGB.
+            // And it is the transpose, grey as RGB, depth out of range NaN.
             let (rgb, bits) = one_at_a_time;
-            let (u, v) = (w - 1, h / 2);
-            assert_eq!(bits[v * w + u], depth[u * h + v].to_bits());
-            assert_eq!(rgb[(v * w + u) * 3..][..3], [grey[u * h + v]; 3]);
+            for (u, v) in [(w - 1, h / 2), (0, 0), (w / 2, h - 1)] {
+                let d = depth[u * h + v];
+                let d = if (0.5..=8.0).contains(&d) {
+                    d
+                } else {
+                    f32::NAN
+                };
+                assert_eq!(bits[v * w + u], d.to_bits(), "{w}×{h} ({u}, {v})");
+                assert_eq!(rgb[(v * w + u) * 3..][..3], [grey[u * h + v]; 3]);
+            }
         }
     }
 
