@@ -1,7 +1,8 @@
 //! Rust-only step rate through the embedded deployment (controller + twin
 //! over Zenoh), the baseline the Python benchmark compares against.
 //!
-//! `cargo run --release --example client_steps -- 84 84 1000`
+//! `cargo run --release --example client_steps -- 84 84 1000 [rgbd]`
+//! (width, height, steps; depth only unless `rgbd`)
 
 use offworld_runtime::Resolution;
 use std::time::Instant;
@@ -20,6 +21,11 @@ async fn main() -> anyhow::Result<()> {
         [w, h, n] => (w, h, n as usize),
         _ => (84, 84, 1000),
     };
+    let channels = if std::env::args().any(|a| a == "rgbd") {
+        Channels::Rgbd
+    } else {
+        Channels::DepthOnly
+    };
     let task = "MonolithDiscrete";
     let connection = offworld_deploy::connect(
         Target::Embedded {
@@ -33,7 +39,7 @@ async fn main() -> anyhow::Result<()> {
     )
     .await?;
     let request = OpenRequest::anonymous(ObsOptions {
-        channels: Channels::DepthOnly,
+        channels,
         height: h,
         width: w,
         depth_format: DepthFormat::Uint8,

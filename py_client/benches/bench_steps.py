@@ -1,6 +1,7 @@
 """Python steps/s against the Rust-only rate, measured in one run.
 
-    python py_client/benches/bench_steps.py
+    python py_client/benches/bench_steps.py                 # 84x84 depth uint8
+    python py_client/benches/bench_steps.py --rgbd-320x240  # 320x240 RGBD uint8
 
 Rust-only: the `client_steps` example (same embedded stack, same actions).
 Python: one embedded env via gymnasium.make, and make_vec with 2 envs.
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -17,14 +19,17 @@ import gymnasium
 import numpy as np
 
 import offworld_gym  # noqa: F401
+from offworld_gym.envs.common.channels import Channels
 
 STEPS = 1000
 ROUNDS = 5
-H = W = 84
+RGBD = "--rgbd-320x240" in sys.argv[1:]
+H, W = (240, 320) if RGBD else (84, 84)
+OPTIONS = {"resolution": (H, W), "channel_type": Channels.RGBD if RGBD else Channels.DEPTH_ONLY}
 
 
 def python_single() -> float:
-    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", resolution=(H, W))
+    env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", **OPTIONS)
     env.reset(seed=0)
     start = time.perf_counter()
     for i in range(STEPS):
@@ -37,7 +42,7 @@ def python_single() -> float:
 
 
 def python_vec(n: int) -> float:
-    envs = gymnasium.make_vec("OffWorldMonolithDiscreteSim-v0", num_envs=n, resolution=(H, W))
+    envs = gymnasium.make_vec("OffWorldMonolithDiscreteSim-v0", num_envs=n, **OPTIONS)
     envs.reset(seed=0)
     start = time.perf_counter()
     for i in range(STEPS // n):
@@ -50,7 +55,8 @@ def python_vec(n: int) -> float:
 def rust_only() -> float:
     target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
     binary = target / "release/examples/client_steps"
-    out = subprocess.run([str(binary), str(W), str(H), str(STEPS)], capture_output=True, text=True, check=True)
+    args = [str(binary), str(W), str(H), str(STEPS), *(["rgbd"] if RGBD else [])]
+    out = subprocess.run(args, capture_output=True, text=True, check=True)
     return float(out.stdout.split()[-1])
 
 
@@ -58,7 +64,8 @@ def main() -> None:
     # Interleaved rounds, medians: run-to-run noise on 2 shared cores is large.
     rounds = [(rust_only(), python_single(), python_vec(2)) for _ in range(ROUNDS)]
     rust, single, vec2 = (float(np.median([r[i] for r in rounds])) for i in range(3))
-    print(f"{H}x{W} depth uint8, {STEPS} steps, embedded sim, 2 cores, medians of {ROUNDS} interleaved rounds:")
+    observation = "RGBD" if RGBD else "depth"
+    print(f"{W}x{H} {observation} uint8, {STEPS} steps, embedded sim, 2 cores, medians of {ROUNDS} interleaved rounds:")
     print(f"  rust-only (EnvClient)          : {rust:7.0f} steps/s")
     print(f"  python gymnasium.make          : {single:7.0f} steps/s  (python layer costs {100 * (1 - single / rust):.1f} %)")
     print(f"  python make_vec(num_envs=2)    : {vec2:7.0f} steps/s  ({vec2 / single:.2f}x one env)")
