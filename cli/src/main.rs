@@ -98,7 +98,7 @@ fn main() -> ExitCode {
             )
             .exit();
     }
-    if prints_and_ends(&cli.command) {
+    if prints_records_and_ends(&cli.command) {
         offworld_program::end_quietly_when_output_closes();
     }
     match cli.command {
@@ -119,10 +119,17 @@ fn main() -> ExitCode {
     }
 }
 
-/// Commands that print a result and end (the site's records, a trainer's
-/// view, an e-stop's acknowledgements), as opposed to the servers.
-fn prints_and_ends(command: &Command) -> bool {
-    matches!(command, Command::Controller(_) | Command::Gym(_))
+/// Commands that print the site's records from its database and end: no
+/// socket of theirs can raise SIGPIPE (`offworld gym` reports a closed
+/// output itself; an e-stop must say what went wrong on any link).
+fn prints_records_and_ends(command: &Command) -> bool {
+    use offworld_env_controller::cli::Command as Site;
+    matches!(
+        command,
+        Command::Controller(
+            Site::Users { .. } | Site::Experiments { .. } | Site::Leaderboard { .. }
+        )
+    )
 }
 
 #[cfg(test)]

@@ -149,7 +149,8 @@ fn a_trainer_books_and_asks_with_offworld_gym() {
     let script = format!(
         "set -e; g() {{ '{}' gym \"$@\"; }}; \
          start=$(date -u -d '+1 hour' +%Y-%m-%dT%H:%M:00Z); \
-         g whoami; g book --env real/monolith-0 --start \"$start\" --minutes 30 --json; \
+         g whoami; ( g whoami; echo \"into a closed pipe: $?\" >&2 ) | :; \
+         g book --env real/monolith-0 --start \"$start\" --minutes 30 --json; \
          g bookings --env real/monolith-0; g leaderboard --env real/monolith-0; \
          g episodes --env real/monolith-0 --id 1 || echo \"episodes: $?\"",
         env!("CARGO_BIN_EXE_offworld")
@@ -187,6 +188,9 @@ fn a_trainer_books_and_asks_with_offworld_gym() {
         "{listing}"
     );
     assert!(listing.ends_with("episodes: 1\n"), "{listing}");
+    // A reader that stopped reading (`| :`): the command ends quietly.
+    assert!(said.contains("\ninto a closed pipe: 0\n"), "{said}");
+    assert!(!said.contains("panicked"), "{said}");
     assert!(said.contains("\nno test-mode experiments yet\n"), "{said}");
     assert!(
         said.contains("\nerror: NotFound (404): no experiment 1 of yours on real/monolith-0\n"),

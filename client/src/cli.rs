@@ -5,6 +5,7 @@
 //! are `error: …` on stderr and exit status 1, usage mistakes 2.
 
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -195,6 +196,18 @@ enum Failure {
     /// A value the command cannot use, found before anything was sent.
     #[error("{0}")]
     Invalid(String),
+    /// Standard output could not be written (closed by a reader that
+    /// stopped reading, `… | head -1`: the command then ends quietly).
+    #[error("cannot write the output: {0}")]
+    Output(#[from] std::io::Error),
+}
+
+/// `println!` that returns a failed write (`Failure::Output`) instead of
+/// panicking on it.
+macro_rules! out {
+    ($($arg:tt)*) => {
+        writeln!(std::io::stdout().lock(), $($arg)*)?
+    };
 }
 
 /// Runs `offworld gym …`.
@@ -246,6 +259,8 @@ fn execute(command: Command) -> u8 {
     runtime.shutdown_timeout(Duration::from_secs(1));
     match result {
         Ok(()) => 0,
+        // Whoever reads has all they wanted.
+        Err(Failure::Output(e)) if e.kind() == std::io::ErrorKind::BrokenPipe => 0,
         Err(failure) => {
             eprintln!("error: {failure}");
             1
@@ -269,7 +284,7 @@ impl Command {
                     return print_json(&listed.iter().map(EnvInfo::from).collect::<Vec<_>>());
                 }
                 for listing in &listed {
-                    print_listing(listing);
+                    print_listing(listing)?;
                 }
                 if listed.is_empty() {
                     eprintln!("no envs found");
@@ -320,11 +335,11 @@ impl Command {
                     };
                     let line = serde_json::to_string(&identity)
                         .map_err(|e| Failure::Invalid(format!("cannot print JSON: {e}")))?;
-                    println!("{line}");
+                    out!("{line}");
                     return Ok(());
                 }
                 let role = if me.operator { " (operator)" } else { "" };
-                println!("{}{role}", me.user);
+                out!("{}{role}", me.user);
                 Ok(())
             }
             Command::Book {
@@ -374,7 +389,7 @@ impl Command {
                 if deployment.json {
                     return print_json(&found);
                 }
-                print_experiments(&found);
+                print_experiments(&found)?;
                 Ok(())
             }
             Command::Episodes {
@@ -396,7 +411,7 @@ impl Command {
                         experiment,
                     });
                 }
-                print_episodes(&experiment, &episodes);
+                print_episodes(&experiment, &episodes)?;
                 Ok(())
             }
             Command::Leaderboard { env, deployment } => {
@@ -419,7 +434,7 @@ impl Command {
                 if board.entries.is_empty() {
                     eprintln!("no test-mode experiments yet");
                 } else {
-                    print_leaderboard_table(&board.entries);
+                    print_leaderboard_table(&board.entries)?;
                 }
                 Ok(())
             }
@@ -532,11 +547,11 @@ fn print_json(value: &impl Serialize) -> Result<(), Failure> {
     value
         .serialize(&mut serializer)
         .map_err(|e| Failure::Invalid(format!("cannot print JSON: {e}")))?;
-    println!("{}", String::from_utf8_lossy(&out));
+    out!("{}", String::from_utf8_lossy(&out));
     Ok(())
 }
 
-fn print_listing(listing: &EnvListing) {
+fn print_listing(listing: &EnvListing) -> Result<(), Failure> {
     let mut state = match &listing.state {
         EnvState::Free => "free".to_owned(),
         EnvState::Leased {
@@ -564,22 +579,23 @@ fn print_listing(listing: &EnvListing) {
     } else {
         &listing.task
     };
-    println!(
+    out!(
         "{:<28} {task:<26} {state:<40} {}",
         listing.env.to_string(),
         listing.components.join(",")
     );
     if listing.last_reset.measured {
-        println!("    last reset {}", reset_text(&listing.last_reset));
+        out!("    last reset {}", reset_text(&listing.last_reset));
     }
     for slot in &listing.bookings {
-        println!(
+        out!(
             "    booked by {} {} – {}",
             slot.user,
             when(slot.start_unix_ms),
             when(slot.end_unix_ms)
         );
     }
+    Ok(())
 }
 
 /// ` (why)`, or nothing when nobody said why.
@@ -605,7 +621,7 @@ fn print_bookings(slots: &[Booking], json: bool) -> Result<(), Failure> {
         return print_json(&slots);
     }
     for b in slots {
-        println!(
+        out!(
             "{:>5}  {:<24} {} .. {}  {}",
             b.id,
             b.env_id,
@@ -617,17 +633,23 @@ fn print_bookings(slots: &[Booking], json: bool) -> Result<(), Failure> {
     Ok(())
 }
 
-fn print_experiments(found: &[ExperimentRecord]) {
+fn print_experiments(found: &[ExperimentRecord]) -> Result<(), Failure> {
     if found.is_empty() {
         eprintln!("no experiments yet");
-        return;
+        return Ok(());
     }
-    println!(
+    out!(
         "{:>5}  {:<12} {:<28} {:<10} {:<5} {:>8} {:>8}  last used",
-        "id", "user", "experiment", "type", "mode", "episodes", "steps"
+        "id",
+        "user",
+        "experiment",
+        "type",
+        "mode",
+        "episodes",
+        "steps"
     );
     for e in found {
-        println!(
+        out!(
             "{:>5}  {:<12} {:<28} {:<10} {:<5} {:>8} {:>8}  {}",
             e.id,
             e.user,
@@ -639,16 +661,26 @@ fn print_experiments(found: &[ExperimentRecord]) {
             when(e.updated_unix_ms)
         );
     }
+    Ok(())
 }
 
-fn print_episodes(experiment: &ExperimentRecord, episodes: &[EpisodeRecordEntry]) {
-    println!(
+fn print_episodes(
+    experiment: &ExperimentRecord,
+    episodes: &[EpisodeRecordEntry],
+) -> Result<(), Failure> {
+    out!(
         "experiment {} '{}' of {}",
-        experiment.id, experiment.name, experiment.user
+        experiment.id,
+        experiment.name,
+        experiment.user
     );
-    println!(
+    out!(
         "{:>7} {:>5} {:>8}  {:<32} {:<24} recording",
-        "episode", "steps", "return", "end", "reset: off by, took"
+        "episode",
+        "steps",
+        "return",
+        "end",
+        "reset: off by, took"
     );
     for ep in episodes {
         let files: Vec<String> = ep
@@ -669,25 +701,35 @@ fn print_episodes(experiment: &ExperimentRecord, episodes: &[EpisodeRecordEntry]
         } else {
             "-".to_owned()
         };
-        println!(
+        out!(
             "{:>7} {:>5} {:>8.3}  {:<32} {reset:<24} {files}",
-            ep.index, ep.steps, ep.episode_return, ep.end_reason
+            ep.index,
+            ep.steps,
+            ep.episode_return,
+            ep.end_reason
         );
     }
     if episodes.is_empty() {
         eprintln!("no episodes yet");
     }
+    Ok(())
 }
 
 /// A leaderboard as a table, best first, ranked from 1 (`offworld gym
 /// leaderboard`; `offworld leaderboard` from the site's database).
-pub fn print_leaderboard_table(entries: &[LeaderboardEntry]) {
-    println!(
+pub fn print_leaderboard_table(entries: &[LeaderboardEntry]) -> std::io::Result<()> {
+    out!(
         "{:>4}  {:<28} {:<12} {:<10} {:>8} {:>8} {:>8}",
-        "rank", "experiment", "user", "type", "episodes", "success", "return"
+        "rank",
+        "experiment",
+        "user",
+        "type",
+        "episodes",
+        "success",
+        "return"
     );
     for (index, e) in entries.iter().enumerate() {
-        println!(
+        out!(
             "{:>4}  {:<28} {:<12} {:<10} {:>8} {:>7.1}% {:>8.3}",
             index + 1,
             e.experiment,
@@ -698,6 +740,7 @@ pub fn print_leaderboard_table(entries: &[LeaderboardEntry]) {
             e.mean_return
         );
     }
+    Ok(())
 }
 
 // The JSON shapes: the same keys as the Python package's dicts

@@ -471,7 +471,7 @@ async fn main_async(db_before: Option<PathBuf>, command: Command) -> anyhow::Res
                 return Ok(());
             }
             println!("leaderboard of {env} (test-mode experiments)");
-            offworld_client::cli::print_leaderboard_table(&board);
+            offworld_client::cli::print_leaderboard_table(&board)?;
         }
     }
     Ok(())

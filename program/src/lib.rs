@@ -137,12 +137,13 @@ impl SealArgs {
     }
 }
 
-/// For a command that prints and ends (a listing, a table): a reader that
-/// stops reading early (`offworld gym envs | head -1`) ends the program
-/// quietly, as it ends `ls`, where `println!` would panic on the closed
-/// pipe. Only for such commands: a server keeps Rust's default (ignore the
-/// signal, see the error), though its sockets are safe either way (Rust
-/// writes to sockets with `MSG_NOSIGNAL`).
+/// For a command that prints from local files and ends (a listing, a
+/// table): a reader that stops reading early (`offworld users list | head
+/// -1`) ends the program quietly, as it ends `ls`, where `println!` would
+/// panic on the closed pipe. Only for commands without network links:
+/// Rust's socket writes pass `MSG_NOSIGNAL`, but vectored ones (`writev`,
+/// as TLS streams write) do not, and a closed link must be an error the
+/// program reports, not a silent death.
 #[allow(unsafe_code)] // one libc call, see SAFETY below
 pub fn end_quietly_when_output_closes() {
     #[cfg(unix)]

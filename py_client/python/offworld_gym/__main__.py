@@ -33,7 +33,4 @@ if __name__ == "__main__":
     # A native command: Ctrl-C ends it at once, as it would `offworld gym`
     # (only as a program: an interpreter that calls `main` keeps its handler).
     signal.signal(signal.SIGINT, signal.SIG_DFL)
-    # A reader that stops early (`… envs | head -1`) ends it quietly, as it
-    # ends `ls`, instead of a panic on the closed pipe.
-    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     sys.exit(main())
