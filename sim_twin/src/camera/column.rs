@@ -181,10 +181,8 @@ impl ColumnRenderer {
 
     /// Writes the column-major scratch into the row-major frame, grey as RGB.
     fn write_rows(&self, frame: &mut PixelsMut<'_>) {
-        let intr = &self.intrinsics;
         let scratch = Scratch {
-            size: (intr.width as usize, intr.height as usize),
-            range: (intr.min_range, intr.max_range),
+            intrinsics: &self.intrinsics,
             depth: &self.depth_by_column,
             grey: &self.grey_by_column,
         };
@@ -195,29 +193,31 @@ impl ColumnRenderer {
 
 /// The frame column by column, as [`ColumnRenderer`] walked it.
 struct Scratch<'s> {
-    /// Width, height.
-    size: (usize, usize),
-    /// The depths the camera reports (min, max); others are written NaN.
-    range: (f32, f32),
+    /// The frame's size and the depths the camera reports (others are
+    /// written NaN).
+    intrinsics: &'s Intrinsics,
     depth: &'s [f32],
     grey: &'s [u8],
 }
 
 impl Scratch<'_> {
+    /// Width, height.
+    fn size(&self) -> (usize, usize) {
+        (
+            self.intrinsics.width as usize,
+            self.intrinsics.height as usize,
+        )
+    }
+
     /// Writes every pixel outside the top-left `tiled` (width, height)
     /// block, one at a time.
     fn write_pixels_outside(&self, tiled: (usize, usize), frame: &mut PixelsMut<'_>) {
-        let (w, h) = self.size;
+        let (w, h) = self.size();
         for v in 0..h {
             let columns = if v < tiled.1 { tiled.0..w } else { 0..w };
             for u in columns {
                 let (from, to) = (u * h + v, v * w + u);
-                let depth = self.depth[from];
-                frame.depth[to] = if depth >= self.range.0 && depth <= self.range.1 {
-                    depth
-                } else {
-                    f32::NAN
-                };
+                frame.depth[to] = self.intrinsics.reported_depth(self.depth[from]);
                 frame.rgb[to * 3..to * 3 + 3].copy_from_slice(&[self.grey[from]; 3]);
             }
         }
@@ -271,12 +271,13 @@ mod tiles {
                 scratch,
                 frame,
             } = self;
-            let (w, h) = scratch.size;
+            let (w, h) = scratch.size();
             let tiled = (w - w % TILE, h - h % TILE);
             // Per 128-bit half: the grey byte of each of 4 pixels three times.
             let grey_to_rgb: __m256i = pulp::cast(GREY_TO_RGB);
             let avx = simd.avx;
-            let (min_range, max_range) = scratch.range;
+            let (min_range, max_range) =
+                (scratch.intrinsics.min_range, scratch.intrinsics.max_range);
             let (min_range, max_range) =
                 (avx._mm256_set1_ps(min_range), avx._mm256_set1_ps(max_range));
             let nan = avx._mm256_set1_ps(f32::NAN);
@@ -855,9 +856,18 @@ mod tests {
                 })
                 .collect();
             let grey: Vec<u8> = (0..n).map(|_| rng.random()).collect();
+            let intrinsics = Intrinsics {
+                width: w as u32,
+                height: h as u32,
+                fx: 1.0,
+                fy: 1.0,
+                cx: 0.0,
+                cy: 0.0,
+                min_range: 0.5,
+                max_range: 8.0,
+            };
             let scratch = Scratch {
-                size: (w, h),
-                range: (0.5, 8.0),
+                intrinsics: &intrinsics,
                 depth: &depth,
                 grey: &grey,
             };

@@ -95,11 +95,7 @@ impl ExactRenderer {
                     Some((d, n, albedo)) => {
                         // Face the normal towards the camera.
                         let n = if n.dot(dir) > 0.0 { -n } else { n };
-                        let depth = if d >= intr.min_range && d <= intr.max_range {
-                            d
-                        } else {
-                            f32::NAN
-                        };
+                        let depth = intr.reported_depth(d);
                         (depth, self.shading.grey([n.x, n.y, n.z], albedo))
                     }
                     None => (f32::NAN, 0),

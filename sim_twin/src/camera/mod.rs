@@ -41,6 +41,16 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// `depth` as the camera reports it: NaN outside its valid range (and
+    /// for NaN).
+    pub(crate) fn reported_depth(&self, depth: f32) -> f32 {
+        if depth >= self.min_range && depth <= self.max_range {
+            depth
+        } else {
+            f32::NAN
+        }
+    }
+
     /// The native camera of a world.
     pub fn native(spec: &CameraSpec) -> Self {
         Self::resized(spec, spec.width, spec.height)
