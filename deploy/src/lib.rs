@@ -22,16 +22,26 @@
 //!   simulator), `offworld emulate-hardware`, `offworld
 //!   emulate-enclosure` and `offworld farm`.
 //!
+//! Every module but [`embedded`] and [`target`] is the `programs` feature:
+//! the `offworld` command and the tests enable it; a Python package needs
+//! neither the deployments a person runs nor their compile time.
+//!
 //! The site's files (router configs, access roles, certificates, systemd
 //! units) live beside this crate, in `deploy/`; the router's, the roles'
 //! and the certificate generator are compiled in ([`site`]).
 
+#[cfg(feature = "programs")]
 pub mod cli;
 pub mod embedded;
+#[cfg(feature = "programs")]
 pub mod enclosure;
+#[cfg(feature = "programs")]
 pub mod farm;
+#[cfg(feature = "programs")]
 pub mod hardware;
+#[cfg(feature = "programs")]
 pub mod process;
+#[cfg(feature = "programs")]
 pub mod site;
 pub mod target;
 
