@@ -140,8 +140,10 @@ fn the_emulated_enclosure_runs_a_command_and_passes_on_its_status() {
 /// slot booked and listed, empty records said so, a refusal typed.
 /// (`envs` is not asked here: in two full test runs its listing right
 /// after this enclosure's start held only some of the env's liveliness
-/// tokens — to be looked into; `offworld gym envs` is the code the Python
-/// CLI tests run against the farm.)
+/// tokens, the tokens reaching a new session over a moment; `whoami` and
+/// `bookings` look again while no controller is seen, a listing cannot
+/// know what it misses. `offworld gym envs` is the code the Python CLI
+/// tests run against the farm.)
 #[test]
 fn a_trainer_books_and_asks_with_offworld_gym() {
     let _alone = one_enclosure();

@@ -66,7 +66,7 @@ pub async fn whoami(
     match env {
         Some(env) => identify(session, std::slice::from_ref(env), token, timeout).await,
         None => {
-            let listings = discover(session, timeout).await?;
+            let listings = discover_served(session, timeout).await?;
             identify(session, &served_real_first(&listings), token, timeout).await
         }
     }
@@ -79,7 +79,7 @@ pub async fn my_bookings(
     token: &str,
     timeout: Duration,
 ) -> Result<Vec<Booking>, WireError> {
-    let listings = discover(session, timeout).await?;
+    let listings = discover_served(session, timeout).await?;
     let me = identify(session, &served_real_first(&listings), token, timeout)
         .await?
         .user;
@@ -90,6 +90,27 @@ pub async fn my_bookings(
         .collect();
     mine.sort_by(|a, b| (a.start_unix_ms, &a.env_id).cmp(&(b.start_unix_ms, &b.env_id)));
     Ok(mine)
+}
+
+/// How long a session just opened looks again for a controller's liveliness
+/// token: the deployment's tokens reach a new session over a moment, and a
+/// first look may miss the controller a command is about to ask.
+const TOKENS_SETTLE: Duration = Duration::from_secs(2);
+
+/// [`discover`], looked at again every 100 ms for up to [`TOKENS_SETTLE`]
+/// while no env has a live controller.
+async fn discover_served(
+    session: &Session,
+    timeout: Duration,
+) -> Result<Vec<EnvListing>, WireError> {
+    let settled = tokio::time::Instant::now() + TOKENS_SETTLE;
+    loop {
+        let listings = discover(session, timeout).await?;
+        if !served_real_first(&listings).is_empty() || tokio::time::Instant::now() >= settled {
+            return Ok(listings);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 /// Envs with a live controller, real ones first, at most three: the ones
