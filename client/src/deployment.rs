@@ -10,7 +10,7 @@ use offworld_runtime::session::{SessionConfig, REACH_WITHIN};
 use offworld_runtime::{ContractError, ErrorCode, WireError};
 use zenoh::Session;
 
-use crate::{admin, discover, EnvListing};
+use crate::{admin, discover_until, EnvListing};
 
 /// The variable naming a deployment's endpoint for trainers (`--connect`
 /// overrides it), read by the Python package and `offworld gym` alike.
@@ -93,24 +93,25 @@ pub async fn my_bookings(
 }
 
 /// How long a session just opened looks again for a controller's liveliness
-/// token: the deployment's tokens reach a new session over a moment, and a
-/// first look may miss the controller a command is about to ask.
+/// token ([`discover_until`]): a first look may miss the controller a
+/// command is about to ask.
 const TOKENS_SETTLE: Duration = Duration::from_secs(2);
 
-/// [`discover`], looked at again every 100 ms for up to [`TOKENS_SETTLE`]
-/// while no env has a live controller.
+/// The deployment's listings once an env with a live controller is among
+/// them (or [`TOKENS_SETTLE`] has passed).
 async fn discover_served(
     session: &Session,
     timeout: Duration,
 ) -> Result<Vec<EnvListing>, WireError> {
-    let settled = tokio::time::Instant::now() + TOKENS_SETTLE;
-    loop {
-        let listings = discover(session, timeout).await?;
-        if !served_real_first(&listings).is_empty() || tokio::time::Instant::now() >= settled {
-            return Ok(listings);
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    let served = |listings: &[EnvListing]| !served_real_first(listings).is_empty();
+    discover_until(
+        session,
+        timeout,
+        TOKENS_SETTLE,
+        Duration::from_millis(100),
+        served,
+    )
+    .await
 }
 
 /// Envs with a live controller, real ones first, at most three: the ones

@@ -529,6 +529,27 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
     Ok(futures::future::join_all(listings).await)
 }
 
+/// [`discover`], looked at again every `interval` until `enough` holds of
+/// the listings or `within` has passed; the last listings either way. A
+/// session just opened receives the deployment's liveliness tokens over a
+/// moment, and envs come up while a client waits for them.
+pub async fn discover_until(
+    session: &Session,
+    timeout: Duration,
+    within: Duration,
+    interval: Duration,
+    enough: impl Fn(&[EnvListing]) -> bool,
+) -> Result<Vec<EnvListing>, WireError> {
+    let deadline = tokio::time::Instant::now() + within;
+    loop {
+        let listings = discover(session, timeout).await?;
+        if enough(&listings) || tokio::time::Instant::now() >= deadline {
+            return Ok(listings);
+        }
+        tokio::time::sleep(interval).await;
+    }
+}
+
 /// What an error saying "not found" should add: the envs that *are*
 /// reachable through `session` (id, task, state), or that none answered —
 /// which, when an env was expected, usually means the endpoint is wrong or

@@ -149,10 +149,9 @@ async fn pick_free(
     task: &str,
     count: usize,
 ) -> Result<Vec<EnvId>, ControllerError> {
-    let deadline = tokio::time::Instant::now() + DISCOVERY;
-    loop {
-        let listings = client::discover(session, std::time::Duration::from_secs(2)).await?;
-        let free: Vec<EnvId> = listings
+    let wanted = count.max(1);
+    let free = |listings: &[client::EnvListing]| -> Vec<EnvId> {
+        listings
             .iter()
             .filter(|l| {
                 l.env.realm() == realm
@@ -160,20 +159,27 @@ async fn pick_free(
                     && l.state == offworld_runtime::msg::EnvState::Free
             })
             .map(|l| l.env.clone())
-            .take(count.max(1))
-            .collect();
-        if free.len() == count.max(1) {
-            return Ok(free);
-        }
-        if tokio::time::Instant::now() >= deadline {
-            let here = client::envs_here(session, std::time::Duration::from_secs(2)).await;
-            return Err(ControllerError::NotFound(format!(
-                "{count} free {realm:?} envs of task {task} wanted, {} found; {here}",
-                free.len(),
-            )));
-        }
-        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            .take(wanted)
+            .collect()
+    };
+    let timeout = std::time::Duration::from_secs(2);
+    let listings = client::discover_until(
+        session,
+        timeout,
+        DISCOVERY,
+        std::time::Duration::from_millis(200),
+        |listings| free(listings).len() == wanted,
+    )
+    .await?;
+    let free = free(&listings);
+    if free.len() == wanted {
+        return Ok(free);
     }
+    let here = client::envs_here(session, timeout).await;
+    Err(ControllerError::NotFound(format!(
+        "{count} free {realm:?} envs of task {task} wanted, {} found; {here}",
+        free.len(),
+    )))
 }
 
 async fn wait_for_spec(
