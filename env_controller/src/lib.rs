@@ -18,12 +18,15 @@
 //! - [`admission`]: request limits (size, per-client rate and queue, per-env
 //!   queue), decided without waiting.
 //! - [`server`]: many envs served over Zenoh.
-//! - [`cli`]: `env_controller serve | users | experiments | leaderboard | estop`.
+//! - `cli`: `env_controller serve | users | experiments | leaderboard | estop`
+//!   (the `programs` feature: the `offworld` command enables it, an
+//!   embedding such as the Python package need not).
 //!
 //! It links no simulator: in-process twins are put beside it by
 //! `offworld_deploy`.
 
 pub mod admission;
+#[cfg(feature = "programs")]
 pub mod cli;
 pub mod env;
 pub mod episode;

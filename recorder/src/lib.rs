@@ -8,13 +8,15 @@
 //! - [`recording`]: an env's recorder, fed by the controller, writing on a
 //!   thread of its own;
 //! - [`read`]: reading files back (summaries, recovering a crashed one);
-//! - [`follow`]: recording from outside the controller, as a subscriber
-//!   (`recorder record`).
+//! - `follow`: recording from outside the controller, as a subscriber
+//!   (`recorder record`; with the `programs` feature, as is `cli`).
 //!
 //! The format is documented in `docs/recording.md`.
 
+#[cfg(feature = "programs")]
 pub mod cli;
 pub mod episode_file;
+#[cfg(feature = "programs")]
 pub mod follow;
 pub mod msg;
 pub mod read;

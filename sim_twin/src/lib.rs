@@ -20,6 +20,7 @@
 //! stream) for the real stack to run against is `offworld_deploy::hardware`.
 
 pub mod camera;
+#[cfg(feature = "programs")]
 pub mod cli;
 mod error;
 pub mod frame_payload;
