@@ -207,6 +207,7 @@ impl SessionConfig {
             // (`open_reaching`).
             set(&mut config, "connect/timeout_ms", "-1".to_owned())?;
         }
+        links_compiled_in(&config, cfg!(feature = "tls-quic"))?;
         Ok(config)
     }
 
@@ -341,6 +342,25 @@ impl SessionConfig {
 }
 
 /// Whether `config` opens a client session (its own mode, or a file's).
+/// Refuses TLS and QUIC endpoints in a build without those links (the
+/// `tls-quic` feature off: the demo's lean wheel), where Zenoh would fail
+/// later with its bare "unsupported protocol".
+fn links_compiled_in(config: &zenoh::Config, tls_quic: bool) -> Result<(), ContractError> {
+    if tls_quic {
+        return Ok(());
+    }
+    for key in ["connect/endpoints", "listen/endpoints"] {
+        let endpoints = config.get_json(key).unwrap_or_default();
+        if endpoints.contains("\"tls/") || endpoints.contains("\"quic/") {
+            return Err(ContractError::Config(format!(
+                "{key} = {endpoints}: this build has no TLS or QUIC links (the demo's lean \
+                 offworld_gym package); `bash .ci/setup` builds the full one"
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn is_client(config: &zenoh::Config) -> bool {
     config.get_json("mode").is_ok_and(|m| m == "\"client\"")
 }
@@ -461,6 +481,32 @@ mod tests {
             ..SessionConfig::default()
         };
         assert!(matches!(cfg.to_zenoh(), Err(ContractError::Config(_))));
+    }
+
+    #[test]
+    fn tls_and_quic_endpoints_are_refused_in_a_build_without_them() {
+        for endpoint in ["quic/router.example:7447", "tls/127.0.0.1:7447"] {
+            let config = SessionConfig::connecting(endpoint)
+                .to_zenoh()
+                .expect("this test build has the links");
+            match links_compiled_in(&config, false) {
+                Err(ContractError::Config(message)) => {
+                    assert!(message.contains(endpoint), "{message}");
+                    assert!(message.contains("no TLS or QUIC links"), "{message}");
+                    assert!(message.contains("bash .ci/setup"), "{message}");
+                }
+                other => panic!("{endpoint}: {other:?}"),
+            }
+            assert!(links_compiled_in(&config, true).is_ok());
+        }
+        let tcp = SessionConfig::connecting("tcp/127.0.0.1:7447")
+            .to_zenoh()
+            .expect("tcp");
+        assert!(links_compiled_in(&tcp, false).is_ok());
+        let listening = SessionConfig::listening("quic/127.0.0.1:0")
+            .to_zenoh()
+            .expect("listen");
+        assert!(links_compiled_in(&listening, false).is_err());
     }
 
     #[test]
