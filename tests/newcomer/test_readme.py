@@ -108,10 +108,14 @@ def test_the_two_commands_are_the_demo_and_the_tests_and_the_demo_prints_what_it
     for line, pattern in zip(last, ending):
         assert re.fullmatch(pattern, line), f"{line!r} is not {pattern!r}:\n{out}"
     # On a machine without the full build the demo's package is the lean one
-    # the README describes: no live monitor (a request for one says how to
-    # get it) and no `offworld`; where the full build exists (CI, after
-    # `.ci/setup`), the demo installs the full package and takes nothing away.
-    assert "lean wheel without the live monitor or the `offworld` command" in " ".join(README.split())
+    # the README describes: no live monitor and no TLS/QUIC links (a request
+    # for either says how to get it) and no `offworld`; where the full build
+    # exists (CI, after `.ci/setup`), the demo installs the full package and
+    # takes nothing away.
+    assert (
+        "lean wheel without the live monitor, the `offworld` command or TLS/QUIC links to a lab"
+        in " ".join(README.split())
+    )
     if not (REPO / "py_client/wheel-data/scripts/offworld").exists():
         try:
             refused = run(
@@ -122,6 +126,14 @@ def test_the_two_commands_are_the_demo_and_the_tests_and_the_demo_prints_what_it
                 timeout=120,
             )
             assert "built without the live monitor" in refused and "bash .ci/setup" in refused, refused
+            refused = run(
+                "python3 -c 'import offworld_gym, offworld_gym.errors as e\n"
+                "try:\n offworld_gym.whoami(connect=\"quic/127.0.0.1:7447\", token=\"t\")\n"
+                "except e.BadRequest as x:\n print(x)'",
+                REPO,
+                timeout=120,
+            )
+            assert "no TLS or QUIC links" in refused and "bash .ci/setup" in refused, refused
         finally:
             # The second command begins with the full set-up (`.ci/test`
             # runs `.ci/setup`): what the README's other blocks use.
