@@ -341,7 +341,6 @@ impl SessionConfig {
     }
 }
 
-/// Whether `config` opens a client session (its own mode, or a file's).
 /// Refuses TLS and QUIC endpoints in a build without those links (the
 /// `tls-quic` feature off: the demo's lean wheel), where Zenoh would fail
 /// later with its bare "unsupported protocol".
@@ -361,6 +360,7 @@ fn links_compiled_in(config: &zenoh::Config, tls_quic: bool) -> Result<(), Contr
     Ok(())
 }
 
+/// Whether `config` opens a client session (its own mode, or a file's).
 fn is_client(config: &zenoh::Config) -> bool {
     config.get_json("mode").is_ok_and(|m| m == "\"client\"")
 }
