@@ -352,8 +352,9 @@ fn links_compiled_in(config: &zenoh::Config, tls_quic: bool) -> Result<(), Contr
         let endpoints = config.get_json(key).unwrap_or_default();
         if endpoints.contains("\"tls/") || endpoints.contains("\"quic/") {
             return Err(ContractError::Config(format!(
-                "{key} = {endpoints}: this build has no TLS or QUIC links (the demo's lean \
-                 offworld_gym package); `bash .ci/setup` builds the full one"
+                "{key} = {endpoints}: this build has no TLS or QUIC links (offworld-runtime's \
+                 `tls-quic` feature; the demo's lean offworld_gym package is built without \
+                 it): `bash .ci/setup` builds the full one"
             )));
         }
     }
