@@ -28,10 +28,13 @@ SETTLE_S = 0.5
 
 PRELUDE = textwrap.dedent(
     """
-    import sys, time
+    import signal, sys, time
     import gymnasium
     import offworld_gym
     endpoint, env_id = sys.argv[1], sys.argv[2]
+    # Ctrl-C as at a terminal even when the tests run in a background job,
+    # whose children inherit SIGINT ignored (Python then installs no handler).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     def make():
         return gymnasium.make(
