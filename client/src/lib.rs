@@ -23,6 +23,7 @@ use offworld_runtime::msg::{
     Action, ClientTag, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, Leaderboard,
     OpenReply, OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
 };
+use offworld_runtime::pool::BufferPool;
 use offworld_runtime::wire;
 use offworld_runtime::{ErrorCode, WireError};
 use zenoh::liveliness::LivelinessToken;
@@ -95,6 +96,8 @@ pub struct EnvClient {
     closed: Option<CloseReply>,
     /// This client's id (its liveliness token's), on every request.
     tag: ClientTag,
+    /// Where observations are decoded into: see [`EnvClient::observation_buffers`].
+    observations: BufferPool,
     _alive: LivelinessToken,
 }
 
@@ -212,6 +215,7 @@ impl EnvClient {
             seq: 0,
             closed: None,
             tag,
+            observations: BufferPool::new(),
             _alive: alive,
         })
     }
@@ -229,6 +233,14 @@ impl EnvClient {
     /// The env.
     pub fn env(&self) -> &EnvId {
         &self.env
+    }
+
+    /// The buffers observations are decoded into. Handing a reply's
+    /// `observation.data` back ([`BufferPool::recycle`]) once done with it
+    /// lets a later reply reuse its memory: without that, every step of a
+    /// 320×240 RGBD env allocates, page-faults in and frees 307 KB.
+    pub fn observation_buffers(&self) -> &BufferPool {
+        &self.observations
     }
 
     fn ensure_open(&self) -> Result<(), WireError> {
@@ -252,6 +264,7 @@ impl EnvClient {
             &request,
             self.timeouts.reset,
             &self.tag,
+            self.observations.take_empty(),
         )
         .await
         .map_err(|e| self.in_session(e))
@@ -267,9 +280,16 @@ impl EnvClient {
             action,
         };
         let key = self.env.key(Topic::Step);
-        wire::request_tail_as(&self.session, &key, &request, self.timeouts.step, &self.tag)
-            .await
-            .map_err(|e| self.in_session(e))
+        wire::request_tail_as(
+            &self.session,
+            &key,
+            &request,
+            self.timeouts.step,
+            &self.tag,
+            self.observations.take_empty(),
+        )
+        .await
+        .map_err(|e| self.in_session(e))
     }
 
     /// Releases the lease; a second call returns the first call's reply.

@@ -275,6 +275,7 @@ async fn main() -> anyhow::Result<()> {
                                 &forged,
                                 deadline,
                                 &tag,
+                                Vec::new(),
                             )
                             .await,
                         )
@@ -291,6 +292,7 @@ async fn main() -> anyhow::Result<()> {
                                 &forged,
                                 deadline,
                                 &tag,
+                                Vec::new(),
                             )
                             .await,
                         )

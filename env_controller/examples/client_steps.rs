@@ -1,13 +1,14 @@
 //! Rust-only step rate through the embedded deployment (controller + twin
 //! over Zenoh), the baseline the Python benchmark compares against.
 //!
-//! `cargo run --release --example client_steps -- 84 84 1000 [rgbd]`
-//! (width, height, steps; depth only unless `rgbd`)
+//! `cargo run --release --example client_steps -- 84 84 1000 [rgbd] [envs=2]`
+//! (width, height, steps in all; depth only unless `rgbd`; `envs=N` steps N
+//! envs at once through a `VecEnvClient`, as `make_vec` does)
 
 use offworld_runtime::Resolution;
 use std::time::Instant;
 
-use offworld_client::{ClientTimeouts, EnvClient};
+use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_deploy::Target;
 use offworld_runtime::msg::*;
 
@@ -26,12 +27,16 @@ async fn main() -> anyhow::Result<()> {
     } else {
         Channels::DepthOnly
     };
+    let count = std::env::args()
+        .find_map(|a| a.strip_prefix("envs=").and_then(|n| n.parse().ok()))
+        .unwrap_or(1usize)
+        .max(1);
     let task = "MonolithDiscrete";
     let connection = offworld_deploy::connect(
         Target::Embedded {
             task: task.into(),
             resolution: Resolution::new(w, h),
-            count: 1,
+            count,
             record: None,
             twin_profile: offworld_deploy::TwinProfile::default(),
         },
@@ -44,31 +49,39 @@ async fn main() -> anyhow::Result<()> {
         width: w,
         depth_format: DepthFormat::Uint8,
     });
-    let mut env = EnvClient::open(
-        &connection.session,
-        &connection.envs[0],
-        request,
-        ClientTimeouts::default(),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!(e))?;
-    env.reset(Seed::Fixed(0))
+    let mut clients = Vec::new();
+    for env in &connection.envs {
+        let client = EnvClient::open(
+            &connection.session,
+            env,
+            request.clone(),
+            ClientTimeouts::default(),
+        )
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
+        clients.push(client);
+    }
+    let mut envs = VecEnvClient::new(clients);
+    envs.reset(&vec![Seed::Fixed(0); count])
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let rounds = n / count;
     let start = Instant::now();
-    for i in 0..n {
-        let r = env
-            .step(Action::Discrete((i % 4) as i64))
+    for i in 0..rounds {
+        // Ended episodes reset at their next step (next-step autoreset).
+        let steps = envs
+            .step(vec![Action::Discrete((i % 4) as i64); count])
             .await
             .map_err(|e| anyhow::anyhow!(e))?;
-        if r.terminated || r.truncated {
-            env.reset(Seed::Continue)
-                .await
-                .map_err(|e| anyhow::anyhow!(e))?;
+        // Done with the pixels: their memory serves a later step, as the
+        // Python package's arrays do when dropped.
+        for (env, step) in (0..count).filter_map(|k| envs.get(k)).zip(steps) {
+            env.observation_buffers()
+                .recycle(step.reply.observation.data);
         }
     }
-    let rate = n as f64 / start.elapsed().as_secs_f64();
+    let rate = (rounds * count) as f64 / start.elapsed().as_secs_f64();
     println!("rust_steps_per_s {rate:.1}");
-    env.close().await.map_err(|e| anyhow::anyhow!(e))?;
+    envs.close().await.map_err(|e| anyhow::anyhow!(e))?;
     Ok(())
 }

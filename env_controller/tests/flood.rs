@@ -178,6 +178,7 @@ async fn forged_step(session: &Session, env: &EnvId, id: &str) -> Result<StepRep
         &request,
         Duration::from_secs(60),
         &tag(id),
+        Vec::new(),
     )
     .await
 }
@@ -197,6 +198,7 @@ async fn forged_reset(
         &request,
         Duration::from_secs(60),
         &tag(id),
+        Vec::new(),
     )
     .await
 }

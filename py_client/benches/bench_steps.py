@@ -3,8 +3,9 @@
     python py_client/benches/bench_steps.py                 # 84x84 depth uint8
     python py_client/benches/bench_steps.py --rgbd-320x240  # 320x240 RGBD uint8
 
-Rust-only: the `client_steps` example (same embedded stack, same actions).
-Python: one embedded env via gymnasium.make, and make_vec with 2 envs.
+Rust-only: the `client_steps` example (same embedded stack, same actions),
+one env and a `VecEnvClient` of 2. Python: one embedded env via
+gymnasium.make, and make_vec with 2 envs.
 """
 
 from __future__ import annotations
@@ -52,21 +53,22 @@ def python_vec(n: int) -> float:
     return rate
 
 
-def rust_only() -> float:
+def rust_only(envs: int = 1) -> float:
     target = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache/offworld-target"))
     binary = target / "release/examples/client_steps"
-    args = [str(binary), str(W), str(H), str(STEPS), *(["rgbd"] if RGBD else [])]
+    args = [str(binary), str(W), str(H), str(STEPS), *(["rgbd"] if RGBD else []), f"envs={envs}"]
     out = subprocess.run(args, capture_output=True, text=True, check=True)
     return float(out.stdout.split()[-1])
 
 
 def main() -> None:
     # Interleaved rounds, medians: run-to-run noise on 2 shared cores is large.
-    rounds = [(rust_only(), python_single(), python_vec(2)) for _ in range(ROUNDS)]
-    rust, single, vec2 = (float(np.median([r[i] for r in rounds])) for i in range(3))
+    rounds = [(rust_only(), rust_only(2), python_single(), python_vec(2)) for _ in range(ROUNDS)]
+    rust, rust_vec2, single, vec2 = (float(np.median([r[i] for r in rounds])) for i in range(4))
     observation = "RGBD" if RGBD else "depth"
     print(f"{W}x{H} {observation} uint8, {STEPS} steps, embedded sim, 2 cores, medians of {ROUNDS} interleaved rounds:")
     print(f"  rust-only (EnvClient)          : {rust:7.0f} steps/s")
+    print(f"  rust-only VecEnvClient of 2    : {rust_vec2:7.0f} steps/s  ({rust_vec2 / rust:.2f}x one env)")
     print(f"  python gymnasium.make          : {single:7.0f} steps/s  (python layer costs {100 * (1 - single / rust):.1f} %)")
     print(f"  python make_vec(num_envs=2)    : {vec2:7.0f} steps/s  ({vec2 / single:.2f}x one env)")
 

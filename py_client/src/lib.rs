@@ -11,6 +11,7 @@ use std::sync::OnceLock;
 use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_deploy::{Connection, Target, TwinProfile};
 use offworld_runtime::msg::{ActionSpace, Channels, OpenRequest, Seed};
+use offworld_runtime::pool::BufferPool;
 use offworld_runtime::{EnvId, Resolution, SessionConfig, WireError};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -161,6 +162,16 @@ struct OpenOptions {
     record: Option<String>,
     twin_profile: Option<String>,
     wait_s: f64,
+}
+
+impl NativeEnvs {
+    /// Where env `index`'s observations go back when numpy drops them.
+    fn buffers(&self, index: usize) -> PyResult<&BufferPool> {
+        self.envs
+            .get(index)
+            .map(EnvClient::observation_buffers)
+            .ok_or_else(|| PyValueError::new_err("no envs"))
+    }
 }
 
 #[pymethods]
@@ -398,9 +409,9 @@ impl NativeEnvs {
         let replies = block_on_interruptibly(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
         let observations = PyList::empty(py);
         let infos = PyList::empty(py);
-        for r in replies {
+        for (i, r) in replies.into_iter().enumerate() {
             infos.append(convert::info(py, &r.info)?)?;
-            observations.append(convert::observation(py, r.observation)?)?;
+            observations.append(convert::observation(py, r.observation, self.buffers(i)?)?)?;
         }
         PyTuple::new(py, [observations.into_any(), infos.into_any()])
     }
@@ -423,7 +434,7 @@ impl NativeEnvs {
         PyTuple::new(
             py,
             [
-                convert::observation(py, r.observation)?,
+                convert::observation(py, r.observation, self.buffers(0)?)?,
                 r.reward.into_pyobject(py)?.into_any(),
                 pyo3::types::PyBool::new(py, r.terminated)
                     .to_owned()
@@ -450,12 +461,12 @@ impl NativeEnvs {
         let envs = &mut self.envs;
         let steps = block_on_interruptibly(py, envs.step(actions))?.map_err(errors::to_py)?;
         let out = PyList::empty(py);
-        for s in steps {
+        for (i, s) in steps.into_iter().enumerate() {
             let info = convert::info(py, &s.reply.info)?;
             out.append(PyTuple::new(
                 py,
                 [
-                    convert::observation(py, s.reply.observation)?,
+                    convert::observation(py, s.reply.observation, self.buffers(i)?)?,
                     s.reply.reward.into_pyobject(py)?.into_any(),
                     pyo3::types::PyBool::new(py, s.reply.terminated)
                         .to_owned()

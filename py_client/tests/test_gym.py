@@ -170,6 +170,33 @@ def test_observation_options():
     env.close()
 
 
+@pytest.mark.parametrize("depth_format", ["uint8", "meters"])
+def test_observations_are_writable_arrays_of_their_own_whose_memory_serves_later_steps(depth_format):
+    """A step allocates no new 307 KB array (and its page faults) while the
+    last one was dropped, and never touches an array still held."""
+    env = gymnasium.make(
+        "OffWorldMonolithDiscreteSim-v0",
+        resolution=(84, 84),
+        channel_type=Channels.DEPTH_ONLY,
+        depth_format=depth_format,
+    )
+    env.reset(seed=3)
+    env.step(2)  # gymnasium's checker holds on to the first step's result
+    held, *_ = env.step(2)
+    assert held.flags.writeable and held.flags.c_contiguous
+    held[...] = 7
+    second, *_ = env.step(2)
+    assert (held == 7).all(), "a later step leaves a held array alone"
+    assert not (second == 7).all()
+    address = second.__array_interface__["data"][0]
+    expected = second.copy()
+    del second
+    third, *_ = env.step(2)
+    assert third.__array_interface__["data"][0] == address, "the dropped array's memory again"
+    assert not np.array_equal(third, expected), "holding the new observation"
+    env.close()
+
+
 def test_bad_actions_raise_typed_errors():
     env = gymnasium.make("OffWorldMonolithContinuousSim-v0", resolution=(32, 32))
     with pytest.raises(errors.InvalidState):

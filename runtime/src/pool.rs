@@ -1,7 +1,8 @@
 //! Recycled payload buffers. A big payload (a camera frame, an observation)
 //! is written into a buffer an earlier one used, and the buffer comes back
 //! when Zenoh and every reader have dropped the payload: no fresh
-//! allocation, page faults or zero-fill per message.
+//! allocation, page faults or zero-fill per message. A receiver's decoded
+//! observations come back the same way, through [`BufferPool::recycle`].
 
 use std::sync::{Arc, Mutex, Weak};
 
@@ -30,10 +31,28 @@ impl BufferPool {
     /// A buffer of `len` bytes. An idle one keeps its old bytes (the caller
     /// overwrites them all); a new one is zeroed.
     pub fn take(&self, len: usize) -> Vec<u8> {
-        let idle = self.idle.lock().ok().and_then(|mut idle| idle.pop());
-        let mut buffer = idle.unwrap_or_default();
+        let mut buffer = self.idle_buffer().unwrap_or_default();
         buffer.resize(len, 0);
         buffer
+    }
+
+    /// An empty buffer for a caller that fills it by extending (a decoded
+    /// observation): an idle one, its capacity kept, or a new one.
+    pub fn take_empty(&self) -> Vec<u8> {
+        let mut buffer = self.idle_buffer().unwrap_or_default();
+        buffer.clear();
+        buffer
+    }
+
+    /// Gives `buffer` back for a later take: a reader done with what it
+    /// was handed (a decoded observation) saves the next one an allocation
+    /// and its page faults.
+    pub fn recycle(&self, buffer: Vec<u8>) {
+        keep_idle(&self.idle, buffer);
+    }
+
+    fn idle_buffer(&self) -> Option<Vec<u8>> {
+        self.idle.lock().ok().and_then(|mut idle| idle.pop())
     }
 
     /// `buffer` as a payload (not copied), back to the pool when dropped.
@@ -65,14 +84,17 @@ impl AsRef<[u8]> for Recycled {
 
 impl Drop for Recycled {
     fn drop(&mut self) {
-        let Some(pool) = self.idle.upgrade() else {
-            return;
-        };
-        let Ok(mut idle) = pool.lock() else {
-            return;
-        };
+        if let Some(pool) = self.idle.upgrade() {
+            keep_idle(&pool, std::mem::take(&mut self.buffer));
+        }
+    }
+}
+
+/// Keeps `buffer` for a later take unless [`BufferPool::IDLE_MAX`] wait.
+fn keep_idle(idle: &Idle, buffer: Vec<u8>) {
+    if let Ok(mut idle) = idle.lock() {
         if idle.len() < BufferPool::IDLE_MAX {
-            idle.push(std::mem::take(&mut self.buffer));
+            idle.push(buffer);
         }
     }
 }
@@ -106,12 +128,31 @@ mod tests {
     }
 
     #[test]
+    fn a_recycled_buffer_is_taken_again_empty() {
+        let pool = BufferPool::new();
+        let mut pixels = pool.take_empty();
+        assert!(pixels.is_empty());
+        pixels.extend_from_slice(&[7; 64]);
+        let address = pixels.as_ptr();
+        pool.recycle(pixels);
+        let again = pool.take_empty();
+        assert_eq!(again.as_ptr(), address, "the same allocation");
+        assert!(again.is_empty(), "its bytes dropped");
+        assert!(again.capacity() >= 64, "its capacity kept");
+    }
+
+    #[test]
     fn the_pool_keeps_at_most_its_limit_and_outlives_nothing() {
         let pool = BufferPool::new();
         let payloads: Vec<ZBytes> = (0..BufferPool::IDLE_MAX + 3)
             .map(|_| pool.payload(pool.take(16)))
             .collect();
         drop(payloads);
+        assert_eq!(pool.idle(), BufferPool::IDLE_MAX);
+        // Handed back by a reader: kept while fewer than the limit wait.
+        let mut kept = pool.take_empty();
+        kept.extend_from_slice(b"pixels");
+        pool.recycle(kept);
         assert_eq!(pool.idle(), BufferPool::IDLE_MAX);
         // A payload outliving its pool is simply freed.
         let late = pool.payload(pool.take(16));

@@ -227,24 +227,22 @@ pub async fn request_as<Req: Serialize, Rep: DeserializeOwned>(
     .await
 }
 
-/// [`request_tail`] saying who asks (see [`request_as`]).
+/// [`request_tail`] saying who asks (see [`request_as`]), its pixels
+/// copied into `tail` (see [`codec::decode_payload_tail_into`]; a fresh
+/// buffer is `Vec::new()`).
 pub async fn request_tail_as<Req: Serialize, Rep: DeserializeOwned + codec::ByteTail>(
     session: &Session,
     key: &str,
     req: &Req,
     timeout: Duration,
     tag: &ClientTag,
+    tail: Vec<u8>,
 ) -> Result<Rep, RequestError> {
     let payload = codec::encode(req)?;
     let tag = codec::encode(tag)?;
-    request_decoded(
-        session,
-        key,
-        payload,
-        Some(tag),
-        timeout,
-        codec::decode_payload_tail,
-    )
+    request_decoded(session, key, payload, Some(tag), timeout, |reply| {
+        codec::decode_payload_tail_into(reply, tail)
+    })
     .await
 }
 
@@ -297,7 +295,7 @@ async fn request_decoded<Rep: DeserializeOwned>(
     payload: Vec<u8>,
     attachment: Option<Vec<u8>>,
     timeout: Duration,
-    decode: fn(&ZBytes) -> Result<Rep, DecodeError>,
+    decode: impl FnOnce(&ZBytes) -> Result<Rep, DecodeError>,
 ) -> Result<Rep, RequestError> {
     let started = Instant::now();
     let replies = session

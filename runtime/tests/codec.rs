@@ -325,7 +325,7 @@ fn fragmented(bytes: &[u8], cuts: &[usize]) -> zenoh::bytes::ZBytes {
 /// broken fails exactly as the plain decode fails.
 #[test]
 fn fragmented_observations_decode_as_the_plain_payload() {
-    use offworld_runtime::codec::{decode_payload, decode_payload_tail};
+    use offworld_runtime::codec::{decode_payload, decode_payload_tail, decode_payload_tail_into};
     let data: Vec<u8> = (0..40u8).map(|i| i.wrapping_mul(13)).collect();
     let step = StepReply {
         observation: ObsArray {
@@ -345,6 +345,20 @@ fn fragmented_observations_decode_as_the_plain_payload() {
             let decoded: StepReply = decode_payload_tail(&payload).expect("decodes");
             assert_eq!(decoded, step, "cut at {cuts:?}");
         }
+    }
+    // Whole or fragmented, into a recycled buffer holding an older frame:
+    // the same message, in that buffer's memory.
+    for cuts in [vec![], vec![bytes.len() - 20]] {
+        let recycled = vec![0xEE; 64];
+        let address = recycled.as_ptr();
+        let decoded: StepReply =
+            decode_payload_tail_into(&fragmented(&bytes, &cuts), recycled).expect("decodes");
+        assert_eq!(decoded, step, "cut at {cuts:?}");
+        assert_eq!(
+            decoded.observation.data.as_ptr(),
+            address,
+            "no new allocation, cut at {cuts:?}"
+        );
     }
     let reset = ResetReply {
         observation: step.observation.clone(),
@@ -371,5 +385,8 @@ fn fragmented_observations_decode_as_the_plain_payload() {
         let plain = decode_payload::<StepReply>(&payload).map_err(|e| e.to_string());
         assert!(plain.is_err());
         assert_eq!(tail, plain);
+        let whole = fragmented(&broken, &[]);
+        let into = decode_payload_tail_into::<StepReply>(&whole, vec![1; 8]);
+        assert_eq!(into.map_err(|e| e.to_string()), plain, "in one piece");
     }
 }

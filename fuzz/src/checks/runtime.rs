@@ -152,6 +152,13 @@ where
         same(name, &whole, &tail),
         "{name}: decode {whole:?} but decode_payload_tail {tail:?}"
     );
+    // In one piece, into a recycled buffer still holding older bytes.
+    let one_piece = ZBytes::from(input.payload.to_vec());
+    let recycled = codec::decode_payload_tail_into::<T>(&one_piece, vec![0xEE; 16]);
+    assert!(
+        same(name, &whole, &recycled),
+        "{name}: decode {whole:?} but decode_payload_tail_into {recycled:?}"
+    );
     if let Some(msg) = message::<T>(name, input) {
         let mut head = msg.clone();
         let pixels = std::mem::take(head.tail_mut());

@@ -164,14 +164,24 @@ pub trait ByteTail {
     fn tail_mut(&mut self) -> &mut Vec<u8>;
 }
 
-/// [`decode_payload`] for a [`ByteTail`] message: a payload that arrived in
-/// fragments has its tail copied once, straight from the fragments, instead
-/// of being joined first and copied again. Same result, same errors.
+/// [`decode_payload`] for a [`ByteTail`] message: the tail is copied once,
+/// straight from the payload's fragments, instead of being joined first and
+/// copied again. Same result, same errors.
 pub fn decode_payload_tail<T: DeserializeOwned + ByteTail>(
     payload: &zenoh::bytes::ZBytes,
 ) -> Result<T, DecodeError> {
+    decode_payload_tail_into(payload, Vec::new())
+}
+
+/// [`decode_payload_tail`] copying the tail into `tail`, whose bytes are
+/// dropped and whose capacity is reused: a receiver recycling its buffers
+/// (`crate::pool::BufferPool`) decodes big observations without allocating.
+pub fn decode_payload_tail_into<T: DeserializeOwned + ByteTail>(
+    payload: &zenoh::bytes::ZBytes,
+    mut tail: Vec<u8>,
+) -> Result<T, DecodeError> {
     let mut slices = payload.slices();
-    let (Some(first), Some(_)) = (slices.next(), payload.slices().nth(1)) else {
+    let Some(first) = slices.next() else {
         return decode_payload(payload);
     };
     let total = payload.len();
@@ -183,17 +193,17 @@ pub fn decode_payload_tail<T: DeserializeOwned + ByteTail>(
             let msg = T::deserialize(&mut reader).ok()?;
             Some((msg, reader.tail_at()? + 4))
         });
-    // Anything else (the tail not last, not reaching into a later
-    // fragment) takes the general path, which also words the errors.
+    // Anything else (the tail not last, padding after it) takes the
+    // general path, which also words the errors.
     let Some((mut msg, tail_at)) = open_tail else {
         return decode_payload(payload);
     };
-    let tail = msg.tail_mut();
     tail.clear();
     tail.reserve_exact(total - tail_at);
     tail.extend_from_slice(&first[tail_at..]);
     for slice in slices {
         tail.extend_from_slice(slice);
     }
+    *msg.tail_mut() = tail;
     Ok(msg)
 }

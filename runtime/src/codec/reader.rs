@@ -20,9 +20,10 @@ impl de::Error for DecodeError {
 pub(crate) struct CdrReader<'de> {
     data: &'de [u8],
     pos: usize,
-    /// Reading only the first `data.len()` of a body this long: a byte
-    /// sequence running from inside `data` exactly to the body's end is
-    /// the open tail, read as empty and left to the caller.
+    /// Reading the first `data.len()` of a body this long (all of it when
+    /// the payload is in one piece): a byte sequence running from inside
+    /// `data` exactly to the body's end is the open tail, read as empty and
+    /// left to the caller.
     body_len: Option<usize>,
     /// Where the open tail's bytes start, once read.
     tail_at: Option<usize>,
@@ -184,7 +185,7 @@ impl<'de> de::Deserializer<'de> for &mut CdrReader<'de> {
             let at = self.pos;
             let len = self.read_u32()? as usize;
             let start = self.pos;
-            if start.checked_add(len) == Some(body_len) && start + len > self.data.len() {
+            if start.checked_add(len) == Some(body_len) && start + len >= self.data.len() {
                 self.tail_at = Some(start);
                 self.pos = self.data.len();
                 return visitor.visit_borrowed_bytes(&[]);
