@@ -1,9 +1,11 @@
 //! Rust-only step rate through the embedded deployment (controller + twin
 //! over Zenoh), the baseline the Python benchmark compares against.
 //!
-//! `cargo run --release --example client_steps -- 84 84 1000 [rgbd] [envs=2]`
+//! `cargo run --release --example client_steps -- 84 84 1000 [rgbd] [envs=2] [no-recycle]`
 //! (width, height, steps in all; depth only unless `rgbd`; `envs=N` steps N
-//! envs at once through a `VecEnvClient`, as `make_vec` does)
+//! envs at once through a `VecEnvClient`, as `make_vec` does; `no-recycle`
+//! drops each observation instead of handing its buffer back, as every
+//! client did before observation buffers were pooled)
 
 use offworld_runtime::Resolution;
 use std::time::Instant;
@@ -31,6 +33,7 @@ async fn main() -> anyhow::Result<()> {
         .find_map(|a| a.strip_prefix("envs=").and_then(|n| n.parse().ok()))
         .unwrap_or(1usize)
         .max(1);
+    let recycle = !std::env::args().any(|a| a == "no-recycle");
     let task = "MonolithDiscrete";
     let connection = offworld_deploy::connect(
         Target::Embedded {
@@ -76,6 +79,9 @@ async fn main() -> anyhow::Result<()> {
         // Done with the pixels: their memory serves a later step, as the
         // Python package's arrays do when dropped.
         for (env, step) in (0..count).filter_map(|k| envs.get(k)).zip(steps) {
+            if !recycle {
+                continue;
+            }
             env.observation_buffers()
                 .recycle(step.reply.observation.data);
         }

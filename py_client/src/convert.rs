@@ -1,8 +1,8 @@
 //! Type conversions between Python and the contract: observations to numpy
 //! arrays, Python actions and options to messages.
 
-use numpy::ndarray::ArrayView3;
-use numpy::{Element, PyArray1, PyArray3, PyArrayMethods};
+use numpy::ndarray::ArrayViewD;
+use numpy::{Element, PyArray1, PyArrayDyn, PyArrayMethods};
 use offworld_runtime::msg::{
     Action, ActionSpace, AlgorithmMode, Channels, DType, DepthFormat, LearningType, ObsArray,
     ObsOptions, StepInfo,
@@ -24,28 +24,73 @@ pub fn observation<'py>(
     obs: ObsArray,
     buffers: &BufferPool,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let shape = (
+    let shape = [
         obs.height as usize,
         obs.width as usize,
         obs.channels as usize,
-    );
+    ];
+    pixels(py, obs.data, buffers, obs.dtype, &shape)
+}
+
+/// The observations of a vector env's envs as one array of shape (envs,
+/// height, width, channels), copied once into a buffer of `batches`; each
+/// env's own buffer goes straight back to its pool (`buffers[i]`).
+pub fn stacked<'py>(
+    py: Python<'py>,
+    observations: Vec<ObsArray>,
+    buffers: &[&BufferPool],
+    batches: &BufferPool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let Some(first) = observations.first() else {
+        return Err(errors::local("no observations to stack".into()));
+    };
+    let (dtype, shape) = (first.dtype, [first.height, first.width, first.channels]);
+    if let Some(other) = observations
+        .iter()
+        .find(|o| (o.dtype, [o.height, o.width, o.channels]) != (dtype, shape))
+    {
+        return Err(errors::local(format!(
+            "the envs' observations differ: {shape:?} {dtype:?} and {:?} {:?}",
+            [other.height, other.width, other.channels],
+            other.dtype
+        )));
+    }
+    let mut data = batches.take_empty();
+    data.reserve_exact(observations.iter().map(|o| o.data.len()).sum());
+    for (obs, pool) in observations.into_iter().zip(buffers) {
+        data.extend_from_slice(&obs.data);
+        pool.recycle(obs.data);
+    }
+    let envs = buffers.len();
+    let [height, width, channels] = shape.map(|n| n as usize);
+    pixels(py, data, batches, dtype, &[envs, height, width, channels])
+}
+
+/// `data` (little-endian elements of `dtype`) as a numpy array of `shape`,
+/// lent to numpy: back to `pool` when the array is dropped.
+fn pixels<'py>(
+    py: Python<'py>,
+    data: Vec<u8>,
+    pool: &BufferPool,
+    dtype: DType,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyAny>> {
     let unfilled = |len: usize| {
         errors::local(format!(
-            "an observation of {len} bytes does not fill its shape {shape:?} ({:?})",
-            obs.dtype
+            "an observation of {len} bytes does not fill its shape {shape:?} ({dtype:?})"
         ))
     };
     let owner = Bound::new(
         py,
         LentPixels {
-            data: obs.data,
-            pool: buffers.clone(),
+            data,
+            pool: pool.clone(),
         },
     )?;
     let data = owner.get().data.as_slice();
-    match obs.dtype {
+    match dtype {
         DType::U8 => {
-            let view = ArrayView3::from_shape(shape, data).map_err(|_| unfilled(data.len()))?;
+            let view = ArrayViewD::from_shape(shape, data).map_err(|_| unfilled(data.len()))?;
             Ok(lend(&view, owner.clone()))
         }
         // Little-endian floats read in place where the buffer is aligned
@@ -53,7 +98,7 @@ pub fn observation<'py>(
         DType::F32 => match bytemuck::try_cast_slice::<u8, f32>(data) {
             Ok(floats) if cfg!(target_endian = "little") => {
                 let view =
-                    ArrayView3::from_shape(shape, floats).map_err(|_| unfilled(data.len()))?;
+                    ArrayViewD::from_shape(shape, floats).map_err(|_| unfilled(data.len()))?;
                 Ok(lend(&view, owner.clone()))
             }
             _ => {
@@ -63,7 +108,7 @@ pub fn observation<'py>(
                     .collect();
                 let len = data.len();
                 Ok(PyArray1::from_vec(py, floats)
-                    .reshape([shape.0, shape.1, shape.2])
+                    .reshape(shape)
                     .map_err(|_| unfilled(len))?
                     .into_any())
             }
@@ -88,14 +133,14 @@ impl Drop for LentPixels {
 /// A numpy array over `view`, which borrows `owner`'s pixels.
 #[allow(unsafe_code)] // rust-numpy's one way to lend memory: see SAFETY
 fn lend<'py, T: Element>(
-    view: &ArrayView3<'_, T>,
+    view: &ArrayViewD<'_, T>,
     owner: Bound<'py, LentPixels>,
 ) -> Bound<'py, PyAny> {
     // SAFETY: `view` points into `owner.data`, which nothing changes or
     // moves while `owner` lives (the class is frozen and exposes no field;
     // only its `Drop` takes the buffer). The array holds `owner` as its
     // base, so the buffer outlives every array over it.
-    unsafe { PyArray3::borrow_from_array(view, owner.into_any()) }.into_any()
+    unsafe { PyArrayDyn::borrow_from_array(view, owner.into_any()) }.into_any()
 }
 
 /// `info` dict of a step or reset.

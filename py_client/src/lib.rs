@@ -132,6 +132,8 @@ struct NativeEnvs {
     space: ActionSpace,
     /// The access token the envs were opened with (for `experiments`).
     token: String,
+    /// Buffers of the stacked observations of all envs (see `convert::stacked`).
+    batches: BufferPool,
     // Closed after the clients so the recording sees the last episode end.
     monitor: Option<live_monitor::Handle>,
     // Dropped after the clients: keeps an embedded deployment alive.
@@ -171,6 +173,14 @@ impl NativeEnvs {
             .get(index)
             .map(EnvClient::observation_buffers)
             .ok_or_else(|| PyValueError::new_err("no envs"))
+    }
+
+    /// Every env's observation buffers, in env order.
+    fn all_buffers(&self) -> Vec<&BufferPool> {
+        (0..self.envs.len())
+            .filter_map(|i| self.envs.get(i))
+            .map(EnvClient::observation_buffers)
+            .collect()
     }
 }
 
@@ -331,6 +341,7 @@ impl NativeEnvs {
             envs: VecEnvClient::new(clients),
             space,
             token,
+            batches: BufferPool::new(),
             monitor,
             connection,
         })
@@ -395,7 +406,7 @@ impl NativeEnvs {
     }
 
     /// Resets every env; `seeds[i]` None continues env i's stream.
-    /// Returns (observations, infos).
+    /// Returns (observations as one array, first axis the env; infos).
     fn reset<'py>(
         &mut self,
         py: Python<'py>,
@@ -407,13 +418,14 @@ impl NativeEnvs {
             .collect();
         let envs = &mut self.envs;
         let replies = block_on_interruptibly(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
-        let observations = PyList::empty(py);
         let infos = PyList::empty(py);
-        for (i, r) in replies.into_iter().enumerate() {
+        let mut observations = Vec::with_capacity(replies.len());
+        for r in replies {
             infos.append(convert::info(py, &r.info)?)?;
-            observations.append(convert::observation(py, r.observation, self.buffers(i)?)?)?;
+            observations.push(r.observation);
         }
-        PyTuple::new(py, [observations.into_any(), infos.into_any()])
+        let observations = convert::stacked(py, observations, &self.all_buffers(), &self.batches)?;
+        PyTuple::new(py, [observations, infos.into_any()])
     }
 
     /// Steps the first env alone, as a `gymnasium.Env` does: an ended
@@ -448,12 +460,13 @@ impl NativeEnvs {
     }
 
     /// Steps every env concurrently with gymnasium's next-step autoreset.
-    /// Returns a list of (obs, reward, terminated, truncated, info, autoreset).
+    /// Returns (observations as one array, first axis the env; a list of
+    /// (reward, terminated, truncated, info, autoreset)).
     fn step_with_autoreset<'py>(
         &mut self,
         py: Python<'py>,
         actions: Vec<Bound<'py, PyAny>>,
-    ) -> PyResult<Bound<'py, PyList>> {
+    ) -> PyResult<Bound<'py, PyTuple>> {
         let actions = actions
             .iter()
             .map(|a| convert::action(&self.space, a))
@@ -461,12 +474,13 @@ impl NativeEnvs {
         let envs = &mut self.envs;
         let steps = block_on_interruptibly(py, envs.step(actions))?.map_err(errors::to_py)?;
         let out = PyList::empty(py);
-        for (i, s) in steps.into_iter().enumerate() {
+        let mut observations = Vec::with_capacity(steps.len());
+        for s in steps {
             let info = convert::info(py, &s.reply.info)?;
+            observations.push(s.reply.observation);
             out.append(PyTuple::new(
                 py,
                 [
-                    convert::observation(py, s.reply.observation, self.buffers(i)?)?,
                     s.reply.reward.into_pyobject(py)?.into_any(),
                     pyo3::types::PyBool::new(py, s.reply.terminated)
                         .to_owned()
@@ -481,7 +495,8 @@ impl NativeEnvs {
                 ],
             )?)?;
         }
-        Ok(out)
+        let observations = convert::stacked(py, observations, &self.all_buffers(), &self.batches)?;
+        PyTuple::new(py, [observations, out.into_any()])
     }
 
     /// Releases every lease and completes the monitor's recording

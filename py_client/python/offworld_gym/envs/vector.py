@@ -64,6 +64,10 @@ class OffWorldMonolithVectorEnv(VectorEnv):
             batched["_pose"] = batched["_distance_to_goal"] = shared
         return batched
 
+    def _requested(self, observations: np.ndarray) -> np.ndarray:
+        """The requested channels of the native stack (one array, envs first)."""
+        return np.ascontiguousarray(_config.split(self._resolved, observations)[0])
+
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -75,17 +79,16 @@ class OffWorldMonolithVectorEnv(VectorEnv):
         else:
             seeds = list(seed)
         observations, infos = self._native.reset(seeds)
-        obs = np.stack([_config.split(self._resolved, o)[0] for o in observations])
-        return obs, self._infos(infos)
+        return self._requested(observations), self._infos(infos)
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Steps all envs at once; an env whose episode ended last step is reset instead."""
-        results = self._native.step_with_autoreset([actions[i] for i in range(self.num_envs)])
-        obs = np.stack([_config.split(self._resolved, r[0])[0] for r in results])
-        rewards = np.array([r[1] for r in results], dtype=np.float64)
-        terminated = np.array([r[2] for r in results], dtype=bool)
-        truncated = np.array([r[3] for r in results], dtype=bool)
-        return obs, rewards, terminated, truncated, self._infos([r[4] for r in results])
+        observations, results = self._native.step_with_autoreset([actions[i] for i in range(self.num_envs)])
+        obs = self._requested(observations)
+        rewards = np.array([r[0] for r in results], dtype=np.float64)
+        terminated = np.array([r[1] for r in results], dtype=bool)
+        truncated = np.array([r[2] for r in results], dtype=bool)
+        return obs, rewards, terminated, truncated, self._infos([r[3] for r in results])
 
     def close_extras(self, **kwargs: Any) -> None:
         """Releases every lease."""
