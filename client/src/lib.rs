@@ -18,14 +18,16 @@
 
 use std::time::Duration;
 
+use offworld_runtime::codec;
 use offworld_runtime::keys::{random_id, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     Action, ClientTag, CloseReply, CloseRequest, EnvSpec, EnvState, EnvStatus, Leaderboard,
-    OpenReply, OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
+    ObsOptions, OpenReply, OpenRequest, ResetReply, ResetRequest, Seed, StepReply, StepRequest,
 };
 use offworld_runtime::pool::BufferPool;
 use offworld_runtime::wire;
-use offworld_runtime::{ErrorCode, WireError};
+use offworld_runtime::{DecodeError, ErrorCode, WireError};
+use zenoh::bytes::ZBytes;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::Session;
 
@@ -98,6 +100,8 @@ pub struct EnvClient {
     tag: ClientTag,
     /// Where observations are decoded into: see [`EnvClient::observation_buffers`].
     observations: BufferPool,
+    /// The observations asked for at `open`.
+    obs: ObsOptions,
     _alive: LivelinessToken,
 }
 
@@ -216,6 +220,7 @@ impl EnvClient {
             closed: None,
             tag,
             observations: BufferPool::new(),
+            obs: request.obs,
             _alive: alive,
         })
     }
@@ -235,6 +240,11 @@ impl EnvClient {
         &self.env
     }
 
+    /// Bytes of one observation, as asked for at `open`.
+    pub fn observation_len(&self) -> usize {
+        usize::try_from(self.obs.shape().shape_len()).unwrap_or(usize::MAX)
+    }
+
     /// The buffers observations are decoded into. Handing a reply's
     /// `observation.data` back ([`BufferPool::recycle`]) once done with it
     /// lets a later reply reuse its memory: without that, every step of a
@@ -252,19 +262,41 @@ impl EnvClient {
 
     /// Starts an episode.
     pub async fn reset(&mut self, seed: Seed) -> Result<ResetReply, WireError> {
+        let tail = self.observations.take_empty();
+        self.reset_decoded(seed, |reply| codec::decode_payload_tail_into(reply, tail))
+            .await
+    }
+
+    /// [`EnvClient::reset`] with the observation's pixels written into
+    /// `pixels`, which must be [`EnvClient::observation_len`] bytes (the
+    /// reply's own `observation.data` is left empty).
+    pub async fn reset_into(
+        &mut self,
+        seed: Seed,
+        pixels: &mut [u8],
+    ) -> Result<ResetReply, WireError> {
+        self.reset_decoded(seed, |reply| codec::decode_payload_tail_to(reply, pixels))
+            .await
+    }
+
+    async fn reset_decoded(
+        &mut self,
+        seed: Seed,
+        decode: impl FnOnce(&ZBytes) -> Result<ResetReply, DecodeError>,
+    ) -> Result<ResetReply, WireError> {
         self.ensure_open()?;
         let request = ResetRequest {
             session_id: self.reply.session_id.clone(),
             seed,
         };
         let key = self.env.key(Topic::Reset);
-        wire::request_tail_as(
+        wire::request_decoded_as(
             &self.session,
             &key,
             &request,
             self.timeouts.reset,
             &self.tag,
-            self.observations.take_empty(),
+            decode,
         )
         .await
         .map_err(|e| self.in_session(e))
@@ -272,6 +304,29 @@ impl EnvClient {
 
     /// Takes one step.
     pub async fn step(&mut self, action: Action) -> Result<StepReply, WireError> {
+        let tail = self.observations.take_empty();
+        self.step_decoded(action, |reply| codec::decode_payload_tail_into(reply, tail))
+            .await
+    }
+
+    /// [`EnvClient::step`] with the observation's pixels written into
+    /// `pixels`, which must be [`EnvClient::observation_len`] bytes (the
+    /// reply's own `observation.data` is left empty): a vector env's
+    /// observations land in one batch without another copy.
+    pub async fn step_into(
+        &mut self,
+        action: Action,
+        pixels: &mut [u8],
+    ) -> Result<StepReply, WireError> {
+        self.step_decoded(action, |reply| codec::decode_payload_tail_to(reply, pixels))
+            .await
+    }
+
+    async fn step_decoded(
+        &mut self,
+        action: Action,
+        decode: impl FnOnce(&ZBytes) -> Result<StepReply, DecodeError>,
+    ) -> Result<StepReply, WireError> {
         self.ensure_open()?;
         self.seq += 1;
         let request = StepRequest {
@@ -280,13 +335,13 @@ impl EnvClient {
             action,
         };
         let key = self.env.key(Topic::Step);
-        wire::request_tail_as(
+        wire::request_decoded_as(
             &self.session,
             &key,
             &request,
             self.timeouts.step,
             &self.tag,
-            self.observations.take_empty(),
+            decode,
         )
         .await
         .map_err(|e| self.in_session(e))
@@ -660,6 +715,24 @@ impl VecEnvClient {
 
     /// Resets every env (seed `i` for env `i`).
     pub async fn reset(&mut self, seeds: &[Seed]) -> Result<Vec<ResetReply>, WireError> {
+        self.reset_each(seeds, None).await
+    }
+
+    /// [`VecEnvClient::reset`] with the observations written into `batch`
+    /// (see [`VecEnvClient::step_into`]).
+    pub async fn reset_into(
+        &mut self,
+        seeds: &[Seed],
+        batch: &mut [u8],
+    ) -> Result<Vec<ResetReply>, WireError> {
+        self.reset_each(seeds, Some(batch)).await
+    }
+
+    async fn reset_each(
+        &mut self,
+        seeds: &[Seed],
+        batch: Option<&mut [u8]>,
+    ) -> Result<Vec<ResetReply>, WireError> {
         if seeds.len() != self.envs.len() {
             return Err(WireError::bad_request(format!(
                 "{} seeds for {} envs",
@@ -667,12 +740,15 @@ impl VecEnvClient {
                 self.envs.len()
             )));
         }
-        let replies = futures::future::join_all(
-            self.envs
-                .iter_mut()
-                .zip(seeds)
-                .map(|(env, seed)| env.reset(*seed)),
-        )
+        let slots = self.slots(batch)?;
+        let replies = futures::future::join_all(self.envs.iter_mut().zip(seeds).zip(slots).map(
+            |((env, seed), slot)| async move {
+                match slot {
+                    Some(pixels) => env.reset_into(*seed, pixels).await,
+                    None => env.reset(*seed).await,
+                }
+            },
+        ))
         .await;
         self.needs_reset.fill(false);
         replies.into_iter().collect()
@@ -680,6 +756,55 @@ impl VecEnvClient {
 
     /// Steps every env with its action.
     pub async fn step(&mut self, actions: Vec<Action>) -> Result<Vec<VecStep>, WireError> {
+        self.step_each(actions, None).await
+    }
+
+    /// [`VecEnvClient::step`] with the observations written into `batch`,
+    /// env after env, each [`EnvClient::observation_len`] bytes (the
+    /// replies' own `observation.data` left empty): one array for all envs
+    /// without copying them again.
+    pub async fn step_into(
+        &mut self,
+        actions: Vec<Action>,
+        batch: &mut [u8],
+    ) -> Result<Vec<VecStep>, WireError> {
+        self.step_each(actions, Some(batch)).await
+    }
+
+    /// Bytes of all envs' observations together (a batch for the `_into` calls).
+    pub fn batch_len(&self) -> usize {
+        self.envs.iter().map(EnvClient::observation_len).sum()
+    }
+
+    /// `batch` cut into each env's slot, or no slots (each reply keeps its own pixels).
+    fn slots<'b>(
+        &self,
+        batch: Option<&'b mut [u8]>,
+    ) -> Result<Vec<Option<&'b mut [u8]>>, WireError> {
+        let Some(mut rest) = batch else {
+            return Ok(self.envs.iter().map(|_| None).collect());
+        };
+        if rest.len() != self.batch_len() {
+            return Err(WireError::bad_request(format!(
+                "a batch of {} bytes for {} bytes of observations",
+                rest.len(),
+                self.batch_len()
+            )));
+        }
+        let mut slots = Vec::with_capacity(self.envs.len());
+        for env in &self.envs {
+            let (slot, after) = std::mem::take(&mut rest).split_at_mut(env.observation_len());
+            slots.push(Some(slot));
+            rest = after;
+        }
+        Ok(slots)
+    }
+
+    async fn step_each(
+        &mut self,
+        actions: Vec<Action>,
+        batch: Option<&mut [u8]>,
+    ) -> Result<Vec<VecStep>, WireError> {
         if actions.len() != self.envs.len() {
             return Err(WireError::bad_request(format!(
                 "{} actions for {} envs",
@@ -687,14 +812,19 @@ impl VecEnvClient {
                 self.envs.len()
             )));
         }
+        let slots = self.slots(batch)?;
         let work = self
             .envs
             .iter_mut()
             .zip(actions)
             .zip(self.needs_reset.iter().copied())
-            .map(|((env, action), reset)| async move {
+            .zip(slots)
+            .map(|(((env, action), reset), slot)| async move {
                 if reset {
-                    let r = env.reset(Seed::Continue).await?;
+                    let r = match slot {
+                        Some(pixels) => env.reset_into(Seed::Continue, pixels).await?,
+                        None => env.reset(Seed::Continue).await?,
+                    };
                     Ok(VecStep {
                         reply: StepReply {
                             seq: 0,
@@ -705,8 +835,12 @@ impl VecEnvClient {
                         autoreset: true,
                     })
                 } else {
+                    let reply = match slot {
+                        Some(pixels) => env.step_into(action, pixels).await?,
+                        None => env.step(action).await?,
+                    };
                     Ok(VecStep {
-                        reply: env.step(action).await?,
+                        reply,
                         autoreset: false,
                     })
                 }

@@ -23,7 +23,7 @@ use zenoh::sample::{Sample, SampleKind};
 use zenoh::Session;
 
 use crate::error::ControllerError;
-use crate::observation::{assemble_into, shape};
+use crate::observation::assemble_into;
 use crate::step::AwaitingFrame;
 
 /// A pose as received.
@@ -92,7 +92,7 @@ impl Frame {
         request: &ObservationRequest,
         buffers: &BufferPool,
     ) -> Result<ZBytes, WireError> {
-        let mut data = buffers.take(shape(&request.options).shape_len() as usize);
+        let mut data = buffers.take(request.options.shape().shape_len() as usize);
         self.with_view(|frame| {
             assemble_into(frame, &request.options, request.depth_max_m, &mut data)
         })?;

@@ -3,7 +3,7 @@
 //! blended across edges), and depth as uint8 or metres.
 
 use offworld_runtime::msg::{
-    CameraFrameView, Channels, DType, DepthFormat, ObsArray, ObsOptions, PixelEncoding,
+    CameraFrameView, Channels, DType, ObsArray, ObsOptions, PixelEncoding,
 };
 use offworld_runtime::WireError;
 
@@ -21,20 +21,6 @@ pub fn validate_options(opts: &ObsOptions) -> Result<(), WireError> {
     Ok(())
 }
 
-/// The observation `opts` asks for, without its data: shape and type.
-pub fn shape(opts: &ObsOptions) -> ObsArray {
-    ObsArray {
-        height: opts.height,
-        width: opts.width,
-        channels: opts.channels.count(),
-        dtype: match opts.depth_format {
-            DepthFormat::Uint8 => DType::U8,
-            DepthFormat::Meters => DType::F32,
-        },
-        data: Vec::new(),
-    }
-}
-
 /// Assembles `out` from `frame` per `opts` (see [`assemble_into`]).
 pub fn assemble(
     frame: &CameraFrameView,
@@ -43,7 +29,7 @@ pub fn assemble(
     out: &mut ObsArray,
 ) -> Result<(), WireError> {
     let mut data = std::mem::take(&mut out.data);
-    *out = shape(opts);
+    *out = opts.shape();
     data.clear();
     data.resize(out.shape_len() as usize, 0);
     assemble_into(frame, opts, depth_max_m, &mut data)?;
@@ -77,7 +63,7 @@ pub fn assemble_into(
         return Err(bad("colour and depth sizes differ".into()));
     }
     let (w, h) = (opts.width as usize, opts.height as usize);
-    let obs = shape(opts);
+    let obs = opts.shape();
     let (channels, dtype) = (obs.channels as usize, obs.dtype);
     if obs.shape_len() != data.len() as u64 {
         return Err(WireError::internal(format!(
@@ -361,7 +347,7 @@ fn swap_red_blue(data: &mut [u8], channels: usize, component: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use offworld_runtime::msg::{CameraFrame, Header, Image};
+    use offworld_runtime::msg::{CameraFrame, DepthFormat, Header, Image};
 
     fn frame() -> CameraFrame {
         // 4×2: colour = (x, y, 7); depth = 0.5·(x + 1) m except one NaN.
@@ -591,6 +577,7 @@ mod tests {
 
     mod properties {
         use super::super::*;
+        use offworld_runtime::msg::DepthFormat;
         use proptest::prelude::*;
 
         fn options() -> impl Strategy<Value = ObsOptions> {
@@ -624,7 +611,7 @@ mod tests {
                     Ok(()) => {
                         prop_assert!(ok);
                         let max = u64::from(MAX_SIDE) * u64::from(MAX_SIDE) * 4 * 4;
-                        prop_assert!(shape(&opts).shape_len() <= max);
+                        prop_assert!(opts.shape().shape_len() <= max);
                     }
                     Err(e) => {
                         prop_assert!(!ok);

@@ -31,7 +31,6 @@ use zenoh::query::Query;
 
 use crate::episode::{judge, step_info, Outcome};
 use crate::link::{Frame, ObservationRequest, PoseSample, RobotLink};
-use crate::observation::shape;
 use crate::task::Task;
 
 /// What a command's answer is judged by, once, from the pose it reached.
@@ -112,7 +111,7 @@ impl Judge for StepJudge {
             terminated: outcome.terminated,
             truncated: outcome.truncated,
             info,
-            observation: shape(&self.obs),
+            observation: self.obs.shape(),
         };
         Judgement { outcome, reply }
     }

@@ -32,38 +32,25 @@ pub fn observation<'py>(
     pixels(py, obs.data, buffers, obs.dtype, &shape)
 }
 
-/// The observations of a vector env's envs as one array of shape (envs,
-/// height, width, channels), copied once into a buffer of `batches`; each
-/// env's own buffer goes straight back to its pool (`buffers[i]`).
+/// A vector env's observations, decoded env after env into `batch` (a
+/// buffer of `batches`), as one array of shape (envs, height, width,
+/// channels), lent like [`observation`]; `first` is the first env's
+/// (shape and type, its pixels in `batch`).
 pub fn stacked<'py>(
     py: Python<'py>,
-    observations: Vec<ObsArray>,
-    buffers: &[&BufferPool],
+    batch: Vec<u8>,
     batches: &BufferPool,
+    first: &ObsArray,
+    envs: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let Some(first) = observations.first() else {
-        return Err(errors::local("no observations to stack".into()));
-    };
-    let (dtype, shape) = (first.dtype, [first.height, first.width, first.channels]);
-    if let Some(other) = observations
-        .iter()
-        .find(|o| (o.dtype, [o.height, o.width, o.channels]) != (dtype, shape))
-    {
-        return Err(errors::local(format!(
-            "the envs' observations differ: {shape:?} {dtype:?} and {:?} {:?}",
-            [other.height, other.width, other.channels],
-            other.dtype
-        )));
-    }
-    let mut data = batches.take_empty();
-    data.reserve_exact(observations.iter().map(|o| o.data.len()).sum());
-    for (obs, pool) in observations.into_iter().zip(buffers) {
-        data.extend_from_slice(&obs.data);
-        pool.recycle(obs.data);
-    }
-    let envs = buffers.len();
-    let [height, width, channels] = shape.map(|n| n as usize);
-    pixels(py, data, batches, dtype, &[envs, height, width, channels])
+    let [height, width, channels] = [first.height, first.width, first.channels].map(|n| n as usize);
+    pixels(
+        py,
+        batch,
+        batches,
+        first.dtype,
+        &[envs, height, width, channels],
+    )
 }
 
 /// `data` (little-endian elements of `dtype`) as a numpy array of `shape`,

@@ -174,14 +174,6 @@ impl NativeEnvs {
             .map(EnvClient::observation_buffers)
             .ok_or_else(|| PyValueError::new_err("no envs"))
     }
-
-    /// Every env's observation buffers, in env order.
-    fn all_buffers(&self) -> Vec<&BufferPool> {
-        (0..self.envs.len())
-            .filter_map(|i| self.envs.get(i))
-            .map(EnvClient::observation_buffers)
-            .collect()
-    }
 }
 
 #[pymethods]
@@ -417,14 +409,16 @@ impl NativeEnvs {
             .map(|s| s.map_or(Seed::Continue, Seed::Fixed))
             .collect();
         let envs = &mut self.envs;
-        let replies = block_on_interruptibly(py, envs.reset(&seeds))?.map_err(errors::to_py)?;
+        let mut batch = self.batches.take(envs.batch_len());
+        let replies = block_on_interruptibly(py, envs.reset_into(&seeds, &mut batch))?
+            .map_err(errors::to_py)?;
         let infos = PyList::empty(py);
-        let mut observations = Vec::with_capacity(replies.len());
-        for r in replies {
+        for r in &replies {
             infos.append(convert::info(py, &r.info)?)?;
-            observations.push(r.observation);
         }
-        let observations = convert::stacked(py, observations, &self.all_buffers(), &self.batches)?;
+        let first = replies.first().map(|r| &r.observation);
+        let first = first.ok_or_else(|| PyValueError::new_err("no envs"))?;
+        let observations = convert::stacked(py, batch, &self.batches, first, replies.len())?;
         PyTuple::new(py, [observations, infos.into_any()])
     }
 
@@ -472,12 +466,12 @@ impl NativeEnvs {
             .map(|a| convert::action(&self.space, a))
             .collect::<PyResult<Vec<_>>>()?;
         let envs = &mut self.envs;
-        let steps = block_on_interruptibly(py, envs.step(actions))?.map_err(errors::to_py)?;
+        let mut batch = self.batches.take(envs.batch_len());
+        let steps = block_on_interruptibly(py, envs.step_into(actions, &mut batch))?
+            .map_err(errors::to_py)?;
         let out = PyList::empty(py);
-        let mut observations = Vec::with_capacity(steps.len());
-        for s in steps {
+        for s in &steps {
             let info = convert::info(py, &s.reply.info)?;
-            observations.push(s.reply.observation);
             out.append(PyTuple::new(
                 py,
                 [
@@ -495,7 +489,9 @@ impl NativeEnvs {
                 ],
             )?)?;
         }
-        let observations = convert::stacked(py, observations, &self.all_buffers(), &self.batches)?;
+        let first = steps.first().map(|s| &s.reply.observation);
+        let first = first.ok_or_else(|| PyValueError::new_err("no envs"))?;
+        let observations = convert::stacked(py, batch, &self.batches, first, steps.len())?;
         PyTuple::new(py, [observations, out.into_any()])
     }
 

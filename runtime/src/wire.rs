@@ -214,17 +214,7 @@ pub async fn request_as<Req: Serialize, Rep: DeserializeOwned>(
     timeout: Duration,
     tag: &ClientTag,
 ) -> Result<Rep, RequestError> {
-    let payload = codec::encode(req)?;
-    let tag = codec::encode(tag)?;
-    request_decoded(
-        session,
-        key,
-        payload,
-        Some(tag),
-        timeout,
-        codec::decode_payload,
-    )
-    .await
+    request_decoded_as(session, key, req, timeout, tag, codec::decode_payload).await
 }
 
 /// [`request_tail`] saying who asks (see [`request_as`]), its pixels
@@ -238,12 +228,25 @@ pub async fn request_tail_as<Req: Serialize, Rep: DeserializeOwned + codec::Byte
     tag: &ClientTag,
     tail: Vec<u8>,
 ) -> Result<Rep, RequestError> {
-    let payload = codec::encode(req)?;
-    let tag = codec::encode(tag)?;
-    request_decoded(session, key, payload, Some(tag), timeout, |reply| {
+    request_decoded_as(session, key, req, timeout, tag, |reply| {
         codec::decode_payload_tail_into(reply, tail)
     })
     .await
+}
+
+/// [`request_as`] with the reply read by `decode` (such as
+/// [`codec::decode_payload_tail_to`], into a slot of a caller's buffer).
+pub async fn request_decoded_as<Req: Serialize, Rep>(
+    session: &Session,
+    key: &str,
+    req: &Req,
+    timeout: Duration,
+    tag: &ClientTag,
+    decode: impl FnOnce(&ZBytes) -> Result<Rep, DecodeError>,
+) -> Result<Rep, RequestError> {
+    let payload = codec::encode(req)?;
+    let tag = codec::encode(tag)?;
+    request_decoded(session, key, payload, Some(tag), timeout, decode).await
 }
 
 /// [`request`] for a reply whose last field is an observation: its pixels
@@ -289,7 +292,7 @@ pub async fn request_raw<Rep: DeserializeOwned>(
     request_decoded(session, key, payload, None, timeout, codec::decode_payload).await
 }
 
-async fn request_decoded<Rep: DeserializeOwned>(
+async fn request_decoded<Rep>(
     session: &Session,
     key: &str,
     payload: Vec<u8>,

@@ -325,7 +325,9 @@ fn fragmented(bytes: &[u8], cuts: &[usize]) -> zenoh::bytes::ZBytes {
 /// broken fails exactly as the plain decode fails.
 #[test]
 fn fragmented_observations_decode_as_the_plain_payload() {
-    use offworld_runtime::codec::{decode_payload, decode_payload_tail, decode_payload_tail_into};
+    use offworld_runtime::codec::{
+        decode_payload, decode_payload_tail, decode_payload_tail_into, decode_payload_tail_to,
+    };
     let data: Vec<u8> = (0..40u8).map(|i| i.wrapping_mul(13)).collect();
     let step = StepReply {
         observation: ObsArray {
@@ -358,6 +360,23 @@ fn fragmented_observations_decode_as_the_plain_payload() {
             decoded.observation.data.as_ptr(),
             address,
             "no new allocation, cut at {cuts:?}"
+        );
+    }
+    // Or into a slot of a batch: the message without its pixels, the
+    // pixels in the slot; a slot of another size is a typed error.
+    for cuts in [vec![], vec![bytes.len() - 20], vec![9, 30]] {
+        let payload = fragmented(&bytes, &cuts);
+        let mut slot = [0xEE; 40];
+        let decoded: StepReply = decode_payload_tail_to(&payload, &mut slot).expect("decodes");
+        assert_eq!(slot.as_slice(), step.observation.data, "cut at {cuts:?}");
+        assert!(decoded.observation.data.is_empty());
+        let mut whole = decoded;
+        whole.observation.data = slot.to_vec();
+        assert_eq!(whole, step);
+        let short = decode_payload_tail_to::<StepReply>(&payload, &mut [0; 39]);
+        assert_eq!(
+            short.map_err(|e| e.to_string()),
+            Err("invalid value: a byte sequence of 40 bytes where 39 were expected".into())
         );
     }
     let reset = ResetReply {

@@ -106,7 +106,7 @@ impl EnvServer {
         }
         let reply = ResetReply {
             info: step_info(&self.task, index, 0, &achieved, None, self.shares_pose()),
-            observation: shape(&obs),
+            observation: obs.shape(),
         };
         let reply = answered
             .reply_with(&reply)?

@@ -34,7 +34,7 @@ use zenoh::Session;
 use crate::episode::{step_info, EndReason, Outcome, SpawnSampler};
 use crate::estops::EnvEStops;
 use crate::link::{LinkSeals, LinkTimeouts, ObservationRequest, RobotLink};
-use crate::observation::{shape, validate_options};
+use crate::observation::validate_options;
 use crate::step::{Answered, Plan, StepJudge};
 use crate::store::{
     format_unix_ms, lock_store, now_ms, validate_experiment_name, BookingRules, EpisodeRecord,

@@ -7,9 +7,7 @@
 //!
 //! Shared by the fuzz target and `env_controller/tests/fuzz_corpus.rs`.
 
-use offworld_env_controller::observation::{
-    assemble, assemble_into, shape, validate_options, MAX_SIDE,
-};
+use offworld_env_controller::observation::{assemble, assemble_into, validate_options, MAX_SIDE};
 use offworld_runtime::codec;
 use offworld_runtime::msg::{
     CameraFrame, CameraFrameView, Channels, DType, DepthFormat, Header, Image, ObsArray,
@@ -197,7 +195,7 @@ pub fn observation(data: &[u8]) {
     let expected = reference(&frame, &opts, depth_max_m);
     match (result, expected) {
         (Ok(()), Some(expected)) => {
-            let want = shape(&opts);
+            let want = opts.shape();
             assert_eq!(
                 (out.height, out.width, out.channels, out.dtype),
                 (want.height, want.width, want.channels, want.dtype),
@@ -225,7 +223,7 @@ pub fn observation(data: &[u8]) {
         ),
     }
     // A buffer of the wrong size is an error, never a panic.
-    let mut wrong = vec![0u8; shape(&opts).shape_len() as usize + 1];
+    let mut wrong = vec![0u8; opts.shape().shape_len() as usize + 1];
     assert!(assemble_into(&frame, &opts, depth_max_m, &mut wrong).is_err());
 }
 

@@ -159,6 +159,21 @@ where
         same(name, &whole, &recycled),
         "{name}: decode {whole:?} but decode_payload_tail_into {recycled:?}"
     );
+    // Into a slot of the tail's size: the message without its tail, the
+    // tail in the slot; whatever the plain decode refuses, refused alike.
+    let mut head = whole.clone();
+    let pixels = head.as_mut().ok().map(|m| std::mem::take(m.tail_mut()));
+    let mut slot = vec![0xEE; pixels.as_ref().map_or(0, Vec::len)];
+    for payload in [&one_piece, &input.fragmented()] {
+        let into_slot = codec::decode_payload_tail_to::<T>(payload, &mut slot);
+        assert!(
+            same(name, &head, &into_slot),
+            "{name}: decode {head:?} but decode_payload_tail_to {into_slot:?}"
+        );
+        if let Some(pixels) = &pixels {
+            assert_eq!(&slot, pixels, "{name}: the slot holds the tail");
+        }
+    }
     if let Some(msg) = message::<T>(name, input) {
         let mut head = msg.clone();
         let pixels = std::mem::take(head.tail_mut());

@@ -180,30 +180,71 @@ pub fn decode_payload_tail_into<T: DeserializeOwned + ByteTail>(
     payload: &zenoh::bytes::ZBytes,
     mut tail: Vec<u8>,
 ) -> Result<T, DecodeError> {
-    let mut slices = payload.slices();
-    let Some(first) = slices.next() else {
-        return decode_payload(payload);
-    };
-    let total = payload.len();
-    let open_tail = first
-        .split_first_chunk::<4>()
-        .filter(|(header, _)| header[..2] == CDR_LE_HEADER[..2])
-        .and_then(|(_, head)| {
-            let mut reader = reader::CdrReader::with_open_tail(head, total - 4);
-            let msg = T::deserialize(&mut reader).ok()?;
-            Some((msg, reader.tail_at()? + 4))
-        });
-    // Anything else (the tail not last, padding after it) takes the
-    // general path, which also words the errors.
-    let Some((mut msg, tail_at)) = open_tail else {
+    let Some((mut msg, tail_at)) = decode_open_tail::<T>(payload) else {
         return decode_payload(payload);
     };
     tail.clear();
-    tail.reserve_exact(total - tail_at);
-    tail.extend_from_slice(&first[tail_at..]);
-    for slice in slices {
-        tail.extend_from_slice(slice);
-    }
+    tail.reserve_exact(payload.len() - tail_at);
+    for_each_tail_slice(payload, tail_at, |bytes| tail.extend_from_slice(bytes));
     *msg.tail_mut() = tail;
     Ok(msg)
+}
+
+/// [`decode_payload_tail`] copying the tail into `out`, which it must fill
+/// exactly; the message's own tail is left empty. A vector env writes each
+/// env's observation straight into its slot of one batch this way.
+pub fn decode_payload_tail_to<T: DeserializeOwned + ByteTail>(
+    payload: &zenoh::bytes::ZBytes,
+    out: &mut [u8],
+) -> Result<T, DecodeError> {
+    let unfitting = |len: usize| {
+        DecodeError::Invalid(format!(
+            "a byte sequence of {len} bytes where {} were expected",
+            out.len()
+        ))
+    };
+    let Some((msg, tail_at)) = decode_open_tail::<T>(payload) else {
+        let mut msg: T = decode_payload(payload)?;
+        let tail = std::mem::take(msg.tail_mut());
+        if tail.len() != out.len() {
+            return Err(unfitting(tail.len()));
+        }
+        out.copy_from_slice(&tail);
+        return Ok(msg);
+    };
+    if payload.len() - tail_at != out.len() {
+        return Err(unfitting(payload.len() - tail_at));
+    }
+    let mut at = 0;
+    for_each_tail_slice(payload, tail_at, |bytes| {
+        out[at..at + bytes.len()].copy_from_slice(bytes);
+        at += bytes.len();
+    });
+    Ok(msg)
+}
+
+/// The message read up to its tail (left empty) and the tail's offset in
+/// the payload, when the tail is the message's last field and nothing but
+/// its bytes follows; `None` for anything else (the general path decides).
+fn decode_open_tail<T: DeserializeOwned + ByteTail>(
+    payload: &zenoh::bytes::ZBytes,
+) -> Option<(T, usize)> {
+    let first = payload.slices().next()?;
+    let (header, head) = first.split_first_chunk::<4>()?;
+    if header[..2] != CDR_LE_HEADER[..2] {
+        return None;
+    }
+    let mut reader = reader::CdrReader::with_open_tail(head, payload.len() - 4);
+    let msg = T::deserialize(&mut reader).ok()?;
+    Some((msg, reader.tail_at()? + 4))
+}
+
+/// Hands `f` the payload's bytes from `tail_at` on, fragment by fragment
+/// (`tail_at` lies in the first).
+fn for_each_tail_slice(payload: &zenoh::bytes::ZBytes, tail_at: usize, mut f: impl FnMut(&[u8])) {
+    let mut slices = payload.slices();
+    if let Some(first) = slices.next() {
+        f(&first[tail_at..]);
+    }
+    slices.for_each(f);
 }

@@ -69,6 +69,23 @@ pub struct ObsOptions {
     pub depth_format: DepthFormat,
 }
 
+impl ObsOptions {
+    /// The observation these options ask for, without its data: shape and
+    /// element type (metric depth makes every channel `f32`).
+    pub fn shape(&self) -> ObsArray {
+        ObsArray {
+            height: self.height,
+            width: self.width,
+            channels: self.channels.count(),
+            dtype: match self.depth_format {
+                DepthFormat::Uint8 => DType::U8,
+                DepthFormat::Meters => DType::F32,
+            },
+            data: Vec::new(),
+        }
+    }
+}
+
 impl Default for ObsOptions {
     fn default() -> Self {
         Self {
