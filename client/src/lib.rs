@@ -275,8 +275,22 @@ impl EnvClient {
         seed: Seed,
         pixels: &mut [u8],
     ) -> Result<ResetReply, WireError> {
+        self.check_fits(pixels)?;
         self.reset_decoded(seed, |reply| codec::decode_payload_tail_to(reply, pixels))
             .await
+    }
+
+    /// Refuses, before anything is sent, a buffer of another size than
+    /// one observation.
+    fn check_fits(&self, pixels: &[u8]) -> Result<(), WireError> {
+        if pixels.len() == self.observation_len() {
+            return Ok(());
+        }
+        Err(WireError::bad_request(format!(
+            "a buffer of {} bytes for observations of {}",
+            pixels.len(),
+            self.observation_len()
+        )))
     }
 
     async fn reset_decoded(
@@ -318,6 +332,7 @@ impl EnvClient {
         action: Action,
         pixels: &mut [u8],
     ) -> Result<StepReply, WireError> {
+        self.check_fits(pixels)?;
         self.step_decoded(action, |reply| codec::decode_payload_tail_to(reply, pixels))
             .await
     }

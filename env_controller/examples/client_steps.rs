@@ -71,19 +71,30 @@ async fn main() -> anyhow::Result<()> {
     let rounds = n / count;
     let start = Instant::now();
     for i in 0..rounds {
-        // Ended episodes reset at their next step (next-step autoreset).
-        let steps = envs
-            .step(vec![Action::Discrete((i % 4) as i64); count])
-            .await
-            .map_err(|e| anyhow::anyhow!(e))?;
+        let action = Action::Discrete((i % 4) as i64);
+        // One env steps as `gymnasium.make` does: an ended episode is reset
+        // at once and the reset is not counted. Several step as `make_vec`
+        // does: an ended episode resets at its next step.
+        let replies = if count == 1 {
+            let env = envs.get_mut(0).ok_or_else(|| anyhow::anyhow!("no env"))?;
+            let reply = env.step(action).await.map_err(|e| anyhow::anyhow!(e))?;
+            if reply.terminated || reply.truncated {
+                let reset = env.reset(Seed::Continue).await;
+                let reset = reset.map_err(|e| anyhow::anyhow!(e))?;
+                env.observation_buffers().recycle(reset.observation.data);
+            }
+            vec![reply]
+        } else {
+            let steps = envs.step(vec![action; count]).await;
+            let steps = steps.map_err(|e| anyhow::anyhow!(e))?;
+            steps.into_iter().map(|s| s.reply).collect()
+        };
         // Done with the pixels: their memory serves a later step, as the
         // Python package's arrays do when dropped.
-        for (env, step) in (0..count).filter_map(|k| envs.get(k)).zip(steps) {
-            if !recycle {
-                continue;
+        for (env, reply) in (0..count).filter_map(|k| envs.get(k)).zip(replies) {
+            if recycle {
+                env.observation_buffers().recycle(reply.observation.data);
             }
-            env.observation_buffers()
-                .recycle(step.reply.observation.data);
         }
     }
     let rate = (rounds * count) as f64 / start.elapsed().as_secs_f64();

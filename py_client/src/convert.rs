@@ -1,7 +1,7 @@
 //! Type conversions between Python and the contract: observations to numpy
 //! arrays, Python actions and options to messages.
 
-use numpy::ndarray::ArrayViewD;
+use numpy::ndarray::{ArrayViewMutD, IxDyn};
 use numpy::{Element, PyArray1, PyArrayDyn, PyArrayMethods};
 use offworld_runtime::msg::{
     Action, ActionSpace, AlgorithmMode, Channels, DType, DepthFormat, LearningType, ObsArray,
@@ -57,16 +57,36 @@ pub fn stacked<'py>(
 /// lent to numpy: back to `pool` when the array is dropped.
 fn pixels<'py>(
     py: Python<'py>,
-    data: Vec<u8>,
+    mut data: Vec<u8>,
     pool: &BufferPool,
     dtype: DType,
     shape: &[usize],
 ) -> PyResult<Bound<'py, PyAny>> {
-    let unfilled = |len: usize| {
-        errors::local(format!(
-            "an observation of {len} bytes does not fill its shape {shape:?} ({dtype:?})"
-        ))
+    let fills = shape
+        .iter()
+        .try_fold(dtype.size(), |bytes, n| bytes.checked_mul(*n));
+    if fills != Some(data.len()) {
+        return Err(errors::local(format!(
+            "an observation of {} bytes does not fill its shape {shape:?} ({dtype:?})",
+            data.len()
+        )));
+    }
+    // The heap buffer's address: it stays put when the Vec moves into its owner.
+    let start = data.as_mut_ptr();
+    // Little-endian floats are read in place where the buffer is aligned
+    // for them (the allocator's 16 bytes); otherwise decoded anew.
+    let in_place = match dtype {
+        DType::U8 => true,
+        DType::F32 => cfg!(target_endian = "little") && start.align_offset(4) == 0,
     };
+    if !in_place {
+        let floats: Vec<f32> = data
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        pool.recycle(data);
+        return Ok(PyArray1::from_vec(py, floats).reshape(shape)?.into_any());
+    }
     let owner = Bound::new(
         py,
         LentPixels {
@@ -74,33 +94,10 @@ fn pixels<'py>(
             pool: pool.clone(),
         },
     )?;
-    let data = owner.get().data.as_slice();
-    match dtype {
-        DType::U8 => {
-            let view = ArrayViewD::from_shape(shape, data).map_err(|_| unfilled(data.len()))?;
-            Ok(lend(&view, owner.clone()))
-        }
-        // Little-endian floats read in place where the buffer is aligned
-        // for them (the allocator's 16 bytes); otherwise decoded anew.
-        DType::F32 => match bytemuck::try_cast_slice::<u8, f32>(data) {
-            Ok(floats) if cfg!(target_endian = "little") => {
-                let view =
-                    ArrayViewD::from_shape(shape, floats).map_err(|_| unfilled(data.len()))?;
-                Ok(lend(&view, owner.clone()))
-            }
-            _ => {
-                let floats: Vec<f32> = data
-                    .chunks_exact(4)
-                    .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                    .collect();
-                let len = data.len();
-                Ok(PyArray1::from_vec(py, floats)
-                    .reshape(shape)
-                    .map_err(|_| unfilled(len))?
-                    .into_any())
-            }
-        },
-    }
+    Ok(match dtype {
+        DType::U8 => lend(start, shape, owner),
+        DType::F32 => lend(start.cast::<f32>(), shape, owner),
+    })
 }
 
 /// The pixels behind an observation array (its numpy `base`), back to
@@ -117,17 +114,25 @@ impl Drop for LentPixels {
     }
 }
 
-/// A numpy array over `view`, which borrows `owner`'s pixels.
+/// A writable numpy array of `shape` over `start`, the first element of
+/// `owner`'s pixels.
 #[allow(unsafe_code)] // rust-numpy's one way to lend memory: see SAFETY
 fn lend<'py, T: Element>(
-    view: &ArrayViewD<'_, T>,
+    start: *mut T,
+    shape: &[usize],
     owner: Bound<'py, LentPixels>,
 ) -> Bound<'py, PyAny> {
-    // SAFETY: `view` points into `owner.data`, which nothing changes or
-    // moves while `owner` lives (the class is frozen and exposes no field;
-    // only its `Drop` takes the buffer). The array holds `owner` as its
-    // base, so the buffer outlives every array over it.
-    unsafe { PyArrayDyn::borrow_from_array(view, owner.into_any()) }.into_any()
+    // SAFETY: `start` is the start of `owner.data`'s heap buffer, aligned
+    // for `T` and holding exactly `shape`'s elements (checked by
+    // `pixels`). Rust neither reads, writes, moves nor frees that buffer
+    // while it is lent: the class is frozen and exposes no field, and only
+    // its `Drop` takes the buffer back, once no array holds `owner` (each
+    // array over it has `owner` as its base). numpy alone writes to it.
+    unsafe {
+        let view = ArrayViewMutD::from_shape_ptr(IxDyn(shape), start);
+        PyArrayDyn::borrow_from_array(&view, owner.into_any())
+    }
+    .into_any()
 }
 
 /// `info` dict of a step or reset.

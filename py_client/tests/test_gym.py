@@ -317,6 +317,42 @@ def test_vector_env_shapes_and_autoreset():
     envs.close()
 
 
+@pytest.mark.parametrize("depth_format", ["uint8", "meters"])
+def test_vector_observations_are_one_batch_a_later_step_leaves_alone(depth_format):
+    envs = gymnasium.make_vec(
+        "OffWorldMonolithDiscreteSim-v0",
+        num_envs=2,
+        resolution=(24, 32),
+        channel_type=Channels.RGBD,
+        depth_format=depth_format,
+    )
+    first, _ = envs.reset(seed=5)
+    dtype = np.uint8 if depth_format == "uint8" else np.float32
+    assert first.shape == (2, 24, 32, 4) and first.dtype == dtype and first.flags.c_contiguous
+    kept = first.copy()
+    second, *_ = envs.step(np.array([2, 2]))
+    assert np.array_equal(first, kept), "a held batch is not reused"
+    assert not np.array_equal(second, first), "the envs moved"
+    # The same seeds give the same batch as two single envs.
+    for i in range(2):
+        env = gymnasium.make(
+            "OffWorldMonolithDiscreteSim-v0", resolution=(24, 32), channel_type=Channels.RGBD, depth_format=depth_format
+        )
+        alone, _ = env.reset(seed=5 + i)
+        assert np.array_equal(alone, first[i])
+        env.close()
+    envs.close()
+
+
+def test_a_vector_env_rendering_a_depth_observation_returns_depth_alone():
+    envs = gymnasium.make_vec(
+        "OffWorldMonolithDiscreteSim-v0", num_envs=2, resolution=(24, 32), render_mode="rgb_array"
+    )
+    obs, _ = envs.reset(seed=5)
+    assert obs.shape == (2, 24, 32, 1) and obs.flags.c_contiguous
+    envs.close()
+
+
 def test_second_process_gets_busy(deployment):
     endpoint, env_id = deployment
     env = gymnasium.make("OffWorldMonolithDiscreteSim-v0", connect=endpoint, env_id=env_id, resolution=(32, 32))

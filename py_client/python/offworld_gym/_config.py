@@ -211,11 +211,14 @@ def split(r: Resolved, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(observation as requested, RGB image for rendering or None). The
     image is uint8 as gymnasium's ``rgb_array`` wants, also when the
     observation is float32 (``depth_format="meters"`` keeps colour in 0..255)."""
-    if r.render_extra_rgb:
-        return obs[..., 3:], _rgb8(obs[..., :3])
-    if r.channels in (Channels.RGB_ONLY, Channels.RGBD):
-        return obs, _rgb8(obs[..., :3])
+    if r.render_extra_rgb or r.channels in (Channels.RGB_ONLY, Channels.RGBD):
+        return requested(r, obs), _rgb8(obs[..., :3])
     return obs, None
+
+
+def requested(r: Resolved, obs: np.ndarray) -> np.ndarray:
+    """The observation as requested: without the colour fetched only for rendering."""
+    return obs[..., 3:] if r.render_extra_rgb else obs
 
 
 def _rgb8(rgb: np.ndarray) -> np.ndarray:

@@ -185,7 +185,7 @@ impl<'de> de::Deserializer<'de> for &mut CdrReader<'de> {
             let at = self.pos;
             let len = self.read_u32()? as usize;
             let start = self.pos;
-            if start.checked_add(len) == Some(body_len) && start + len >= self.data.len() {
+            if start.checked_add(len) == Some(body_len) {
                 self.tail_at = Some(start);
                 self.pos = self.data.len();
                 return visitor.visit_borrowed_bytes(&[]);

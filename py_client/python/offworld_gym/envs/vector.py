@@ -66,7 +66,7 @@ class OffWorldMonolithVectorEnv(VectorEnv):
 
     def _requested(self, observations: np.ndarray) -> np.ndarray:
         """The requested channels of the native stack (one array, envs first)."""
-        return np.ascontiguousarray(_config.split(self._resolved, observations)[0])
+        return np.ascontiguousarray(_config.requested(self._resolved, observations))
 
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
