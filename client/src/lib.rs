@@ -18,6 +18,8 @@
 
 use std::time::Duration;
 
+use serde::Serialize;
+
 use offworld_runtime::codec;
 use offworld_runtime::keys::{random_id, Component, EnvId, Topic};
 use offworld_runtime::msg::{
@@ -303,17 +305,8 @@ impl EnvClient {
             session_id: self.reply.session_id.clone(),
             seed,
         };
-        let key = self.env.key(Topic::Reset);
-        wire::request_decoded_as(
-            &self.session,
-            &key,
-            &request,
-            self.timeouts.reset,
-            &self.tag,
-            decode,
-        )
-        .await
-        .map_err(|e| self.in_session(e))
+        self.request(Topic::Reset, &request, self.timeouts.reset, decode)
+            .await
     }
 
     /// Takes one step.
@@ -349,17 +342,8 @@ impl EnvClient {
             seq: self.seq,
             action,
         };
-        let key = self.env.key(Topic::Step);
-        wire::request_decoded_as(
-            &self.session,
-            &key,
-            &request,
-            self.timeouts.step,
-            &self.tag,
-            decode,
-        )
-        .await
-        .map_err(|e| self.in_session(e))
+        self.request(Topic::Step, &request, self.timeouts.step, decode)
+            .await
     }
 
     /// Releases the lease; a second call returns the first call's reply.
@@ -370,18 +354,30 @@ impl EnvClient {
         let request = CloseRequest {
             session_id: self.reply.session_id.clone(),
         };
-        let key = self.env.key(Topic::Close);
-        let reply: CloseReply = wire::request_as(
-            &self.session,
-            &key,
-            &request,
-            self.timeouts.control,
-            &self.tag,
-        )
-        .await
-        .map_err(|e| self.in_session(e))?;
+        let reply: CloseReply = self
+            .request(
+                Topic::Close,
+                &request,
+                self.timeouts.control,
+                codec::decode_payload,
+            )
+            .await?;
         self.closed = Some(reply.clone());
         Ok(reply)
+    }
+
+    /// One request of this session on `topic`, its reply read by `decode`.
+    async fn request<Req: Serialize, Rep>(
+        &self,
+        topic: Topic,
+        request: &Req,
+        timeout: Duration,
+        decode: impl FnOnce(&ZBytes) -> Result<Rep, DecodeError>,
+    ) -> Result<Rep, WireError> {
+        let key = self.env.key(topic);
+        wire::request_decoded_as(&self.session, &key, request, timeout, &self.tag, decode)
+            .await
+            .map_err(|e| self.in_session(e))
     }
 
     /// A request error within the open session as a typed error. The env
