@@ -9,7 +9,7 @@ use zenoh::Session;
 
 use offworld_env_controller::{ControllerError, EnvOptions, RequestLimits, Store};
 
-use crate::embedded::{Embedded, SimEnv, TwinProfile};
+use crate::embedded::{render_threads_for, Embedded, SimEnv, TwinProfile};
 
 /// What to connect to.
 #[derive(Debug, Clone)]
@@ -75,6 +75,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 .map(|i| EnvId::sim(&format!("embedded-{}-{i}", &prefix[..8])))
                 .collect::<Result<_, _>>()
                 .map_err(|e| ControllerError::Config(e.to_string()))?;
+            let render_threads = render_threads_for(envs.len());
             let sims: Vec<SimEnv> = envs
                 .iter()
                 .enumerate()
@@ -84,6 +85,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                     resolution: Some(resolution),
                     seed: i as u64,
                     profile: twin_profile,
+                    render_threads,
                 })
                 .collect();
             let embedded = Embedded::start_with(

@@ -55,6 +55,7 @@ async fn walk(task: &str, world_env: &str, options: ObsOptions) -> String {
         resolution: Some(Resolution::new(options.width, options.height)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 2,
     };
     let embedded = Embedded::start(&session, &[sim], Store::in_memory().expect("store"))
         .await

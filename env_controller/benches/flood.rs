@@ -142,6 +142,7 @@ async fn main() -> anyhow::Result<()> {
         resolution: Some(Resolution::new(84, 84)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let mut embedded = Embedded::start_with(
         &controller,

@@ -78,6 +78,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
         resolution: Some(Resolution::new(w, h)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {

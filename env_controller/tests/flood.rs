@@ -73,6 +73,7 @@ async fn site(tag: &str, limits: RequestLimits) -> Site {
         resolution: Some(Resolution::new(32, 32)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let mut embedded = Embedded::start_with(
         &server,

@@ -41,6 +41,7 @@ async fn deploy(db: &Path, task: &str, token_users: &[(&str, &str, bool)]) -> De
         resolution: Some(Resolution::new(84, 84)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let embedded = Embedded::start(&server, &[sim], store)
         .await

@@ -87,6 +87,7 @@ async fn main() -> anyhow::Result<()> {
         resolution: Some(Resolution::new(W, H)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {

@@ -30,6 +30,7 @@ async fn main() -> anyhow::Result<()> {
         resolution: None,
         seed: 7,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     // The monitor rides on the env's own session, as an embedded one would.

@@ -245,6 +245,7 @@ async fn a_subscriber_records_every_step_the_client_was_answered() {
         resolution: Some(Resolution::new(16, 12)),
         seed: 0,
         profile: TwinProfile::default(),
+        render_threads: 1,
     };
     let embedded = Embedded::start(&server, &[sim], Store::in_memory().expect("store"))
         .await

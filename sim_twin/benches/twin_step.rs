@@ -1,7 +1,9 @@
 //! Sim twin throughput, single thread: full env steps (one discrete action
 //! of physics + one RGBD render), render-only, a frame's wire payload
 //! (rendered in place vs rendered then encoded), physics-only, a twin
-//! profile's tilted camera (the per-pixel renderer), and RSS.
+//! profile's tilted camera (the per-pixel renderer), and RSS; then env
+//! steps and renders with each frame rendered on all the machine's cores
+//! (`TwinConfig::render_threads`).
 //!
 //! `cargo bench --bench twin_step`
 //!
@@ -37,6 +39,14 @@ fn profiled(world: &str, res: Resolution, profile: TwinProfile) -> SimTwin {
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);
     config.profile = profile;
+    SimTwin::new(config).expect("twin")
+}
+
+/// A twin rendering each frame on `threads` threads.
+fn threaded(world: &str, res: Resolution, threads: usize) -> SimTwin {
+    let mut config = TwinConfig::builtin(world).expect("world");
+    config.resolution = Some(res);
+    config.render_threads = threads;
     SimTwin::new(config).expect("twin")
 }
 
@@ -165,7 +175,7 @@ fn main() {
     if std::env::var_os("TWIN_STEP_INSTRUCTIONS").is_some() {
         return instructions(&world);
     }
-    println!("sim_twin bench, world `{world}`, single thread, median of 5 runs");
+    println!("sim_twin bench, world `{world}`, single thread (unless said), median of 5 runs");
     let rss_before = rss_mb();
     let mut full = twin(&world, Resolution::new(320, 240));
     let rss_after = rss_mb();
@@ -218,6 +228,14 @@ fn main() {
     let tilted_render_small = rate(5, 50, |_| {
         tilted_small.render();
     });
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut spread_full = threaded(&world, Resolution::new(320, 240), cores);
+    let spread_steps_full = rate(5, 400, |i| env_step(&mut spread_full, i));
+    let spread_render_full = rate(5, 400, |_| {
+        spread_full.render();
+    });
+    let mut spread_small = threaded(&world, Resolution::new(84, 84), cores);
+    let spread_steps_small = rate(5, 1000, |i| env_step(&mut spread_small, i));
     println!("env steps/s  320x240 RGBD : {steps_full:8.0}");
     println!("env steps/s  84x84 RGBD   : {steps_small:8.0}");
     println!("render fps   320x240      : {render_full:8.0}");
@@ -227,6 +245,10 @@ fn main() {
     println!("frame payloads/s 320x240, rendered in place  : {in_place:8.0}");
     println!("frame payloads/s 320x240, rendered + encoded : {encoded:8.0}");
     println!("physics actions/s         : {physics:8.0}");
+    println!("rendered on {cores} threads (`render_threads`, the machine's cores):");
+    println!("env steps/s  320x240 RGBD : {spread_steps_full:8.0}");
+    println!("env steps/s  84x84 RGBD   : {spread_steps_small:8.0}");
+    println!("render fps   320x240      : {spread_render_full:8.0}");
     println!(
         "RSS: {rss_after:.1} MB after building one twin ({:.1} MB for the twin), {:.1} MB now",
         rss_after - rss_before,

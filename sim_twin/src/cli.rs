@@ -80,6 +80,10 @@ pub struct TwinArgs {
     /// Seed of noise and randomisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Threads each frame is rendered on: more pays while cores idle
+    /// (one twin on the machine); keep 1 where every core steps a twin.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
+    render_threads: u16,
 }
 
 impl TwinArgs {
@@ -117,6 +121,7 @@ impl TwinArgs {
                 yaw: 0.0,
             },
             profile,
+            render_threads: self.render_threads.into(),
         })
     }
 }

@@ -16,6 +16,9 @@ pub enum SimError {
     /// A file could not be written.
     #[error("io: {0}")]
     Io(String),
+    /// The renderer's threads could not be started.
+    #[error("the render threads could not start: {0}")]
+    Threads(String),
     /// Zenoh refused an operation.
     #[error("zenoh: {0}")]
     Zenoh(String),

@@ -57,6 +57,9 @@ pub struct TwinConfig {
     pub start: PlanarPose,
     /// The physical robot this twin stands for (default: the nominal twin).
     pub profile: TwinProfile,
+    /// Threads a frame is rendered on (1: the twin's own; see
+    /// [`ColumnRenderer::with_threads`]).
+    pub render_threads: usize,
 }
 
 impl TwinConfig {
@@ -73,6 +76,7 @@ impl TwinConfig {
                 yaw: 0.0,
             },
             profile: TwinProfile::default(),
+            render_threads: 1,
         })
     }
 }
@@ -121,7 +125,9 @@ impl SimTwin {
         let depth = depth_model(&config.randomization, &profile.depth)?;
         let scene = Scene::build(&config.world);
         let intrinsics = Intrinsics::resized(&config.world.camera, w, h);
-        let renderer = ColumnRenderer::new(intrinsics, &config.world.light);
+        let renderer = ColumnRenderer::new(intrinsics, &config.world.light)
+            .with_threads(config.render_threads)
+            .map_err(|e| SimError::Threads(e.to_string()))?;
         let exact = (profile.camera.pitch_deg != 0.0)
             .then(|| ExactRenderer::new(intrinsics, &config.world.light, &scene));
         let mut physics = RobotPhysics::new(&scene, config.start);
@@ -216,7 +222,7 @@ impl SimTwin {
         scene.world.light.ambient = base.ambient * light;
         scene.world.light.diffuse = base.diffuse * light;
         let intrinsics = *self.renderer.intrinsics();
-        self.renderer = ColumnRenderer::new(intrinsics, &scene.world.light);
+        self.renderer.set_light(&scene.world.light);
         if self.exact.is_some() {
             self.exact = Some(ExactRenderer::new(intrinsics, &scene.world.light, &scene));
         }

@@ -327,3 +327,46 @@ fn golden_low_resolution_frames() {
         );
     }
 }
+
+/// A frame is the same bits on any number of threads: each column is
+/// walked by one thread, whichever takes its band. Sizes with a partial
+/// last band and with fewer columns than one band; poses beside boulders
+/// and out of the range (NaN depth).
+#[test]
+fn a_frame_is_the_same_on_any_number_of_threads() {
+    let world = WorldSpec::builtin("monolith_obstacle").expect("world");
+    let scene = Scene::build(&world);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
+    let poses: Vec<CameraPose> = (0..6)
+        .map(|_| {
+            let (x, y) = (rng.random_range(-1.5..1.7), rng.random_range(-1.3..0.9));
+            let z = scene.terrain.height_at(x, y) + 0.2;
+            CameraPose::level([x, y, z], rng.random_range(0.0..std::f32::consts::TAU))
+        })
+        .collect();
+    let bits = |f: &RgbdFrame| f.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
+    for (w, h) in [(320, 240), (84, 84), (37, 29), (5, 3)] {
+        let intr = Intrinsics::resized(&world.camera, w, h);
+        let mut one = ColumnRenderer::new(intr, &world.light);
+        assert_eq!(one.threads(), 1);
+        for threads in [2, 3] {
+            let mut many = ColumnRenderer::new(intr, &world.light)
+                .with_threads(threads)
+                .expect("threads");
+            assert_eq!(many.threads(), threads);
+            for pose in &poses {
+                let (mut a, mut b) = (RgbdFrame::new(w, h), RgbdFrame::new(w, h));
+                one.render(&scene, pose, &mut a);
+                many.render(&scene, pose, &mut b);
+                assert!(
+                    a.rgb == b.rgb,
+                    "{w}x{h} on {threads} threads: colour differs"
+                );
+                assert!(
+                    bits(&a) == bits(&b),
+                    "{w}x{h} on {threads} threads: depth differs"
+                );
+            }
+        }
+    }
+}

@@ -72,6 +72,7 @@ impl Lab {
             resolution: Some(Resolution::new(8, 6)),
             seed: 7,
             profile: TwinProfile::default(),
+            render_threads: 1,
         };
         let mut embedded = Embedded::start_with(
             &deployment,

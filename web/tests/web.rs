@@ -64,6 +64,7 @@ impl Lab {
                 resolution: Some(Resolution::new(8, 6)),
                 seed: 7,
                 profile: TwinProfile::default(),
+                render_threads: 1,
             })
             .collect();
         let embedded = Embedded::start(&deployment, &envs, Store::in_memory().expect("store"))

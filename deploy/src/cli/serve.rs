@@ -2,7 +2,7 @@
 //! an in-process sim twin for every `sim/` env on request.
 //!
 //! ```text
-//! offworld serve --env sim/monolith-0=MonolithDiscrete --embedded-twins [--twin-profile FILE]
+//! offworld serve --env sim/monolith-0=MonolithDiscrete --embedded-twins [--twin-profile FILE] [--render-threads N]
 //! ```
 
 use std::path::PathBuf;
@@ -24,6 +24,11 @@ pub struct Args {
     /// profile, docs/twin-profile.md); default: the nominal twin.
     #[arg(long, value_name = "FILE", requires = "embedded_twins")]
     twin_profile: Option<PathBuf>,
+    /// Threads each embedded twin renders a frame on (as `sim_twin
+    /// --render-threads`): more pays while cores idle.
+    #[arg(long, default_value_t = 1, requires = "embedded_twins",
+          value_parser = clap::value_parser!(u16).range(1..=64))]
+    render_threads: u16,
 }
 
 /// Runs `serve` on the database named before the command (if any).
@@ -42,12 +47,16 @@ async fn serve(db_before_command: Option<PathBuf>, args: Args) -> anyhow::Result
         let controller = site.serve().await?;
         return until_signalled(|reason| async move { controller.shutdown(&reason).await }).await;
     }
-    let embedded = start_embedded(site, twin_profile).await?;
+    let embedded = start_embedded(site, twin_profile, args.render_threads.into()).await?;
     until_signalled(|reason| async move { embedded.shutdown(&reason).await }).await
 }
 
 /// Every env of `site` with its own in-process twin.
-async fn start_embedded(site: Site, profile: TwinProfile) -> anyhow::Result<Embedded> {
+async fn start_embedded(
+    site: Site,
+    profile: TwinProfile,
+    render_threads: usize,
+) -> anyhow::Result<Embedded> {
     let sims: Vec<SimEnv> = site
         .envs
         .iter()
@@ -57,6 +66,7 @@ async fn start_embedded(site: Site, profile: TwinProfile) -> anyhow::Result<Embe
             resolution: None,
             seed: 0,
             profile,
+            render_threads,
         })
         .collect();
     Ok(Embedded::start_with(

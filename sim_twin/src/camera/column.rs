@@ -34,6 +34,9 @@ pub struct ColumnRenderer {
     /// the terrain and albedo they were shaded for: held, so the terrain
     /// cannot be freed and another built at its address while cached.
     terrain_greys: Option<(Arc<Terrain>, f32, Vec<u8>)>,
+    /// Threads that walk columns beside the caller's (none: the caller
+    /// walks them all).
+    helpers: Option<Arc<rayon::ThreadPool>>,
 }
 
 /// The grey level of each face of an upright box.
@@ -86,6 +89,9 @@ struct Rows {
 
 const T_START: f32 = 1e-3;
 
+/// Columns a thread walks at a time (one band per take).
+const BAND: usize = 8;
+
 impl ColumnRenderer {
     /// A renderer for one image size.
     pub fn new(intrinsics: Intrinsics, light: &LightSpec) -> Self {
@@ -106,7 +112,37 @@ impl ColumnRenderer {
             grey_by_column: vec![0; pixels],
             box_faces: Vec::new(),
             terrain_greys: None,
+            helpers: None,
         }
+    }
+
+    /// Walks a frame's columns on `threads` threads: the caller's and
+    /// `threads − 1` helpers of its own. Every pixel is the same whatever
+    /// the count; it pays where a core idles while the frame renders
+    /// (one env on a multi-core machine), not where every core already
+    /// steps an env.
+    pub fn with_threads(mut self, threads: usize) -> Result<Self, rayon::ThreadPoolBuildError> {
+        self.helpers = match threads {
+            0 | 1 => None,
+            n => Some(Arc::new(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n - 1)
+                    .thread_name(|i| format!("render-{i}"))
+                    .build()?,
+            )),
+        };
+        Ok(self)
+    }
+
+    /// Shades with `light` from the next frame on.
+    pub fn set_light(&mut self, light: &LightSpec) {
+        self.shading = Shading::new(light);
+        self.terrain_greys = None;
+    }
+
+    /// Threads a frame's columns are walked on.
+    pub fn threads(&self) -> usize {
+        1 + self.helpers.as_ref().map_or(0, |p| p.current_num_threads())
     }
 
     /// The intrinsics rendered with.
@@ -158,22 +194,46 @@ impl ColumnRenderer {
             self.terrain_greys = Some((scene.terrain.clone(), albedo, greys));
         }
         let terrain_greys = self.terrain_greys.as_ref().map_or(&[][..], |(_, _, g)| g);
-        let columns = self
+        let walk_band = |band: usize, depth: &mut [f32], grey: &mut [u8]| {
+            let columns = depth.chunks_exact_mut(h).zip(grey.chunks_exact_mut(h));
+            for (k, (depth, grey)) in columns.enumerate() {
+                let a = intr.col_slope((band * BAND + k) as u32);
+                let dir = [forward[0] + a * right[0], forward[1] + a * right[1]];
+                let mut column = Column {
+                    intrinsics: &intr,
+                    box_faces: &self.box_faces,
+                    terrain_greys,
+                    rows: &self.rows,
+                    depth,
+                    grey,
+                };
+                column.render(scene, pose.position, dir);
+            }
+        };
+        let bands = self
             .depth_by_column
-            .chunks_exact_mut(h)
-            .zip(self.grey_by_column.chunks_exact_mut(h));
-        for (u, (depth, grey)) in columns.enumerate() {
-            let a = intr.col_slope(u as u32);
-            let dir = [forward[0] + a * right[0], forward[1] + a * right[1]];
-            let mut column = Column {
-                intrinsics: &intr,
-                box_faces: &self.box_faces,
-                terrain_greys,
-                rows: &self.rows,
-                depth,
-                grey,
-            };
-            column.render(scene, pose.position, dir);
+            .chunks_mut(BAND * h)
+            .zip(self.grey_by_column.chunks_mut(BAND * h))
+            .enumerate();
+        match &self.helpers {
+            None => bands.for_each(|(b, (depth, grey))| walk_band(b, depth, grey)),
+            Some(pool) => {
+                // Each thread takes the next band until none is left, so a
+                // helper that starts late takes fewer.
+                let bands = std::sync::Mutex::new(bands);
+                let next = || bands.lock().unwrap_or_else(|e| e.into_inner()).next();
+                let drain = || {
+                    while let Some((b, (depth, grey))) = next() {
+                        walk_band(b, depth, grey);
+                    }
+                };
+                pool.in_place_scope(|scope| {
+                    for _ in 0..pool.current_num_threads() {
+                        scope.spawn(|_| drain());
+                    }
+                    drain();
+                });
+            }
         }
         self.write_rows(pixels);
         true
