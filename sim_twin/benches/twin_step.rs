@@ -11,7 +11,10 @@
 //! run; instructions do not: `TWIN_STEP_INSTRUCTIONS=1` counts instructions
 //! per env step, per render and per physics action under callgrind (the
 //! bench re-runs itself for a few and for many units of each; see
-//! `offworld_test_support::callgrind`).
+//! `offworld_test_support::callgrind`). One unit alone, for a whole-process
+//! timer or a profiler: `TWIN_STEP_ONLY=render-320x240 TWIN_STEP_COUNT=2000
+//! [TWIN_STEP_THREADS=2]` (units: `step-` / `render-` + `320x240` / `84x84`,
+//! `physics`).
 
 use std::time::Instant;
 
@@ -33,6 +36,15 @@ const ACTIONS: [(f64, f64, f64); 4] = [
 
 fn twin(world: &str, res: Resolution) -> SimTwin {
     profiled(world, res, TwinProfile::default())
+}
+
+/// `TWIN_STEP_THREADS` (default 1): the render threads of a
+/// `TWIN_STEP_ONLY` run.
+fn only_threads() -> usize {
+    std::env::var("TWIN_STEP_THREADS")
+        .ok()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(1)
 }
 
 fn profiled(world: &str, res: Resolution, profile: TwinProfile) -> SimTwin {
@@ -108,6 +120,7 @@ fn only(world: &str, unit: &str, n: usize) {
         "320x240" => Resolution::new(320, 240),
         _ => Resolution::new(84, 84),
     };
+    let twin = |world: &str, res| threaded(world, res, only_threads());
     match unit.split_once('-') {
         Some(("step", r)) => {
             let mut t = twin(world, resolution(r));

@@ -92,6 +92,9 @@ const T_START: f32 = 1e-3;
 /// Columns a thread walks at a time (one band per take).
 const BAND: usize = 8;
 
+/// Frame rows a thread writes at a time: one row of 8 × 8 tiles.
+const TILE_ROWS: usize = 8;
+
 impl ColumnRenderer {
     /// A renderer for one image size.
     pub fn new(intrinsics: Intrinsics, light: &LightSpec) -> Self {
@@ -215,40 +218,57 @@ impl ColumnRenderer {
             .chunks_mut(BAND * h)
             .zip(self.grey_by_column.chunks_mut(BAND * h))
             .enumerate();
-        match &self.helpers {
-            None => bands.for_each(|(b, (depth, grey))| walk_band(b, depth, grey)),
-            Some(pool) => {
-                // Each thread takes the next band until none is left, so a
-                // helper that starts late takes fewer.
-                let bands = std::sync::Mutex::new(bands);
-                let next = || bands.lock().unwrap_or_else(|e| e.into_inner()).next();
-                let drain = || {
-                    while let Some((b, (depth, grey))) = next() {
-                        walk_band(b, depth, grey);
-                    }
-                };
-                pool.in_place_scope(|scope| {
-                    for _ in 0..pool.current_num_threads() {
-                        scope.spawn(|_| drain());
-                    }
-                    drain();
-                });
-            }
-        }
+        on_threads(self.helpers.as_deref(), bands, |(b, (depth, grey))| {
+            walk_band(b, depth, grey)
+        });
         self.write_rows(pixels);
         true
     }
 
-    /// Writes the column-major scratch into the row-major frame, grey as RGB.
+    /// Writes the column-major scratch into the row-major frame, grey as
+    /// RGB, a band of [`TILE_ROWS`] rows at a time (on the helpers too).
     fn write_rows(&self, frame: &mut PixelsMut<'_>) {
         let scratch = Scratch {
             intrinsics: &self.intrinsics,
             depth: &self.depth_by_column,
             grey: &self.grey_by_column,
         };
-        let tiled = tiles::write(&scratch, frame);
-        scratch.write_pixels_outside(tiled, frame);
+        let w = self.intrinsics.width as usize;
+        let bands = frame
+            .depth
+            .chunks_mut(TILE_ROWS * w)
+            .zip(frame.rgb.chunks_mut(TILE_ROWS * w * 3))
+            .enumerate();
+        on_threads(self.helpers.as_deref(), bands, |(b, (depth, rgb))| {
+            scratch.write_band(b * TILE_ROWS, &mut PixelsMut { rgb, depth });
+        });
     }
+}
+
+/// Does `work` for every item, on the caller's thread and, if given, the
+/// pool's: each thread takes the next item until none is left, so a helper
+/// that starts late takes fewer.
+fn on_threads<I>(pool: Option<&rayon::ThreadPool>, items: I, work: impl Fn(I::Item) + Sync)
+where
+    I: Iterator + Send,
+    I::Item: Send,
+{
+    let Some(pool) = pool else {
+        return items.for_each(work);
+    };
+    let items = std::sync::Mutex::new(items);
+    let next = || items.lock().unwrap_or_else(|e| e.into_inner()).next();
+    let drain = || {
+        while let Some(item) = next() {
+            work(item);
+        }
+    };
+    pool.in_place_scope(|scope| {
+        for _ in 0..pool.current_num_threads() {
+            scope.spawn(|_| drain());
+        }
+        drain();
+    });
 }
 
 /// The frame column by column, as [`ColumnRenderer`] walked it.
@@ -269,16 +289,24 @@ impl Scratch<'_> {
         )
     }
 
-    /// Writes every pixel outside the top-left `tiled` (width, height)
-    /// block, one at a time.
-    fn write_pixels_outside(&self, tiled: (usize, usize), frame: &mut PixelsMut<'_>) {
+    /// Writes the frame's rows from `top` on into `band` (those rows of
+    /// the frame, at most [`TILE_ROWS`]): whole tiles with AVX2, the rest
+    /// one pixel at a time.
+    fn write_band(&self, top: usize, band: &mut PixelsMut<'_>) {
+        let (w, _) = self.size();
+        let tiled = tiles::write_band(self, top, band);
+        self.write_pixels(top, tiled..w, band);
+    }
+
+    /// Writes `columns` of the rows of `band` (the frame's rows from `top`
+    /// on), one pixel at a time.
+    fn write_pixels(&self, top: usize, columns: std::ops::Range<usize>, band: &mut PixelsMut<'_>) {
         let (w, h) = self.size();
-        for v in 0..h {
-            let columns = if v < tiled.1 { tiled.0..w } else { 0..w };
-            for u in columns {
-                let (from, to) = (u * h + v, v * w + u);
-                frame.depth[to] = self.intrinsics.reported_depth(self.depth[from]);
-                frame.rgb[to * 3..to * 3 + 3].copy_from_slice(&[self.grey[from]; 3]);
+        for r in 0..band.depth.len() / w {
+            for u in columns.clone() {
+                let (from, to) = (u * h + top + r, r * w + u);
+                band.depth[to] = self.intrinsics.reported_depth(self.depth[from]);
+                band.rgb[to * 3..to * 3 + 3].copy_from_slice(&[self.grey[from]; 3]);
             }
         }
     }
@@ -295,21 +323,27 @@ mod tiles {
     use core::arch::x86_64::{__m128i, __m256, __m256i, _CMP_GE_OQ, _CMP_LE_OQ};
     use pulp::{x86::V3, Simd};
 
-    const TILE: usize = 8;
+    const TILE: usize = super::TILE_ROWS;
 
-    /// Writes the whole tiles; returns the (width, height) they cover
-    /// (none without AVX2).
-    pub(super) fn write(scratch: &Scratch<'_>, frame: &mut PixelsMut<'_>) -> (usize, usize) {
+    /// Writes the whole tiles of `band` (the frame's rows from `top` on);
+    /// returns the columns they cover (none without AVX2, or for a band of
+    /// fewer than a tile's rows).
+    pub(super) fn write_band(scratch: &Scratch<'_>, top: usize, band: &mut PixelsMut<'_>) -> usize {
         let Some(simd) = V3::try_new() else {
-            return (0, 0);
+            return 0;
         };
+        let (w, h) = scratch.size();
+        if band.depth.len() != TILE * w || top + TILE > h {
+            return 0;
+        }
         // The trait's entry point (V3's own `vectorize` takes a closure).
         Simd::vectorize(
             simd,
             Tiles {
                 simd,
                 scratch,
-                frame,
+                top,
+                band,
             },
         )
     }
@@ -317,22 +351,24 @@ mod tiles {
     struct Tiles<'a, 's, 'f, 'p> {
         simd: V3,
         scratch: &'a Scratch<'s>,
-        frame: &'f mut PixelsMut<'p>,
+        top: usize,
+        band: &'f mut PixelsMut<'p>,
     }
 
     impl pulp::WithSimd for Tiles<'_, '_, '_, '_> {
-        type Output = (usize, usize);
+        type Output = usize;
 
         // Inlined into pulp's AVX2 entry point, so the intrinsics are too.
         #[inline(always)]
-        fn with_simd<S: pulp::Simd>(self, _: S) -> (usize, usize) {
+        fn with_simd<S: pulp::Simd>(self, _: S) -> usize {
             let Self {
                 simd,
                 scratch,
-                frame,
+                top,
+                band,
             } = self;
             let (w, h) = scratch.size();
-            let tiled = (w - w % TILE, h - h % TILE);
+            let tiled = w - w % TILE;
             // Per 128-bit half: the grey byte of each of 4 pixels three times.
             let grey_to_rgb: __m256i = pulp::cast(GREY_TO_RGB);
             let avx = simd.avx;
@@ -341,44 +377,45 @@ mod tiles {
             let (min_range, max_range) =
                 (avx._mm256_set1_ps(min_range), avx._mm256_set1_ps(max_range));
             let nan = avx._mm256_set1_ps(f32::NAN);
-            let groups = scratch.depth.chunks_exact(TILE * h);
-            let groups = groups.zip(scratch.grey.chunks_exact(TILE * h));
-            for (g, (depth_group, grey_group)) in groups.enumerate() {
-                // The group's columns as tiles: one bounds check per load.
-                let depth_columns: [&[[f32; TILE]]; TILE] =
-                    std::array::from_fn(|k| depth_group[k * h..(k + 1) * h].as_chunks().0);
-                let grey_columns: [&[[u8; TILE]]; TILE] =
-                    std::array::from_fn(|k| grey_group[k * h..(k + 1) * h].as_chunks().0);
-                for t in 0..tiled.1 / TILE {
-                    let depth = std::array::from_fn(|k| pulp::cast(depth_columns[k][t]));
-                    let grey = std::array::from_fn(|k| {
-                        let bytes: [u8; 16] = pulp::cast([grey_columns[k][t], [0; TILE]]);
-                        let widened = simd
-                            .avx2
-                            ._mm256_cvtepu8_epi32(pulp::cast::<_, __m128i>(bytes));
-                        simd.avx._mm256_castsi256_ps(widened)
-                    });
-                    let rows = transpose(simd, depth)
-                        .into_iter()
-                        .zip(transpose(simd, grey));
-                    for (r, (depth, grey)) in rows.enumerate() {
-                        let start = (t * TILE + r) * w + g * TILE;
-                        // Out of range or NaN → NaN, as `depth >= min && depth <= max` decides.
-                        let in_range = avx._mm256_and_ps(
-                            avx._mm256_cmp_ps::<_CMP_GE_OQ>(depth, min_range),
-                            avx._mm256_cmp_ps::<_CMP_LE_OQ>(depth, max_range),
-                        );
-                        let depth = avx._mm256_blendv_ps(nan, depth, in_range);
-                        let depth: [f32; TILE] = pulp::cast(depth);
-                        frame.depth[start..start + TILE].copy_from_slice(&depth);
-                        let rgb = simd
-                            .avx2
-                            ._mm256_shuffle_epi8(simd.avx._mm256_castps_si256(grey), grey_to_rgb);
-                        let rgb: [[u8; 16]; 2] = pulp::cast(rgb);
-                        let out = &mut frame.rgb[start * 3..(start + TILE) * 3];
-                        out[..12].copy_from_slice(&rgb[0][..12]);
-                        out[12..].copy_from_slice(&rgb[1][..12]);
-                    }
+            for g in 0..tiled / TILE {
+                // The tile's columns, one vector each.
+                let column = |k: usize| (g * TILE + k) * h + top;
+                let depth = std::array::from_fn(|k| {
+                    let column: [f32; TILE] = scratch.depth[column(k)..][..TILE]
+                        .try_into()
+                        .expect("a tile's column");
+                    pulp::cast(column)
+                });
+                let grey = std::array::from_fn(|k| {
+                    let column: [u8; TILE] = scratch.grey[column(k)..][..TILE]
+                        .try_into()
+                        .expect("a tile's column");
+                    let bytes: [u8; 16] = pulp::cast([column, [0; TILE]]);
+                    let widened = simd
+                        .avx2
+                        ._mm256_cvtepu8_epi32(pulp::cast::<_, __m128i>(bytes));
+                    simd.avx._mm256_castsi256_ps(widened)
+                });
+                let rows = transpose(simd, depth)
+                    .into_iter()
+                    .zip(transpose(simd, grey));
+                for (r, (depth, grey)) in rows.enumerate() {
+                    let start = r * w + g * TILE;
+                    // Out of range or NaN → NaN, as `depth >= min && depth <= max` decides.
+                    let in_range = avx._mm256_and_ps(
+                        avx._mm256_cmp_ps::<_CMP_GE_OQ>(depth, min_range),
+                        avx._mm256_cmp_ps::<_CMP_LE_OQ>(depth, max_range),
+                    );
+                    let depth = avx._mm256_blendv_ps(nan, depth, in_range);
+                    let depth: [f32; TILE] = pulp::cast(depth);
+                    band.depth[start..start + TILE].copy_from_slice(&depth);
+                    let rgb = simd
+                        .avx2
+                        ._mm256_shuffle_epi8(simd.avx._mm256_castps_si256(grey), grey_to_rgb);
+                    let rgb: [[u8; 16]; 2] = pulp::cast(rgb);
+                    let out = &mut band.rgb[start * 3..(start + TILE) * 3];
+                    out[..12].copy_from_slice(&rgb[0][..12]);
+                    out[12..].copy_from_slice(&rgb[1][..12]);
                 }
             }
             tiled
@@ -435,11 +472,12 @@ mod tiles {
 /// No tiles off x86-64: every pixel one at a time.
 #[cfg(not(target_arch = "x86_64"))]
 mod tiles {
-    pub(super) fn write(
+    pub(super) fn write_band(
         _: &super::Scratch<'_>,
+        _: usize,
         _: &mut crate::camera::PixelsMut<'_>,
-    ) -> (usize, usize) {
-        (0, 0)
+    ) -> usize {
+        0
     }
 }
 
@@ -939,11 +977,16 @@ mod tests {
                 });
                 (rgb, depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>())
             };
-            let tiled = frame(&|pixels| {
-                let covered = tiles::write(&scratch, pixels);
-                scratch.write_pixels_outside(covered, pixels);
-            });
-            let one_at_a_time = frame(&|pixels| scratch.write_pixels_outside((0, 0), pixels));
+            let bands = |pixels: &mut PixelsMut<'_>, write: &dyn Fn(usize, &mut PixelsMut<'_>)| {
+                let rows = pixels.depth.chunks_mut(TILE_ROWS * w);
+                let rows = rows.zip(pixels.rgb.chunks_mut(TILE_ROWS * w * 3));
+                for (b, (depth, rgb)) in rows.enumerate() {
+                    write(b * TILE_ROWS, &mut PixelsMut { rgb, depth });
+                }
+            };
+            let tiled = frame(&|pixels| bands(pixels, &|top, band| scratch.write_band(top, band)));
+            let one_at_a_time =
+                frame(&|pixels| bands(pixels, &|top, band| scratch.write_pixels(top, 0..w, band)));
             assert!(tiled == one_at_a_time, "{w}×{h}");
             // And it is the transpose, grey as RGB, depth out of range NaN.
             let (rgb, bits) = one_at_a_time;
