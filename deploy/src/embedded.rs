@@ -35,18 +35,31 @@ pub struct SimEnv {
     pub render_threads: usize,
 }
 
-/// The most threads one frame is rendered on: past four, the frame's own
-/// hand-offs cost about what another thread saves (a 320×240 frame is
-/// ~0.7 ms on one core).
+/// The most threads [`render_threads_for`] gives one twin: a twin should
+/// not take every core of a large machine (measured here up to two cores).
 pub const MAX_RENDER_THREADS: usize = 4;
 
-/// Render threads per twin when `twins` twins share this machine: its
-/// cores divided among them (at least one each, at most
-/// [`MAX_RENDER_THREADS`]). One env on two cores renders on both; two
-/// envs on two cores render on one each, as before.
-pub fn render_threads_for(twins: usize) -> usize {
+/// Overrides [`render_threads_for`]: the threads each twin of this process
+/// renders on (as `OMP_NUM_THREADS` does for OpenMP), e.g. 1 when every
+/// core already runs a process of its own (gymnasium's `AsyncVectorEnv`).
+pub const RENDER_THREADS_VAR: &str = "OFFWORLD_RENDER_THREADS";
+
+/// Render threads per twin when `twins` twins of this process share the
+/// machine: [`RENDER_THREADS_VAR`] if set, else the cores divided among
+/// them (at least one each, at most [`MAX_RENDER_THREADS`]). One env on
+/// two cores renders on both; two envs on two cores on one each.
+pub fn render_threads_for(twins: usize) -> Result<usize, ControllerError> {
+    if let Some(value) = std::env::var_os(RENDER_THREADS_VAR) {
+        let value = value.to_string_lossy();
+        return match value.trim().parse::<usize>() {
+            Ok(n @ 1..=64) => Ok(n),
+            _ => Err(ControllerError::Config(format!(
+                "{RENDER_THREADS_VAR}={value:?}: give a whole number of threads from 1 to 64"
+            ))),
+        };
+    }
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    (cores / twins.max(1)).clamp(1, MAX_RENDER_THREADS)
+    Ok((cores / twins.max(1)).clamp(1, MAX_RENDER_THREADS))
 }
 
 /// A running in-process deployment; stops when dropped.

@@ -75,7 +75,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 .map(|i| EnvId::sim(&format!("embedded-{}-{i}", &prefix[..8])))
                 .collect::<Result<_, _>>()
                 .map_err(|e| ControllerError::Config(e.to_string()))?;
-            let render_threads = render_threads_for(envs.len());
+            let render_threads = render_threads_for(envs.len())?;
             let sims: Vec<SimEnv> = envs
                 .iter()
                 .enumerate()

@@ -197,6 +197,30 @@ def test_observations_are_writable_arrays_of_their_own_whose_memory_serves_later
     env.close()
 
 
+def test_render_threads_come_from_the_environment_and_change_no_pixel(monkeypatch):
+    """OFFWORLD_RENDER_THREADS sets the threads the embedded twin renders
+    each frame on: a seed's observations are the same bytes on 1 and 3; a
+    value that is not a thread count is refused, naming the variable."""
+
+    def walk(threads):
+        monkeypatch.setenv("OFFWORLD_RENDER_THREADS", threads)
+        env = gymnasium.make("OffWorldMonolithObstacleDiscreteSim-v0", channel_type=Channels.RGBD)
+        obs, _ = env.reset(seed=5)
+        frames = [obs]
+        for action in [0, 2, 2, 1, 2]:
+            frames.append(env.step(action)[0])
+        env.close()
+        return [f.tobytes() for f in frames]
+
+    one, three = walk("1"), walk("3")
+    assert one[0] != one[-1], "the robot moved: the frames differ"
+    assert one == three
+    for bad in ["0", "many", "65"]:
+        monkeypatch.setenv("OFFWORLD_RENDER_THREADS", bad)
+        with pytest.raises(errors.BadRequest, match="OFFWORLD_RENDER_THREADS"):
+            gymnasium.make("OffWorldMonolithDiscreteSim-v0")
+
+
 def test_bad_actions_raise_typed_errors():
     env = gymnasium.make("OffWorldMonolithContinuousSim-v0", resolution=(32, 32))
     with pytest.raises(errors.InvalidState):
