@@ -9,7 +9,7 @@ use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{render_threads_for, Embedded, SimEnv, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
 use offworld_runtime::msg::*;
@@ -87,7 +87,9 @@ async fn main() -> anyhow::Result<()> {
         resolution: Some(Resolution::new(W, H)),
         seed: 0,
         profile: TwinProfile::default(),
-        render_threads: 1,
+        // What one embedded env renders on (`gymnasium.make` with its
+        // live monitor): the monitor competes with the render's helpers.
+        render_threads: render_threads_for(1)?,
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {
