@@ -52,6 +52,11 @@ pub struct Args {
     /// Other messages queued for the worker at most.
     #[arg(long, default_value_t = 4096)]
     message_queue: usize,
+    /// Log every camera frame (default: each camera's newest every 20 ms,
+    /// what a viewer shows, so a fast sim env's monitor costs its steps
+    /// little).
+    #[arg(long)]
+    every_frame: bool,
     /// Do not send the default viewer layout.
     #[arg(long)]
     no_blueprint: bool,
@@ -162,6 +167,7 @@ impl Args {
             .queues(self.frame_queue, self.message_queue);
         config.world = self.world.clone();
         config.blueprint = !self.no_blueprint;
+        config.every_frame = self.every_frame;
         Ok(config)
     }
 }

@@ -227,6 +227,12 @@ pub struct MonitorConfig {
     pub recording_name: Option<String>,
     /// How long shutdown waits for the sink to take the last data.
     pub flush_timeout: Duration,
+    /// Log every camera frame. Off (the default), each camera's newest
+    /// frame of a batch is logged and the older ones count as dropped for
+    /// the viewer: at most one a `batch_interval` per camera, what a
+    /// viewer shows, while a sim env steps thousands a second. (Episodes
+    /// are recorded frame by frame by the controller's recorder, not here.)
+    pub every_frame: bool,
 }
 
 impl MonitorConfig {
@@ -244,7 +250,14 @@ impl MonitorConfig {
             batch_interval: Duration::from_millis(20),
             recording_name: None,
             flush_timeout: Duration::from_secs(10),
+            every_frame: false,
         }
+    }
+
+    /// Log every camera frame, not only each camera's newest of a batch.
+    pub fn every_frame(mut self) -> Self {
+        self.every_frame = true;
+        self
     }
 
     /// Watch `scope` instead of every env.
@@ -292,7 +305,9 @@ pub enum MonitorError {
 pub struct MonitorStats {
     /// Samples the callbacks received.
     pub received: u64,
-    /// Camera frames dropped for the viewer (queue full).
+    /// Camera frames dropped for the viewer: the queue was full, or a newer
+    /// frame of the same camera followed in the batch (see
+    /// [`MonitorConfig::every_frame`]).
     pub dropped_frames: u64,
     /// Other messages dropped (queue full).
     pub dropped_messages: u64,
@@ -334,6 +349,7 @@ impl Monitor {
             spec_timeout: config.spec_timeout,
             blueprint: config.blueprint,
             batch_interval: config.batch_interval,
+            every_frame: config.every_frame,
         };
         // The sink is opened on the worker thread, after it lowered its
         // priority, so rerun's own threads (batcher, encoder, sink) inherit

@@ -191,6 +191,8 @@ impl Replay {
                 spec_timeout: Duration::ZERO,
                 blueprint: config.blueprint,
                 batch_interval: Duration::ZERO,
+                // A replay logs what the recording holds.
+                every_frame: true,
             },
         );
         worker.start();

@@ -412,9 +412,12 @@ async fn malformed_messages_are_counted_and_skipped() -> anyhow::Result<()> {
     let path = temp_rrd("garbage");
     let monitor = Monitor::spawn(
         &monitor_session,
+        // Every frame: each malformed one is decoded and counted, none
+        // superseded by the next.
         MonitorConfig::new(Sink::File(path.clone()))
             .scope(Scope::env(env.clone()))
-            .world("monolith_obstacle"),
+            .world("monolith_obstacle")
+            .every_frame(),
     )?;
     wait_for_route(&pubs, &env, &monitor).await?;
 
@@ -664,38 +667,50 @@ async fn the_binary_records_until_its_duration_ends() -> anyhow::Result<()> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Result<()> {
-    let (monitor_session, pubs) = loopback_pair().await?;
-    let sim = unique_env("many-sim")?;
-    let real = EnvId::real(&format!("many-real-{}", std::process::id()))?;
-    let path = temp_rrd("many");
-    let monitor = Monitor::spawn(
-        &monitor_session,
-        MonitorConfig::new(Sink::File(path.clone())).world("monolith"),
-    )?;
-    wait_for_route(&pubs, &sim, &monitor).await?;
-    publish_step(&pubs, &sim, 0, false).await?;
-    publish_step(&pubs, &real, 0, false).await?;
-    publish_step(&pubs, &real, 1, true).await?;
-    wait_for(&monitor, "both envs", |s| {
-        s.envs == 2 && s.rewards == 3 && s.frames == 3
-    })
-    .await?;
-    tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
+    // Every frame on request; by default each camera's newest of a batch
+    // (a batch long enough here that the three steps share it): real's
+    // first frame is superseded by its second and counted as dropped.
+    let every_frame = MonitorConfig::new(Sink::File(temp_rrd("many"))).every_frame();
+    let mut newest = MonitorConfig::new(Sink::File(temp_rrd("many-newest")));
+    newest.batch_interval = Duration::from_secs(2);
+    for (config, real_frames) in [(every_frame, 2), (newest, 1)] {
+        let Sink::File(path) = config.sink.clone() else {
+            bail!("a file sink")
+        };
+        let (monitor_session, pubs) = loopback_pair().await?;
+        let sim = unique_env("many-sim")?;
+        let real = EnvId::real(&format!("many-real-{}", std::process::id()))?;
+        let monitor = Monitor::spawn(&monitor_session, config.world("monolith"))?;
+        wait_for_route(&pubs, &sim, &monitor).await?;
+        publish_step(&pubs, &sim, 0, false).await?;
+        publish_step(&pubs, &real, 0, false).await?;
+        publish_step(&pubs, &real, 1, true).await?;
+        wait_for(&monitor, "both envs", |s| {
+            s.envs == 2 && s.rewards == 3 && s.frames + s.dropped_frames == 3
+        })
+        .await?;
+        let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
+        assert_eq!(
+            (stats.frames, stats.dropped_frames),
+            (1 + real_frames, 2 - real_frames),
+            "{stats:?}"
+        );
 
-    let summary = check_rrd(&path)?;
-    assert_eq!(summary["verify"]["ok"], true, "{}", summary["verify"]);
-    let frames = |root: &str| {
-        summary["entities"][format!("/envs/{root}/robot/camera/color")]["components"]
-            ["Image:buffer"]
-            .as_u64()
-    };
-    assert_eq!(frames(&sim.to_string()), Some(1));
-    assert_eq!(frames(&real.to_string()), Some(2));
-    for env in [&sim, &real] {
-        let walls = format!("/envs/{env}/world/walls");
-        assert!(summary["entities"].get(&walls).is_some(), "{walls} missing");
+        let summary = check_rrd(&path)?;
+        assert_eq!(summary["verify"]["ok"], true, "{}", summary["verify"]);
+        let frames = |root: &str| {
+            summary["entities"][format!("/envs/{root}/robot/camera/color")]["components"]
+                ["Image:buffer"]
+                .as_u64()
+        };
+        assert_eq!(frames(&sim.to_string()), Some(1));
+        assert_eq!(frames(&real.to_string()), Some(real_frames));
+        for env in [&sim, &real] {
+            let walls = format!("/envs/{env}/world/walls");
+            assert!(summary["entities"].get(&walls).is_some(), "{walls} missing");
+        }
+        std::fs::remove_file(&path).ok();
     }
-    std::fs::remove_file(&path).ok();
     Ok(())
 }
 

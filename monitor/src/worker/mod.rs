@@ -101,6 +101,41 @@ pub(crate) enum WorldSource {
     Fallback(String),
 }
 
+impl Event {
+    /// The camera (its key) a camera frame comes from; `None` for anything
+    /// else.
+    fn camera(&self) -> Option<&str> {
+        match self {
+            Event::Sample { sample, .. } => {
+                let key = sample.key_expr().as_str();
+                (lane_of(key) == Lane::Frame).then_some(key)
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Removes from `batch` every camera frame that a newer frame of the same
+/// camera follows (a viewer shows the newest; logging the rest cost the
+/// monitor's CPU, taken from the steps, at thousands of frames a second);
+/// returns how many. Everything else keeps its order.
+pub(crate) fn keep_newest_per_camera<T>(
+    batch: &mut Vec<T>,
+    camera: impl Fn(&T) -> Option<&str>,
+) -> u64 {
+    let mut seen = std::collections::HashSet::new();
+    let mut keep: Vec<bool> = batch
+        .iter()
+        .rev()
+        .map(|item| camera(item).is_none_or(|c| seen.insert(c.to_owned())))
+        .collect();
+    keep.reverse();
+    let before = batch.len();
+    let mut flags = keep.into_iter();
+    batch.retain(|_| flags.next().unwrap_or(true));
+    (before - batch.len()) as u64
+}
+
 /// The lane a sample travels in: camera images are big and expendable.
 pub(crate) fn lane_of(key: &str) -> Lane {
     if key.ends_with("/obs") || key.contains("/overhead/") {
@@ -197,6 +232,8 @@ pub(crate) struct WorkerConfig {
     pub spec_timeout: Duration,
     pub blueprint: bool,
     pub batch_interval: Duration,
+    /// Log every camera frame, not only each camera's newest of a batch.
+    pub every_frame: bool,
 }
 
 pub(crate) struct Worker {
@@ -299,7 +336,12 @@ impl Worker {
                 .queue
                 .pop_batch(Duration::from_millis(100), self.config.batch_interval)
             {
-                Ok(batch) => {
+                Ok(mut batch) => {
+                    if !self.config.every_frame {
+                        let superseded = keep_newest_per_camera(&mut batch, Event::camera);
+                        let dropped = &self.shared.queue.counters.dropped_frames;
+                        dropped.fetch_add(superseded, Ordering::Relaxed);
+                    }
                     for event in batch {
                         self.handle(event);
                     }
@@ -485,6 +527,36 @@ impl Worker {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_batch_keeps_each_cameras_newest_frame_and_every_message() {
+        let mut batch = vec![
+            "a/obs 1",
+            "reward 1",
+            "b/obs 1",
+            "a/obs 2",
+            "a/overhead/top 1",
+            "reward 2",
+            "a/obs 3",
+        ];
+        fn camera<'x>(item: &'x &str) -> Option<&'x str> {
+            let (key, _) = item.split_once(' ')?;
+            (!key.starts_with("reward")).then_some(key)
+        }
+        assert_eq!(keep_newest_per_camera(&mut batch, camera), 2);
+        assert_eq!(
+            batch,
+            [
+                "reward 1",
+                "b/obs 1",
+                "a/overhead/top 1",
+                "reward 2",
+                "a/obs 3"
+            ]
+        );
+        let mut none: Vec<&str> = Vec::new();
+        assert_eq!(keep_newest_per_camera(&mut none, camera), 0);
+    }
 
     /// The monitor shows a latch as its obeyers hold it: a repeated copy or
     /// a release overtaken by an engage changes nothing; in a replay the
