@@ -9,7 +9,7 @@ use offworld_runtime::Resolution;
 /// The twin profile an embedded env's twin is built with (re-exported so
 /// front ends need not depend on the twin crate).
 pub use offworld_sim_twin::TwinProfile;
-use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode};
+use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode, RENDER_THREADS_LIMIT};
 use zenoh::Session;
 
 use offworld_env_controller::{
@@ -35,31 +35,36 @@ pub struct SimEnv {
     pub render_threads: usize,
 }
 
-/// The most threads [`render_threads_for`] gives one twin: a twin should
-/// not take every core of a large machine (measured here up to two cores).
-pub const MAX_RENDER_THREADS: usize = 4;
+/// The most threads [`render_threads_for`] gives one twin by default: a
+/// twin should not take every core of a large machine (measured here up
+/// to two cores).
+pub const DEFAULT_RENDER_THREADS_CAP: usize = 4;
 
 /// Overrides [`render_threads_for`]: the threads each twin of this process
 /// renders on (as `OMP_NUM_THREADS` does for OpenMP), e.g. 1 when every
 /// core already runs a process of its own (gymnasium's `AsyncVectorEnv`).
 pub const RENDER_THREADS_VAR: &str = "OFFWORLD_RENDER_THREADS";
 
-/// Render threads per twin when `twins` twins of this process share the
-/// machine: [`RENDER_THREADS_VAR`] if set, else the cores divided among
-/// them (at least one each, at most [`MAX_RENDER_THREADS`]). One env on
-/// two cores renders on both; two envs on two cores on one each.
+/// Render threads per twin when `twins` twins of one embedded deployment
+/// (one `gymnasium.make` or `make_vec`) share the machine:
+/// [`RENDER_THREADS_VAR`] if set (empty = unset), else the cores divided
+/// among them (at least one each, at most [`DEFAULT_RENDER_THREADS_CAP`]).
+/// One env on two cores renders on both; two envs on two cores on one each.
+/// Deployments do not know of each other: a process making several, or
+/// several processes each making one, divide nothing (set the variable).
 pub fn render_threads_for(twins: usize) -> Result<usize, ControllerError> {
-    if let Some(value) = std::env::var_os(RENDER_THREADS_VAR) {
+    let limit = usize::from(RENDER_THREADS_LIMIT);
+    if let Some(value) = std::env::var_os(RENDER_THREADS_VAR).filter(|v| !v.is_empty()) {
         let value = value.to_string_lossy();
         return match value.trim().parse::<usize>() {
-            Ok(n @ 1..=64) => Ok(n),
+            Ok(n) if (1..=limit).contains(&n) => Ok(n),
             _ => Err(ControllerError::Config(format!(
-                "{RENDER_THREADS_VAR}={value:?}: give a whole number of threads from 1 to 64"
+                "{RENDER_THREADS_VAR}={value:?}: give a whole number of threads from 1 to {limit}"
             ))),
         };
     }
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    Ok((cores / twins.max(1)).clamp(1, MAX_RENDER_THREADS))
+    Ok((cores / twins.max(1)).clamp(1, DEFAULT_RENDER_THREADS_CAP))
 }
 
 /// A running in-process deployment; stops when dropped.

@@ -117,7 +117,7 @@ async fn main() -> anyhow::Result<()> {
         std::env::temp_dir().join(format!("offworld-monitor-bench-{}.rrd", std::process::id()));
     // Step times per mode: off, embedded monitor, remote monitor, bare remote subscriber.
     let mut times: [Vec<f64>; 4] = Default::default();
-    let mut dropped = 0;
+    let (mut dropped, mut superseded) = (0, 0);
     // Modes run in ABCD DCBA order so a slow drift of the machine (other
     // load, clocks) weighs on every mode alike.
     for round in 0..rounds() {
@@ -134,6 +134,7 @@ async fn main() -> anyhow::Result<()> {
                     let session = if mode == 1 { &server } else { &watcher };
                     let (block, stats) = with_monitor(session, &env, &path, &mut gym).await?;
                     dropped += stats.dropped_frames;
+                    superseded += stats.superseded_frames;
                     block
                 }
                 // Floor of the remote case: a subscriber that drops everything.
@@ -162,7 +163,7 @@ async fn main() -> anyhow::Result<()> {
     let [off, embedded, remote, bare] = times.map(|t| 1.0 / median(t));
     let cost = |rate: f64| (1.0 - rate / off) * 100.0;
     println!(
-        "step rate at {W}x{H} RGBD (1 / median step time over {} rounds of {} steps; {dropped} frames dropped for the viewer):",
+        "step rate at {W}x{H} RGBD (1 / median step time over {} rounds of {} steps; {dropped} frames dropped for the viewer, {superseded} superseded by newer ones):",
         rounds(),
         steps()
     );

@@ -218,7 +218,8 @@ async fn live(args: Args) -> anyhow::Result<()> {
                 let s = monitor.stats();
                 tracing::info!(
                     envs = s.envs, frames = s.frames, poses = s.poses, rewards = s.rewards,
-                    dropped_frames = s.dropped_frames, dropped_messages = s.dropped_messages,
+                    dropped_frames = s.dropped_frames, superseded_frames = s.superseded_frames,
+                    dropped_messages = s.dropped_messages,
                     decode_errors = s.decode_errors, "monitor"
                 );
             }

@@ -228,8 +228,8 @@ pub struct MonitorConfig {
     /// How long shutdown waits for the sink to take the last data.
     pub flush_timeout: Duration,
     /// Log every camera frame. Off (the default), each camera's newest
-    /// frame of a batch is logged and the older ones count as dropped for
-    /// the viewer: at most one a `batch_interval` per camera, what a
+    /// frame of a batch is logged and the older ones are counted as
+    /// superseded: at most one a `batch_interval` per camera, what a
     /// viewer shows, while a sim env steps thousands a second. (Episodes
     /// are recorded frame by frame by the controller's recorder, not here.)
     pub every_frame: bool,
@@ -305,9 +305,8 @@ pub enum MonitorError {
 pub struct MonitorStats {
     /// Samples the callbacks received.
     pub received: u64,
-    /// Camera frames dropped for the viewer: the queue was full, or a newer
-    /// frame of the same camera followed in the batch (see
-    /// [`MonitorConfig::every_frame`]).
+    /// Camera frames dropped for the viewer (queue full: the monitor could
+    /// not keep up).
     pub dropped_frames: u64,
     /// Other messages dropped (queue full).
     pub dropped_messages: u64,
@@ -315,6 +314,9 @@ pub struct MonitorStats {
     pub decode_errors: u64,
     /// Log calls rerun refused.
     pub log_errors: u64,
+    /// Camera frames not logged because a newer frame of the same camera
+    /// followed in the batch (see [`MonitorConfig::every_frame`]).
+    pub superseded_frames: u64,
     /// Camera frames (`obs`) logged.
     pub frames: u64,
     /// Tracker poses logged.

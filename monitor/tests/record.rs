@@ -512,9 +512,13 @@ async fn a_flood_of_frames_drops_frames_not_messages_and_never_blocks() -> anyho
     }
     let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
     println!("flood: {stats:?}, slowest put {slowest:?}");
-    // Every frame was either logged or dropped for the viewer; no other
-    // message was lost.
-    assert_eq!(stats.frames + stats.dropped_frames, FRAMES, "{stats:?}");
+    // Every frame was logged, superseded by a newer one or dropped for the
+    // viewer; no other message was lost.
+    assert_eq!(
+        stats.frames + stats.superseded_frames + stats.dropped_frames,
+        FRAMES,
+        "{stats:?}"
+    );
     assert_eq!(
         (stats.rewards, stats.dropped_messages),
         (FRAMES, 0),
@@ -669,7 +673,7 @@ async fn the_binary_records_until_its_duration_ends() -> anyhow::Result<()> {
 async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Result<()> {
     // Every frame on request; by default each camera's newest of a batch
     // (a batch long enough here that the three steps share it): real's
-    // first frame is superseded by its second and counted as dropped.
+    // first frame is superseded by its second and counted as such.
     let every_frame = MonitorConfig::new(Sink::File(temp_rrd("many"))).every_frame();
     let mut newest = MonitorConfig::new(Sink::File(temp_rrd("many-newest")));
     newest.batch_interval = Duration::from_secs(2);
@@ -686,13 +690,13 @@ async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Resu
         publish_step(&pubs, &real, 0, false).await?;
         publish_step(&pubs, &real, 1, true).await?;
         wait_for(&monitor, "both envs", |s| {
-            s.envs == 2 && s.rewards == 3 && s.frames + s.dropped_frames == 3
+            s.envs == 2 && s.rewards == 3 && s.frames + s.superseded_frames == 3
         })
         .await?;
         let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
         assert_eq!(
-            (stats.frames, stats.dropped_frames),
-            (1 + real_frames, 2 - real_frames),
+            (stats.frames, stats.superseded_frames, stats.dropped_frames),
+            (1 + real_frames, 2 - real_frames, 0),
             "{stats:?}"
         );
 

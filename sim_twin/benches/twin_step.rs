@@ -120,20 +120,20 @@ fn only(world: &str, unit: &str, n: usize) {
         "320x240" => Resolution::new(320, 240),
         _ => Resolution::new(84, 84),
     };
-    let twin = |world: &str, res| threaded(world, res, only_threads());
+    let made = |world: &str, res| threaded(world, res, only_threads());
     match unit.split_once('-') {
         Some(("step", r)) => {
-            let mut t = twin(world, resolution(r));
+            let mut t = made(world, resolution(r));
             (0..n).for_each(|i| env_step(&mut t, i));
         }
         Some(("render", r)) => {
-            let mut t = twin(world, resolution(r));
+            let mut t = made(world, resolution(r));
             (0..n).for_each(|_| {
                 std::hint::black_box(t.render());
             });
         }
         _ => {
-            let mut t = twin(world, resolution("84x84"));
+            let mut t = made(world, resolution("84x84"));
             for i in 0..n {
                 let (v, w, d) = ACTIONS[i % 4];
                 t.execute(v, w, d).expect("motion");

@@ -14,6 +14,7 @@ use std::process::ExitCode;
 use crate::tracker::TrackerConfig;
 use crate::{
     Clock, PlanarPose, Randomization, SimTwin, TwinConfig, TwinNode, TwinProfile, WorldSpec,
+    RENDER_THREADS_LIMIT,
 };
 use clap::{Parser, ValueEnum};
 use offworld_program::CommonArgs;
@@ -82,7 +83,8 @@ pub struct TwinArgs {
     seed: u64,
     /// Threads each frame is rendered on: more pays while cores idle
     /// (one twin on the machine); keep 1 where every core steps a twin.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::value_parser!(u16).range(1..=i64::from(RENDER_THREADS_LIMIT)))]
     render_threads: u16,
 }
 

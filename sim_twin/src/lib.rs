@@ -41,4 +41,4 @@ pub use offworld_runtime::world;
 pub use offworld_runtime::WorldSpec;
 pub use physics::PlanarPose;
 pub use profile::{CameraProfile, DepthProfile, MotionProfile, TwinProfile, PROFILE_FORMAT};
-pub use twin::{Randomization, SimTwin, TwinConfig};
+pub use twin::{Randomization, SimTwin, TwinConfig, RENDER_THREADS_LIMIT};

@@ -42,6 +42,10 @@ pub struct Randomization {
     pub max_slip: f32,
 }
 
+/// The most threads a frame may be rendered on (flags and
+/// `OFFWORLD_RENDER_THREADS` accept 1 to this).
+pub const RENDER_THREADS_LIMIT: u16 = 64;
+
 /// Everything a twin is made from.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TwinConfig {
@@ -125,6 +129,12 @@ impl SimTwin {
         let depth = depth_model(&config.randomization, &profile.depth)?;
         let scene = Scene::build(&config.world);
         let intrinsics = Intrinsics::resized(&config.world.camera, w, h);
+        if !(1..=usize::from(RENDER_THREADS_LIMIT)).contains(&config.render_threads) {
+            return Err(SimError::BadCommand(format!(
+                "render threads {} out of range 1–{RENDER_THREADS_LIMIT}",
+                config.render_threads
+            )));
+        }
         let renderer = ColumnRenderer::new(intrinsics, &config.world.light)
             .with_threads(config.render_threads)
             .map_err(|e| SimError::Threads(e.to_string()))?;

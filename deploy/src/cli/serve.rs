@@ -11,6 +11,7 @@ use std::process::ExitCode;
 use offworld_env_controller::cli::{until_signalled, ServeArgs, Site};
 
 use crate::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_sim_twin::RENDER_THREADS_LIMIT;
 
 /// `serve`'s flags: the server's, and its twins'.
 #[derive(clap::Args)]
@@ -25,9 +26,10 @@ pub struct Args {
     #[arg(long, value_name = "FILE", requires = "embedded_twins")]
     twin_profile: Option<PathBuf>,
     /// Threads each embedded twin renders a frame on (as `sim_twin
-    /// --render-threads`): more pays while cores idle.
+    /// --render-threads`; `OFFWORLD_RENDER_THREADS` is for gym front ends,
+    /// not read here): more pays while cores idle.
     #[arg(long, default_value_t = 1, requires = "embedded_twins",
-          value_parser = clap::value_parser!(u16).range(1..=64))]
+          value_parser = clap::value_parser!(u16).range(1..=i64::from(RENDER_THREADS_LIMIT)))]
     render_threads: u16,
 }
 

@@ -103,10 +103,10 @@ pub(crate) enum WorldSource {
 
 impl Event {
     /// The camera (its key) a camera frame comes from; `None` for anything
-    /// else.
+    /// else (a deletion included: it supersedes nothing).
     fn camera(&self) -> Option<&str> {
         match self {
-            Event::Sample { sample, .. } => {
+            Event::Sample { sample, .. } if sample.kind() == SampleKind::Put => {
                 let key = sample.key_expr().as_str();
                 (lane_of(key) == Lane::Frame).then_some(key)
             }
@@ -118,18 +118,23 @@ impl Event {
 /// Removes from `batch` every camera frame that a newer frame of the same
 /// camera follows (a viewer shows the newest; logging the rest cost the
 /// monitor's CPU, taken from the steps, at thousands of frames a second);
-/// returns how many. Everything else keeps its order.
+/// returns how many. Everything else keeps its order. The newest is chosen
+/// before decoding: a malformed newest frame is counted as such, and the
+/// older ones of its batch as superseded.
 pub(crate) fn keep_newest_per_camera<T>(
     batch: &mut Vec<T>,
     camera: impl Fn(&T) -> Option<&str>,
 ) -> u64 {
-    let mut seen = std::collections::HashSet::new();
-    let mut keep: Vec<bool> = batch
-        .iter()
-        .rev()
-        .map(|item| camera(item).is_none_or(|c| seen.insert(c.to_owned())))
-        .collect();
-    keep.reverse();
+    let keep: Vec<bool> = {
+        let mut seen = std::collections::HashSet::new();
+        let mut keep: Vec<bool> = batch
+            .iter()
+            .rev()
+            .map(|item| camera(item).is_none_or(|c| seen.insert(c)))
+            .collect();
+        keep.reverse();
+        keep
+    };
     let before = batch.len();
     let mut flags = keep.into_iter();
     batch.retain(|_| flags.next().unwrap_or(true));
@@ -150,6 +155,7 @@ pub(crate) fn lane_of(key: &str) -> Lane {
 pub(crate) struct WorkerCounters {
     pub decode_errors: AtomicU64,
     pub log_errors: AtomicU64,
+    pub superseded_frames: AtomicU64,
     pub frames: AtomicU64,
     pub poses: AtomicU64,
     pub odometry: AtomicU64,
@@ -177,6 +183,7 @@ impl Shared {
             dropped_messages: get(&q.dropped_messages),
             decode_errors: get(&c.decode_errors),
             log_errors: get(&c.log_errors),
+            superseded_frames: get(&c.superseded_frames),
             frames: get(&c.frames),
             poses: get(&c.poses),
             odometry: get(&c.odometry),
@@ -339,8 +346,8 @@ impl Worker {
                 Ok(mut batch) => {
                     if !self.config.every_frame {
                         let superseded = keep_newest_per_camera(&mut batch, Event::camera);
-                        let dropped = &self.shared.queue.counters.dropped_frames;
-                        dropped.fetch_add(superseded, Ordering::Relaxed);
+                        let counter = &self.shared.counters.superseded_frames;
+                        counter.fetch_add(superseded, Ordering::Relaxed);
                     }
                     for event in batch {
                         self.handle(event);

@@ -120,7 +120,7 @@ impl ColumnRenderer {
     }
 
     /// Walks a frame's columns on `threads` threads: the caller's and
-    /// `threads − 1` helpers of its own. Every pixel is the same whatever
+    /// `threads − 1` helpers of its own (shared by its clones). Every pixel is the same whatever
     /// the count; it pays where a core idles while the frame renders
     /// (one env on a multi-core machine), not where every core already
     /// steps an env.
@@ -175,6 +175,9 @@ impl ColumnRenderer {
         let n = (intr.width * intr.height) as usize;
         if pixels.rgb.len() != n * 3 || pixels.depth.len() != n {
             return false;
+        }
+        if n == 0 {
+            return true;
         }
         let (sin_y, cos_y) = pose.yaw.sin_cos();
         let forward = [cos_y, sin_y];
@@ -245,15 +248,22 @@ impl ColumnRenderer {
     }
 }
 
-/// Does `work` for every item, on the caller's thread and, if given, the
-/// pool's: each thread takes the next item until none is left, so a helper
-/// that starts late takes fewer.
+/// Does `work` for every item, on the caller's thread and, if given, up to
+/// one per pool thread beside it: each takes the next item until none is
+/// left, so the caller never idles while items are left. It still waits at
+/// the end for every helper it woke to have run (a queued rayon job cannot
+/// be withdrawn): where every core is busy, a frame waits for a helper's
+/// turn, hence one render thread per twin where every core steps an env.
 fn on_threads<I>(pool: Option<&rayon::ThreadPool>, items: I, work: impl Fn(I::Item) + Sync)
 where
-    I: Iterator + Send,
+    I: ExactSizeIterator + Send,
     I::Item: Send,
 {
-    let Some(pool) = pool else {
+    // No helper for the caller's own last item.
+    let helpers = pool.map_or(0, |p| {
+        p.current_num_threads().min(items.len().saturating_sub(1))
+    });
+    let (Some(pool), 1..) = (pool, helpers) else {
         return items.for_each(work);
     };
     let items = std::sync::Mutex::new(items);
@@ -264,7 +274,7 @@ where
         }
     };
     pool.in_place_scope(|scope| {
-        for _ in 0..pool.current_num_threads() {
+        for _ in 0..helpers {
             scope.spawn(|_| drain());
         }
         drain();
@@ -378,18 +388,14 @@ mod tiles {
                 (avx._mm256_set1_ps(min_range), avx._mm256_set1_ps(max_range));
             let nan = avx._mm256_set1_ps(f32::NAN);
             for g in 0..tiled / TILE {
-                // The tile's columns, one vector each.
-                let column = |k: usize| (g * TILE + k) * h + top;
+                // The tile's columns, one vector each (`top` is a multiple
+                // of TILE: the column's `top / TILE`-th chunk).
+                let column = |k: usize| (g * TILE + k) * h..(g * TILE + k + 1) * h;
                 let depth = std::array::from_fn(|k| {
-                    let column: [f32; TILE] = scratch.depth[column(k)..][..TILE]
-                        .try_into()
-                        .expect("a tile's column");
-                    pulp::cast(column)
+                    pulp::cast(scratch.depth[column(k)].as_chunks::<TILE>().0[top / TILE])
                 });
                 let grey = std::array::from_fn(|k| {
-                    let column: [u8; TILE] = scratch.grey[column(k)..][..TILE]
-                        .try_into()
-                        .expect("a tile's column");
+                    let column = scratch.grey[column(k)].as_chunks::<TILE>().0[top / TILE];
                     let bytes: [u8; 16] = pulp::cast([column, [0; TILE]]);
                     let widened = simd
                         .avx2
@@ -932,6 +938,71 @@ mod tests {
     /// The tiled transposition writes every pixel's bits as one pixel at a
     /// time does, NaNs, infinities and range limits included, at sizes with and without partial tiles
     /// (on a CPU without AVX2 both are the pixel path).
+    /// Every item is done once, and the pool's threads do some: the
+    /// caller's first item waits until another thread has taken one (a
+    /// pool never used fails here, after a bounded wait, instead of
+    /// passing).
+    #[test]
+    fn work_is_shared_with_the_pool_and_done_once() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .expect("pool");
+        let caller = std::thread::current().id();
+        let (taken_elsewhere, helper_started) = std::sync::mpsc::channel();
+        // Each end in a mutex: the work closure is shared between threads.
+        let taken_elsewhere = std::sync::Mutex::new(taken_elsewhere);
+        let helper_started = std::sync::Mutex::new(helper_started);
+        let done: Vec<AtomicUsize> = (0..40).map(|_| AtomicUsize::new(0)).collect();
+        let elsewhere = AtomicUsize::new(0);
+        on_threads(Some(&pool), 0..done.len(), |i| {
+            if std::thread::current().id() == caller {
+                if i == 0 {
+                    let started = helper_started.lock().expect("receiver");
+                    let waited = started.recv_timeout(std::time::Duration::from_secs(30));
+                    assert!(waited.is_ok(), "no pool thread took an item");
+                }
+            } else {
+                elsewhere.fetch_add(1, Ordering::Relaxed);
+                let _ = taken_elsewhere.lock().expect("sender").send(());
+            }
+            done[i].fetch_add(1, Ordering::Relaxed);
+        });
+        assert!(done.iter().all(|d| d.load(Ordering::Relaxed) == 1));
+        assert!(elsewhere.load(Ordering::Relaxed) >= 1);
+        // One item: nothing to share, the caller does it.
+        let once = AtomicUsize::new(0);
+        on_threads(Some(&pool), 0..1, |_| {
+            assert_eq!(std::thread::current().id(), caller);
+            once.fetch_add(1, Ordering::Relaxed);
+        });
+        assert_eq!(once.load(Ordering::Relaxed), 1);
+    }
+
+    /// Relighting shades as a renderer built with the new light does (the
+    /// terrain's cached greys are the old light's otherwise).
+    #[test]
+    fn a_relit_renderer_renders_as_a_new_one() {
+        let world = crate::WorldSpec::builtin("monolith").expect("world");
+        let scene = Scene::build(&world);
+        let intrinsics = Intrinsics::resized(&world.camera, 32, 24);
+        let pose = CameraPose::level([-1.0, 0.5, 0.25], 0.3);
+        let mut dimmer = world.light.clone();
+        dimmer.ambient *= 0.5;
+        dimmer.diffuse *= 0.5;
+        let mut relit = ColumnRenderer::new(intrinsics, &world.light);
+        let mut frame = RgbdFrame::new(32, 24);
+        relit.render(&scene, &pose, &mut frame);
+        let before = frame.rgb.clone();
+        relit.set_light(&dimmer);
+        relit.render(&scene, &pose, &mut frame);
+        let mut fresh = RgbdFrame::new(32, 24);
+        ColumnRenderer::new(intrinsics, &dimmer).render(&scene, &pose, &mut fresh);
+        assert_ne!(before, fresh.rgb, "the light made a difference");
+        assert_eq!(frame.rgb, fresh.rgb);
+    }
+
     #[test]
     fn the_tiled_frame_equals_the_pixel_by_pixel_one() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
