@@ -47,19 +47,28 @@ fn only_threads() -> usize {
         .unwrap_or(1)
 }
 
-fn profiled(world: &str, res: Resolution, profile: TwinProfile) -> SimTwin {
+/// A twin of `world` at `res` with the default profile, one render thread.
+fn config(world: &str, res: Resolution) -> TwinConfig {
     let mut config = TwinConfig::builtin(world).expect("world");
     config.resolution = Some(res);
-    config.profile = profile;
-    SimTwin::new(config).expect("twin")
+    config
+}
+
+fn profiled(world: &str, res: Resolution, profile: TwinProfile) -> SimTwin {
+    SimTwin::new(TwinConfig {
+        profile,
+        ..config(world, res)
+    })
+    .expect("twin")
 }
 
 /// A twin rendering each frame on `threads` threads.
 fn threaded(world: &str, res: Resolution, threads: usize) -> SimTwin {
-    let mut config = TwinConfig::builtin(world).expect("world");
-    config.resolution = Some(res);
-    config.render_threads = threads;
-    SimTwin::new(config).expect("twin")
+    SimTwin::new(TwinConfig {
+        render_threads: threads,
+        ..config(world, res)
+    })
+    .expect("twin")
 }
 
 /// Median rate over `runs` runs of `n` iterations each.

@@ -119,11 +119,11 @@ impl ColumnRenderer {
         }
     }
 
-    /// Walks a frame's columns on `threads` threads: the caller's and
-    /// `threads − 1` helpers of its own (shared by its clones). Every pixel is the same whatever
-    /// the count; it pays where a core idles while the frame renders
-    /// (one env on a multi-core machine), not where every core already
-    /// steps an env.
+    /// Renders each frame on `threads` threads: the caller's and
+    /// `threads − 1` helpers of its own (shared by its clones). Every pixel
+    /// is the same whatever the count; it pays where a core idles while
+    /// the frame renders (one env on a multi-core machine), not where every
+    /// core already steps an env.
     pub fn with_threads(mut self, threads: usize) -> Result<Self, rayon::ThreadPoolBuildError> {
         self.helpers = match threads {
             0 | 1 => None,
@@ -143,7 +143,7 @@ impl ColumnRenderer {
         self.terrain_greys = None;
     }
 
-    /// Threads a frame's columns are walked on.
+    /// Threads a frame is rendered on.
     pub fn threads(&self) -> usize {
         1 + self.helpers.as_ref().map_or(0, |p| p.current_num_threads())
     }
@@ -935,9 +935,6 @@ mod tests {
         }
     }
 
-    /// The tiled transposition writes every pixel's bits as one pixel at a
-    /// time does, NaNs, infinities and range limits included, at sizes with and without partial tiles
-    /// (on a CPU without AVX2 both are the pixel path).
     /// Every item is done once, and the pool's threads do some: the
     /// caller's first item waits until another thread has taken one (a
     /// pool never used fails here, after a bounded wait, instead of
@@ -1003,6 +1000,10 @@ mod tests {
         assert_eq!(frame.rgb, fresh.rgb);
     }
 
+    /// The tiled transposition, band by band, writes every pixel's bits as
+    /// one pixel at a time does, NaNs, infinities and range limits
+    /// included, at sizes with and without partial tiles (on a CPU without
+    /// AVX2 both are the pixel path).
     #[test]
     fn the_tiled_frame_equals_the_pixel_by_pixel_one() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
