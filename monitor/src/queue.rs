@@ -93,6 +93,10 @@ impl<T> Queue<T> {
             self.count_drop(lane);
             return false;
         }
+        // The consumer waits only on an empty queue: a push to a non-empty
+        // one needs no wake-up (std's notify is a syscall every time, and a
+        // push runs inline in the publisher's thread for a local one).
+        let was_empty = Self::is_empty(&state);
         let ticket = state.next_ticket;
         state.next_ticket += 1;
         let mut kept_all = true;
@@ -119,7 +123,9 @@ impl<T> Queue<T> {
         if !kept_all {
             self.count_drop(lane);
         }
-        self.ready.notify_one();
+        if was_empty {
+            self.ready.notify_one();
+        }
         kept_all
     }
 
@@ -259,5 +265,31 @@ mod tests {
             .pop_batch(Duration::from_millis(1), Duration::ZERO)
             .is_err());
         assert!(!q.push(Lane::Message, "late"));
+    }
+
+    #[test]
+    fn a_waiting_consumer_gets_every_push_of_another_thread() {
+        let q = std::sync::Arc::new(Queue::new(4, 1000));
+        let producer = {
+            let q = q.clone();
+            std::thread::spawn(move || {
+                for i in 0..300 {
+                    q.push(Lane::Message, i);
+                    if i % 50 == 0 {
+                        // Let the consumer drain and wait on an empty queue.
+                        std::thread::sleep(Duration::from_millis(5));
+                    }
+                }
+                q.close();
+            })
+        };
+        let mut got = Vec::new();
+        // A wake-up missed would leave items queued until a wait times out
+        // (here: stall the test); every item arrives, in order.
+        while let Ok(batch) = q.pop_batch(Duration::from_secs(10), Duration::ZERO) {
+            got.extend(batch);
+        }
+        producer.join().expect("the producer ends");
+        assert_eq!(got, (0..300).collect::<Vec<_>>());
     }
 }
