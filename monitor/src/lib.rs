@@ -228,10 +228,11 @@ pub struct MonitorConfig {
     /// How long shutdown waits for the sink to take the last data.
     pub flush_timeout: Duration,
     /// Log every camera frame: the default for a file (a record of the
-    /// run). Off (the default for a viewer or server), each camera's newest
-    /// frame of a batch is logged and the older ones are counted as
-    /// superseded: at most one a `batch_interval` per camera, what a viewer
-    /// shows, while a sim env steps thousands a second.
+    /// run). Off (the default for a viewer or server), a camera's frame
+    /// waiting for the worker is replaced by its next one (dropped at once,
+    /// counted as superseded): at most one a `batch_interval` per camera is
+    /// logged, what a viewer shows, while a sim env steps thousands a
+    /// second, and the publisher gets its frame buffers straight back.
     pub every_frame: bool,
 }
 
@@ -256,13 +257,13 @@ impl MonitorConfig {
         }
     }
 
-    /// Log every camera frame, not only each camera's newest of a batch.
+    /// Log every camera frame, not only each camera's newest.
     pub fn every_frame(mut self) -> Self {
         self.every_frame = true;
         self
     }
 
-    /// Log each camera's newest frame of a batch only, whatever the sink.
+    /// Log each camera's newest frame only, whatever the sink.
     pub fn newest_frames(mut self) -> Self {
         self.every_frame = false;
         self
@@ -323,7 +324,8 @@ pub struct MonitorStats {
     /// Log calls rerun refused.
     pub log_errors: u64,
     /// Camera frames not logged because a newer frame of the same camera
-    /// followed in the batch (see [`MonitorConfig::every_frame`]).
+    /// replaced them while they waited for the worker (a live view; see
+    /// [`MonitorConfig::every_frame`]).
     pub superseded_frames: u64,
     /// Camera frames (`obs`) logged.
     pub frames: u64,
@@ -359,7 +361,6 @@ impl Monitor {
             spec_timeout: config.spec_timeout,
             blueprint: config.blueprint,
             batch_interval: config.batch_interval,
-            every_frame: config.every_frame,
         };
         // The sink is opened on the worker thread, after it lowered its
         // priority, so rerun's own threads (batcher, encoder, sink) inherit
@@ -413,6 +414,7 @@ impl Monitor {
         };
         // From here on, an error drops `handle`, which stops the worker.
         let mut subscribers = Vec::new();
+        let newest_frames = !config.every_frame;
         for key in config.scope.data_keys() {
             let (shared, running) = (shared.clone(), callbacks.clone());
             let sub = session
@@ -420,8 +422,15 @@ impl Monitor {
                 .callback(move |sample: Sample| {
                     let _running = &running;
                     let lane = lane_of(sample.key_expr().as_str());
-                    let wall = SystemTime::now();
-                    shared.queue.push(lane, Event::Sample { sample, wall });
+                    let event = Event::Sample {
+                        sample,
+                        wall: SystemTime::now(),
+                    };
+                    if newest_frames && lane == Lane::Frame {
+                        shared.queue.push_newest(event, Event::supersedes);
+                    } else {
+                        shared.queue.push(lane, event);
+                    }
                 })
                 .wait()
                 .map_err(|e| MonitorError::Zenoh(format!("subscribing to `{key}`: {e}")))?;

@@ -37,6 +37,9 @@ pub(crate) struct QueueCounters {
     pub dropped_frames: AtomicU64,
     /// Messages refused.
     pub dropped_messages: AtomicU64,
+    /// Frames replaced while queued by a newer frame of the same camera
+    /// ([`Queue::push_newest`]).
+    pub superseded_frames: AtomicU64,
 }
 
 struct State<T> {
@@ -84,6 +87,19 @@ impl<T> Queue<T> {
     /// Offers an item; never blocks beyond one uncontended mutex. Returns
     /// false when the item (or, for frames, an older frame) was dropped.
     pub fn push(&self, lane: Lane, item: T) -> bool {
+        self.offer(lane, item, None::<fn(&T, &T) -> bool>)
+    }
+
+    /// Offers a frame that replaces any queued frame it `supersedes` (a
+    /// live view shows each camera's newest: the older one is dropped now,
+    /// in the caller's thread, not after the worker's batch — a frame's
+    /// last reference hands its buffer back to the publisher's pool).
+    /// Returns false when an older frame was evicted to make room.
+    pub fn push_newest(&self, item: T, supersedes: impl Fn(&T, &T) -> bool) -> bool {
+        self.offer(Lane::Frame, item, Some(supersedes))
+    }
+
+    fn offer(&self, lane: Lane, item: T, supersedes: Option<impl Fn(&T, &T) -> bool>) -> bool {
         if lane != Lane::Control {
             self.counters.received.fetch_add(1, Ordering::Relaxed);
         }
@@ -99,13 +115,18 @@ impl<T> Queue<T> {
         let was_empty = Self::is_empty(&state);
         let ticket = state.next_ticket;
         state.next_ticket += 1;
-        let mut kept_all = true;
+        // Dropped after the lock is released.
+        let mut replaced = None;
+        let mut evicted = None;
         match lane {
             Lane::Frame => {
-                if state.frames.len() >= self.frame_capacity {
+                if let Some(supersedes) = supersedes {
+                    let older = state.frames.iter().position(|(_, q)| supersedes(&item, q));
+                    replaced = older.and_then(|at| state.frames.remove(at));
+                }
+                if replaced.is_none() && state.frames.len() >= self.frame_capacity {
                     // Evict the oldest frame: the viewer wants the newest.
-                    state.frames.pop_front();
-                    kept_all = false;
+                    evicted = state.frames.pop_front();
                 }
                 state.frames.push_back((ticket, item));
             }
@@ -120,9 +141,16 @@ impl<T> Queue<T> {
             Lane::Control => state.control.push_back((ticket, item)),
         }
         drop(state);
+        if replaced.is_some() {
+            self.counters
+                .superseded_frames
+                .fetch_add(1, Ordering::Relaxed);
+        }
+        let kept_all = evicted.is_none();
         if !kept_all {
             self.count_drop(lane);
         }
+        drop((replaced, evicted));
         if was_empty {
             self.ready.notify_one();
         }
@@ -265,6 +293,33 @@ mod tests {
             .pop_batch(Duration::from_millis(1), Duration::ZERO)
             .is_err());
         assert!(!q.push(Lane::Message, "late"));
+    }
+
+    #[test]
+    fn a_newer_frame_replaces_the_queued_one_of_its_camera_in_arrival_order() {
+        // Items are "camera n"; a message is "reward n".
+        fn supersedes(new: &&str, old: &&str) -> bool {
+            let camera = |item: &str| item.split_once(' ').map(|(c, _)| c.to_owned());
+            !new.starts_with("reward") && camera(new) == camera(old)
+        }
+        let q = Queue::new(2, 10);
+        assert!(q.push_newest("a/obs 1", supersedes));
+        assert!(q.push(Lane::Message, "reward 1"));
+        assert!(q.push_newest("b/obs 1", supersedes));
+        assert!(q.push_newest("a/obs 2", supersedes)); // replaces a/obs 1
+        assert!(q.push(Lane::Message, "reward 2"));
+        // A third camera: no older frame of its own, the queue is full.
+        assert!(!q.push_newest("a/overhead/top 1", supersedes)); // evicts b/obs 1
+        assert!(q.push_newest("a/obs 3", supersedes)); // replaces a/obs 2
+        let c = &q.counters;
+        assert_eq!(c.received.load(Ordering::Relaxed), 7);
+        assert_eq!(c.superseded_frames.load(Ordering::Relaxed), 2);
+        assert_eq!(c.dropped_frames.load(Ordering::Relaxed), 1);
+        let batch = q.pop_batch(Duration::from_millis(1), Duration::ZERO);
+        assert_eq!(
+            batch,
+            Ok(vec!["reward 1", "reward 2", "a/overhead/top 1", "a/obs 3"])
+        );
     }
 
     #[test]

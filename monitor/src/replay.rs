@@ -192,7 +192,6 @@ impl Replay {
                 blueprint: config.blueprint,
                 batch_interval: Duration::ZERO,
                 // A replay logs what the recording holds.
-                every_frame: true,
             },
         );
         worker.start();

@@ -113,32 +113,15 @@ impl Event {
             _ => None,
         }
     }
-}
 
-/// Removes from `batch` every camera frame that a newer frame of the same
-/// camera follows (a viewer shows the newest; logging the rest cost the
-/// monitor's CPU, taken from the steps, at thousands of frames a second);
-/// returns how many. Everything else keeps its order. The newest is chosen
-/// before decoding: a malformed newest frame is counted as such, and the
-/// older ones of its batch as superseded.
-pub(crate) fn keep_newest_per_camera<T>(
-    batch: &mut Vec<T>,
-    camera: impl Fn(&T) -> Option<&str>,
-) -> u64 {
-    let keep: Vec<bool> = {
-        let mut seen = std::collections::HashSet::new();
-        let mut keep: Vec<bool> = batch
-            .iter()
-            .rev()
-            .map(|item| camera(item).is_none_or(|c| seen.insert(c)))
-            .collect();
-        keep.reverse();
-        keep
-    };
-    let before = batch.len();
-    let mut flags = keep.into_iter();
-    batch.retain(|_| flags.next().unwrap_or(true));
-    (before - batch.len()) as u64
+    /// Whether this camera frame replaces `older`, a queued frame of the
+    /// same camera, for a live view (which shows each camera's newest).
+    /// The newest is chosen before decoding: a malformed newest frame is
+    /// counted as such, the frames it replaced as superseded.
+    pub(crate) fn supersedes(&self, older: &Event) -> bool {
+        self.camera()
+            .is_some_and(|camera| older.camera() == Some(camera))
+    }
 }
 
 /// The lane a sample travels in: camera images are big and expendable.
@@ -155,7 +138,6 @@ pub(crate) fn lane_of(key: &str) -> Lane {
 pub(crate) struct WorkerCounters {
     pub decode_errors: AtomicU64,
     pub log_errors: AtomicU64,
-    pub superseded_frames: AtomicU64,
     pub frames: AtomicU64,
     pub poses: AtomicU64,
     pub odometry: AtomicU64,
@@ -183,7 +165,7 @@ impl Shared {
             dropped_messages: get(&q.dropped_messages),
             decode_errors: get(&c.decode_errors),
             log_errors: get(&c.log_errors),
-            superseded_frames: get(&c.superseded_frames),
+            superseded_frames: get(&q.superseded_frames),
             frames: get(&c.frames),
             poses: get(&c.poses),
             odometry: get(&c.odometry),
@@ -239,8 +221,6 @@ pub(crate) struct WorkerConfig {
     pub spec_timeout: Duration,
     pub blueprint: bool,
     pub batch_interval: Duration,
-    /// Log every camera frame, not only each camera's newest of a batch.
-    pub every_frame: bool,
 }
 
 pub(crate) struct Worker {
@@ -343,12 +323,7 @@ impl Worker {
                 .queue
                 .pop_batch(Duration::from_millis(100), self.config.batch_interval)
             {
-                Ok(mut batch) => {
-                    if !self.config.every_frame {
-                        let superseded = keep_newest_per_camera(&mut batch, Event::camera);
-                        let counter = &self.shared.counters.superseded_frames;
-                        counter.fetch_add(superseded, Ordering::Relaxed);
-                    }
+                Ok(batch) => {
                     for event in batch {
                         self.handle(event);
                     }
@@ -534,36 +509,6 @@ impl Worker {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_batch_keeps_each_cameras_newest_frame_and_every_message() {
-        let mut batch = vec![
-            "a/obs 1",
-            "reward 1",
-            "b/obs 1",
-            "a/obs 2",
-            "a/overhead/top 1",
-            "reward 2",
-            "a/obs 3",
-        ];
-        fn camera<'x>(item: &'x &str) -> Option<&'x str> {
-            let (key, _) = item.split_once(' ')?;
-            (!key.starts_with("reward")).then_some(key)
-        }
-        assert_eq!(keep_newest_per_camera(&mut batch, camera), 2);
-        assert_eq!(
-            batch,
-            [
-                "reward 1",
-                "b/obs 1",
-                "a/overhead/top 1",
-                "reward 2",
-                "a/obs 3"
-            ]
-        );
-        let mut none: Vec<&str> = Vec::new();
-        assert_eq!(keep_newest_per_camera(&mut none, camera), 0);
-    }
 
     /// The monitor shows a latch as its obeyers hold it: a repeated copy or
     /// a release overtaken by an engage changes nothing; in a replay the
