@@ -239,7 +239,7 @@ pub struct MonitorConfig {
 impl MonitorConfig {
     /// Defaults: every env, worlds from the controllers' specs, 32 frames and
     /// 4096 messages of queue, the default layout; every frame into a file,
-    /// each camera's newest of a batch to a viewer or server.
+    /// each camera's newest to a viewer or server.
     pub fn new(sink: Sink) -> Self {
         let every_frame = matches!(sink, Sink::File(_));
         Self {

@@ -3,7 +3,9 @@
 //!
 //! - **frames** (camera frames, overhead images): a few slots; when full the
 //!   *oldest* queued frame is evicted, so the viewer always gets the latest
-//!   picture and a slow viewer costs frames, never the step.
+//!   picture and a slow viewer costs frames, never the step. A live view
+//!   pushes with [`Queue::push_newest`]: a camera's frame still waiting is
+//!   replaced by its next one, so at most one per camera waits.
 //! - **messages** (poses, commands, rewards, status, …): many slots; when
 //!   full the new message is dropped and counted.
 //!
@@ -323,28 +325,40 @@ mod tests {
     }
 
     #[test]
-    fn a_waiting_consumer_gets_every_push_of_another_thread() {
+    fn a_waiting_consumer_is_woken_by_every_push_to_an_empty_queue() {
+        // Far longer than any wake-up takes: a wait that lasts it was not
+        // woken (a missed notify), whatever the machine's load.
+        const PATIENCE: Duration = Duration::from_secs(30);
         let q = std::sync::Arc::new(Queue::new(4, 1000));
+        let (taken, batch_taken) = std::sync::mpsc::channel::<()>();
         let producer = {
             let q = q.clone();
             std::thread::spawn(move || {
-                for i in 0..300 {
+                for i in 0..50 {
+                    // The consumer is waiting on an empty queue (or about
+                    // to): this push must wake it.
                     q.push(Lane::Message, i);
-                    if i % 50 == 0 {
-                        // Let the consumer drain and wait on an empty queue.
-                        std::thread::sleep(Duration::from_millis(5));
+                    if batch_taken.recv_timeout(PATIENCE).is_err() {
+                        break;
                     }
                 }
                 q.close();
             })
         };
         let mut got = Vec::new();
-        // A wake-up missed would leave items queued until a wait times out
-        // (here: stall the test); every item arrives, in order.
-        while let Ok(batch) = q.pop_batch(Duration::from_secs(10), Duration::ZERO) {
+        loop {
+            let started = std::time::Instant::now();
+            let Ok(batch) = q.pop_batch(PATIENCE, Duration::ZERO) else {
+                break;
+            };
+            assert!(
+                started.elapsed() < PATIENCE,
+                "a push did not wake the consumer"
+            );
             got.extend(batch);
+            let _ = taken.send(());
         }
         producer.join().expect("the producer ends");
-        assert_eq!(got, (0..300).collect::<Vec<_>>());
+        assert_eq!(got, (0..50).collect::<Vec<_>>());
     }
 }

@@ -191,7 +191,6 @@ impl Replay {
                 spec_timeout: Duration::ZERO,
                 blueprint: config.blueprint,
                 batch_interval: Duration::ZERO,
-                // A replay logs what the recording holds.
             },
         );
         worker.start();

@@ -671,10 +671,10 @@ async fn the_binary_records_until_its_duration_ends() -> anyhow::Result<()> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Result<()> {
-    // Every frame into a file by default; each camera's newest of a batch
-    // on request (a viewer's default; a batch long enough here that the
-    // three steps share it): real's first frame is superseded by its
-    // second and counted as such.
+    // Every frame into a file by default; each camera's newest on request
+    // (a viewer's default): real's first frame, still waiting through the
+    // worker's 2 s gathering window, is replaced by its second and counted
+    // as superseded.
     let every_frame = MonitorConfig::new(Sink::File(temp_rrd("many")));
     assert!(every_frame.every_frame);
     let mut newest = MonitorConfig::new(Sink::File(temp_rrd("many-newest"))).newest_frames();
