@@ -64,26 +64,28 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// CPU time this process has used (every thread, living or ended: client,
-/// controller, twin, monitor), s, from `/proc/self/stat` (user + system,
-/// in 10 ms ticks): steadier than a rate on a shared machine.
+/// controller, twin, monitor), s, in the kernel's 10 ms ticks: steadier than
+/// a rate on a shared machine. NaN if it cannot be read.
 fn process_cpu() -> f64 {
-    const TICKS_PER_S: f64 = 100.0; // USER_HZ on Linux
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    // The fields after the command name, which is in parentheses: state is
-    // the first, utime the 12th, stime the 13th.
-    let after = stat.rsplit_once(')').map_or("", |(_, rest)| rest);
-    let field = |i: usize| {
-        after
-            .split_whitespace()
-            .nth(i)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
+    use sysinfo::{ProcessRefreshKind, ProcessesToUpdate, System};
+    let Ok(pid) = sysinfo::get_current_pid() else {
+        return f64::NAN;
     };
-    (field(11) + field(12)) / TICKS_PER_S
+    let mut system = System::new();
+    system.refresh_processes_specifics(
+        ProcessesToUpdate::Some(&[pid]),
+        false,
+        ProcessRefreshKind::nothing().with_cpu(),
+    );
+    system
+        .process(pid)
+        .map_or(f64::NAN, |p| p.accumulated_cpu_time() as f64 * 1e-3)
 }
 
-/// Step durations of `steps()` steps (resets excluded), s.
-async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<Vec<f64>> {
+/// Step durations of `steps()` steps (resets excluded), s, and the
+/// process CPU they took, s.
+async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
+    let cpu = process_cpu();
     let mut times = Vec::with_capacity(steps());
     for i in 0..steps() {
         let start = Instant::now();
@@ -98,7 +100,7 @@ async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<Vec<f64>> {
                 .map_err(|e| anyhow::anyhow!(e))?;
         }
     }
-    Ok(times)
+    Ok((times, process_cpu() - cpu))
 }
 
 /// One round of steps with a monitor (saving to `path`) on `session`, and
@@ -120,10 +122,10 @@ async fn with_monitor(
             .newest_frames(),
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
-    let cpu = process_cpu();
-    let times = run_steps(gym).await?;
+    let (times, steps_cpu) = run_steps(gym).await?;
+    let flush_cpu = process_cpu();
     let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
-    Ok((times, process_cpu() - cpu, stats))
+    Ok((times, steps_cpu + process_cpu() - flush_cpu, stats))
 }
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
@@ -185,21 +187,15 @@ async fn main() -> anyhow::Result<()> {
         }
         let mut rates = [0.0; 4];
         for mode in order {
-            let block = match mode {
-                0 => {
-                    let start = process_cpu();
-                    let block = run_steps(&mut gym).await?;
-                    cpu[mode] += process_cpu() - start;
-                    block
-                }
+            let (block, used) = match mode {
+                0 => run_steps(&mut gym).await?,
                 // The monitor embedded next to the env (its session: local delivery).
                 1 | 2 => {
                     let session = if mode == 1 { &server } else { &watcher };
                     let (block, used, stats) = with_monitor(session, &env, &path, &mut gym).await?;
-                    cpu[mode] += used;
                     dropped += stats.dropped_frames;
                     superseded += stats.superseded_frames;
-                    block
+                    (block, used)
                 }
                 // Floor of the remote case: a subscriber that drops everything.
                 _ => {
@@ -209,13 +205,12 @@ async fn main() -> anyhow::Result<()> {
                         .await
                         .map_err(|e| anyhow::anyhow!(e))?;
                     tokio::time::sleep(Duration::from_millis(300)).await;
-                    let start = process_cpu();
-                    let block = run_steps(&mut gym).await?;
-                    cpu[mode] += process_cpu() - start;
+                    let measured = run_steps(&mut gym).await?;
                     sub.undeclare().await.map_err(|e| anyhow::anyhow!(e))?;
-                    block
+                    measured
                 }
             };
+            cpu[mode] += used;
             rates[mode] = 1.0 / median(block.clone());
             times[mode].extend(block);
         }
