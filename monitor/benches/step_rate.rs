@@ -1,9 +1,11 @@
 //! Step rate of a sim env with and without a monitor attached (issue 25:
 //! the monitor must cost at most 3 %). An embedded twin + controller at 84×84
 //! RGBD on one session, the gym client on a second, the monitor (logging as
-//! a live view does, into an `.rrd` in the temp dir) on a third, all over
-//! loopback TCP; rounds
-//! alternate off/on and the medians are compared. Run:
+//! a live view does, the env's preview, into an `.rrd` in the temp dir) on
+//! the first (embedded) or a third (remote), all over loopback TCP; a bare
+//! subscriber to every key of the env (`obs` too) on the third shows what
+//! Zenoh's delivery of every frame costs. Rounds alternate the modes and
+//! the medians are compared. Run:
 //! `cargo bench --bench step_rate` (`STEP_RATE_ROUNDS`, `STEP_RATE_STEPS`,
 //! `STEP_RATE_MODES`: a comma list of `off,embedded,remote,bare`).
 
@@ -197,7 +199,8 @@ async fn main() -> anyhow::Result<()> {
                     superseded += stats.superseded_frames;
                     (block, used)
                 }
-                // Floor of the remote case: a subscriber that drops everything.
+                // Every key of the env (`obs` too) to a subscriber that drops
+                // everything: what Zenoh's delivery of every frame costs.
                 _ => {
                     let sub = watcher
                         .declare_subscriber(format!("{}/**", env.prefix()))
@@ -215,7 +218,7 @@ async fn main() -> anyhow::Result<()> {
             times[mode].extend(block);
         }
         println!(
-            "round {round}: off {:6.0}, embedded {:6.0}, remote {:6.0}, bare remote subscriber {:6.0} steps/s",
+            "round {round}: off {:6.0}, embedded {:6.0}, remote {:6.0}, bare remote subscriber to every frame {:6.0} steps/s",
             rates[0], rates[1], rates[2], rates[3]
         );
     }
@@ -244,7 +247,7 @@ async fn main() -> anyhow::Result<()> {
         -cost(remote)
     );
     println!(
-        "  bare remote subscriber          : {bare:6.0} steps/s  ({:+.1} %: Zenoh delivery alone)",
+        "  bare remote subscriber, obs too : {bare:6.0} steps/s  ({:+.1} %: Zenoh delivering every frame)",
         -cost(bare)
     );
     println!("process CPU per step (every thread; the steadier figure on a shared machine):");
@@ -258,7 +261,7 @@ async fn main() -> anyhow::Result<()> {
         extra(cpu_remote)
     );
     println!(
-        "  bare remote subscriber          : {cpu_bare:6.0} µs  ({:+.1} %)",
+        "  bare remote subscriber, obs too : {cpu_bare:6.0} µs  ({:+.1} %)",
         extra(cpu_bare)
     );
     Ok(())

@@ -62,8 +62,8 @@ use std::str::FromStr;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
-use offworld_runtime::keys::{all_alive_selector, all_envs_selector, global_estop_key};
-use offworld_runtime::{Component, EnvId};
+use offworld_runtime::keys::{all_alive_selector, global_estop_key, ROOT, VERSION};
+use offworld_runtime::{Component, EnvId, Topic};
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::{Sample, SampleKind};
@@ -72,7 +72,7 @@ use zenoh::{Session, Wait};
 pub use rerun;
 
 use crate::queue::{Lane, Queue};
-use crate::worker::{lane_of, Event, Shared, Worker, WorkerConfig};
+use crate::worker::{lane_of, topic_of, Event, Shared, Worker, WorkerConfig};
 
 /// The rerun application id of every recording the monitor makes.
 pub const APPLICATION_ID: &str = "offworld_gym";
@@ -145,17 +145,34 @@ impl FromStr for Sink {
     }
 }
 
+/// The per-env topics a monitor draws after the camera's frames and the
+/// overhead views (`overhead/*`), in the order subscribed: `status` last, so
+/// a publisher that has heard the monitor's `status` subscription has heard
+/// the others (one session's declarations travel in order).
+const DRAWN_TOPICS: [Topic; 7] = [
+    Topic::Cmd,
+    Topic::Pose,
+    Topic::Odom,
+    Topic::Reward,
+    Topic::Tracking,
+    Topic::EStop,
+    Topic::Status,
+];
+
 /// Which part of the key space to watch.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub enum Scope {
-    /// Every env (`offworld/@v1/**`), plus the site-wide e-stop.
+    /// Every env (`offworld/@v1/*/*/<topic>` for each topic drawn), plus
+    /// the site-wide e-stop.
     #[default]
     All,
-    /// These envs (`offworld/@v1/<realm>/<name>/**` each), plus the
-    /// site-wide e-stop; the monitor declares `alive/monitor` on each.
+    /// These envs (`offworld/@v1/<realm>/<name>/<topic>` for each topic
+    /// drawn), plus the site-wide e-stop; the monitor declares
+    /// `alive/monitor` on each.
     Envs(Vec<EnvId>),
-    /// Any key expression under `offworld/@v1/`, e.g. `offworld/@v1/sim/**`.
-    /// Liveliness is not followed.
+    /// Any key expression under `offworld/@v1/`, e.g. `offworld/@v1/sim/**`:
+    /// what it names is delivered (every `obs` frame too, if it names them,
+    /// even to a live view, which ignores them). Liveliness is not followed.
     KeyExpr(String),
 }
 
@@ -165,13 +182,24 @@ impl Scope {
         Scope::Envs(vec![env])
     }
 
-    /// The key expressions of the data subscription(s).
-    fn data_keys(&self) -> Vec<String> {
+    /// The key expressions of the data subscriptions: each drawn topic of
+    /// each env (camera frames from `frames`), and the site-wide e-stop; a
+    /// [`Scope::KeyExpr`] as given.
+    fn data_keys(&self, frames: Topic) -> Vec<String> {
+        let chunks = [frames.as_str(), "overhead/*"]
+            .into_iter()
+            .chain(DRAWN_TOPICS.iter().map(|topic| topic.as_str()));
         match self {
-            Scope::All => vec![all_envs_selector()],
+            Scope::All => chunks
+                .map(|chunk| format!("{ROOT}/{VERSION}/*/*/{chunk}"))
+                .chain([global_estop_key()])
+                .collect(),
             Scope::Envs(envs) => envs
                 .iter()
-                .map(|env| format!("{}/**", env.prefix()))
+                .flat_map(|env| {
+                    let prefix = env.prefix();
+                    chunks.clone().map(move |chunk| format!("{prefix}/{chunk}"))
+                })
                 .chain([global_estop_key()])
                 .collect(),
             Scope::KeyExpr(k) => vec![k.clone()],
@@ -227,12 +255,13 @@ pub struct MonitorConfig {
     pub recording_name: Option<String>,
     /// How long shutdown waits for the sink to take the last data.
     pub flush_timeout: Duration,
-    /// Log every camera frame: the default for a file (a record of the
-    /// run). Off (the default for a viewer or server), a camera's frame
-    /// waiting for the worker is replaced by its next one (dropped at once,
-    /// counted as superseded): at most one a `batch_interval` per camera is
-    /// logged, what a viewer shows, while a sim env steps thousands a
-    /// second, and the publisher gets its frame buffers straight back.
+    /// Log every camera frame (`obs`): the default for a file (a record of
+    /// the run). Off (the default for a viewer or server), the monitor takes
+    /// the env's preview (`preview`: at most one frame every 20 ms, sent
+    /// only while someone watches and dropped rather than waited for, see
+    /// `offworld_runtime::preview`), and a camera's frame waiting for the
+    /// worker is replaced by its next one (counted as superseded): what a
+    /// viewer shows, while a sim env steps thousands a second.
     pub every_frame: bool,
 }
 
@@ -327,7 +356,7 @@ pub struct MonitorStats {
     /// replaced them while they waited for the worker (a live view; see
     /// [`MonitorConfig::every_frame`]).
     pub superseded_frames: u64,
-    /// Camera frames (`obs`) logged.
+    /// Camera frames logged (`obs`, or `preview` in a live view).
     pub frames: u64,
     /// Tracker poses logged.
     pub poses: u64,
@@ -415,13 +444,26 @@ impl Monitor {
         // From here on, an error drops `handle`, which stops the worker.
         let mut subscribers = Vec::new();
         let newest_frames = !config.every_frame;
-        for key in config.scope.data_keys() {
+        // A file takes every `obs` frame; a live view the preview, which the
+        // twin thins and Zenoh may drop: it never receives, nor slows, the
+        // thousands of frames a second a sim env's controller takes. A
+        // `Scope::KeyExpr` may name both: the other is ignored.
+        let (frames, ignored_frames) = if config.every_frame {
+            (Topic::Obs, Topic::Preview)
+        } else {
+            (Topic::Preview, Topic::Obs)
+        };
+        for key in config.scope.data_keys(frames) {
             let (shared, running) = (shared.clone(), callbacks.clone());
             let sub = session
                 .declare_subscriber(key.as_str())
                 .callback(move |sample: Sample| {
                     let _running = &running;
-                    let lane = lane_of(sample.key_expr().as_str());
+                    let key = sample.key_expr().as_str();
+                    if topic_of(key) == Some(ignored_frames.as_str()) {
+                        return;
+                    }
+                    let lane = lane_of(key);
                     let event = Event::Sample {
                         sample,
                         wall: SystemTime::now(),
@@ -643,16 +685,34 @@ mod tests {
     #[test]
     fn scopes_subscribe_below_the_verbatim_version_chunk() {
         let env: EnvId = "real/enclosure-a".parse().expect("env");
-        assert_eq!(Scope::All.data_keys(), ["offworld/@v1/**"]);
+        let drawn = [
+            "cmd", "pose", "odom", "reward", "tracking", "estop", "status",
+        ];
+        let expected = |prefix: &str, frames: &str| -> Vec<String> {
+            [frames, "overhead/*"]
+                .iter()
+                .chain(&drawn)
+                .map(|chunk| format!("{prefix}/{chunk}"))
+                .chain(["offworld/@v1/estop".to_owned()])
+                .collect()
+        };
         assert_eq!(
-            Scope::env(env.clone()).data_keys(),
-            ["offworld/@v1/real/enclosure-a/**", "offworld/@v1/estop"]
+            Scope::All.data_keys(Topic::Preview),
+            expected("offworld/@v1/*/*", "preview")
+        );
+        assert_eq!(
+            Scope::env(env.clone()).data_keys(Topic::Obs),
+            expected("offworld/@v1/real/enclosure-a", "obs")
+        );
+        assert_eq!(
+            Scope::KeyExpr("offworld/@v1/sim/**".into()).data_keys(Topic::Obs),
+            ["offworld/@v1/sim/**"]
         );
         assert_eq!(
             Scope::env(env).alive_keys(),
             ["offworld/@v1/real/enclosure-a/alive/**"]
         );
-        for key in Scope::All.data_keys() {
+        for key in Scope::All.data_keys(Topic::Obs) {
             zenoh::key_expr::KeyExpr::try_from(key).expect("valid key expression");
         }
     }

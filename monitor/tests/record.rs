@@ -175,13 +175,11 @@ async fn publish_step(pubs: &Session, env: &EnvId, step: u32, last: bool) -> any
         duration_s: if step == 0 { 0.0 } else { 0.6 },
     };
     put(pubs, &env.key(Topic::Cmd), encode(&cmd)?, None).await?;
-    put(
-        pubs,
-        &env.key(Topic::Obs),
-        encode(&camera_frame(seq))?,
-        None,
-    )
-    .await?;
+    // Every frame, and (as a watched twin does) the same frame as the
+    // preview a live view takes.
+    let frame = encode(&camera_frame(seq))?;
+    put(pubs, &env.key(Topic::Obs), frame.clone(), None).await?;
+    put(pubs, &env.key(Topic::Preview), frame, None).await?;
     let tag = SeqTag { seq };
     put(pubs, &env.key(Topic::Pose), encode(&pose(seq))?, Some(tag)).await?;
     put(
@@ -716,6 +714,75 @@ async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Resu
             assert!(summary["entities"].get(&walls).is_some(), "{walls} missing");
         }
         std::fs::remove_file(&path).ok();
+    }
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_live_view_takes_the_preview_and_a_file_every_frame() -> anyhow::Result<()> {
+    // Two `obs` frames, then one `preview`, then a reward (after which every
+    // earlier sample was handled: lanes are taken in arrival order).
+    let (monitor_session, pubs) = loopback_pair().await?;
+    let env = unique_env("preview")?;
+    let paths = ["preview-file", "preview-live", "preview-keyexpr"].map(temp_rrd);
+    let spawn = |config: MonitorConfig| Monitor::spawn(&monitor_session, config.world("monolith"));
+    let file =
+        spawn(MonitorConfig::new(Sink::File(paths[0].clone())).scope(Scope::env(env.clone())))?;
+    let live = spawn(
+        MonitorConfig::new(Sink::File(paths[1].clone()))
+            .newest_frames()
+            .scope(Scope::env(env.clone())),
+    )?;
+    // A key expression naming both kinds: the live view ignores `obs`.
+    let live_keyexpr = spawn(
+        MonitorConfig::new(Sink::File(paths[2].clone()))
+            .newest_frames()
+            .scope(Scope::KeyExpr(format!("{}/**", env.prefix()))),
+    )?;
+    for monitor in [&file, &live, &live_keyexpr] {
+        wait_for_route(&pubs, &env, monitor).await?;
+    }
+    for seq in [1, 2] {
+        put(
+            &pubs,
+            &env.key(Topic::Obs),
+            encode(&camera_frame(seq))?,
+            None,
+        )
+        .await?;
+    }
+    put(
+        &pubs,
+        &env.key(Topic::Preview),
+        encode(&camera_frame(3))?,
+        None,
+    )
+    .await?;
+    let event = EpisodeEvent {
+        experiment: "monitor-test".into(),
+        episode_id: 0,
+        step: 0,
+        reward: 0.0,
+        episode_return: 0.0,
+        terminated: false,
+        truncated: false,
+        success: false,
+        end_reason: String::new(),
+        experiment_id: 1,
+        command_seq: 3,
+    };
+    put(&pubs, &env.key(Topic::Reward), encode(&event)?, None).await?;
+    for (monitor, frames) in [(file, 2), (live, 1), (live_keyexpr, 1)] {
+        wait_for(&monitor, "the reward", |s| s.rewards == 1).await?;
+        let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
+        assert_eq!(
+            (stats.frames, stats.superseded_frames, stats.dropped_frames),
+            (frames, 0, 0),
+            "{stats:?}"
+        );
+    }
+    for path in paths {
+        std::fs::remove_file(path).ok();
     }
     Ok(())
 }

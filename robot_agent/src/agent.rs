@@ -16,8 +16,9 @@ use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault,
     Pose2D, PoseStamped, SeqTag, Time, TrackingStatus,
 };
+use offworld_runtime::preview::PreviewPublisher;
 use offworld_runtime::seal::{Gate, SealKey, Sealed};
-use offworld_runtime::wire::{self, Delivery};
+use offworld_runtime::wire::{self, Delivery, RequestError};
 use offworld_runtime::WireError;
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
@@ -424,6 +425,7 @@ struct Outbox {
 impl Outbox {
     async fn declare(session: &Session, env: &EnvId) -> Result<Self, AgentError> {
         let obs = wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?;
+        let mut preview = PreviewPublisher::declare(session, env)?;
         let odom_out = wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?;
         let fault = wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?;
         let ack = wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?;
@@ -444,7 +446,19 @@ impl Outbox {
                                     tracing::warn!("odom put failed: {e}");
                                 }
                             }
-                            wire::publish(&obs, &*frame)
+                            // Encoded once: the same bytes go to viewers.
+                            match codec::encode(&*frame) {
+                                Ok(bytes) => {
+                                    let bytes = ZBytes::from(bytes);
+                                    let sent = obs
+                                        .put(bytes.clone())
+                                        .wait()
+                                        .map_err(|e| RequestError::Zenoh(e.to_string()));
+                                    preview.offer(&bytes);
+                                    sent
+                                }
+                                Err(e) => Err(e.into()),
+                            }
                         }
                         Outgoing::Fault(f) => wire::publish(&fault, &f),
                         Outgoing::Ack(a) => wire::publish(&ack, &a),

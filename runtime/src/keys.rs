@@ -168,8 +168,14 @@ impl FromStr for EnvId {
 pub enum Topic {
     /// Controller → twin/robot: [`crate::msg::MotionCommand`] (pub/sub).
     Cmd,
-    /// Twin/robot → all: [`crate::msg::CameraFrame`] answering a command (pub/sub).
+    /// Twin/robot → controller and recorders: [`crate::msg::CameraFrame`]
+    /// answering a command, every one delivered (pub/sub).
     Obs,
+    /// Twin/robot → viewers (live monitors, the web page's thumbnails): the
+    /// same frames, at most one every [`crate::preview::PREVIEW_PERIOD`],
+    /// dropped rather than waited for, published only while someone
+    /// subscribes ([`crate::preview::PreviewPublisher`]).
+    Preview,
     /// Twin/robot → all: `nav_msgs/Odometry` (pub/sub).
     Odom,
     /// Robot → controller: [`crate::msg::MotionFault`], a command that
@@ -297,6 +303,10 @@ mod tests {
     fn keys_have_the_documented_shape() {
         let env = EnvId::sim("monolith-0").expect("valid");
         assert_eq!(env.key(Topic::Cmd), "offworld/@v1/sim/monolith-0/cmd");
+        assert_eq!(
+            env.key(Topic::Preview),
+            "offworld/@v1/sim/monolith-0/preview"
+        );
         assert_eq!(
             env.alive_key(Component::Controller),
             "offworld/@v1/sim/monolith-0/alive/controller"

@@ -14,6 +14,7 @@
 //! - [`wire`]: typed put / request / reply over a Zenoh session.
 //! - [`session`]: opening sessions from files, environment or endpoints.
 //! - [`pool`]: recycled payload buffers.
+//! - [`preview`]: the camera's preview for viewers, thinned and droppable.
 //! - [`seal`]: sealed control messages of a real site.
 //! - [`shutdown`]: SIGINT, SIGTERM and SIGHUP as one "stop cleanly" (a
 //!   session still waiting for its endpoint gives up on it).
@@ -31,6 +32,7 @@ pub mod keys;
 pub mod msg;
 pub mod named;
 pub mod pool;
+pub mod preview;
 mod resolution;
 pub mod ros2;
 pub mod seal;

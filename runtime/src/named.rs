@@ -58,6 +58,7 @@ mod tests {
             [
                 "cmd",
                 "obs",
+                "preview",
                 "odom",
                 "fault",
                 "pose",

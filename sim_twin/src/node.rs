@@ -4,6 +4,8 @@
 //! - subscribes `cmd` ([`MotionCommand`]), executes it, then publishes
 //!   `odom` (`nav_msgs/Odometry`), `pose` (`geometry_msgs/PoseStamped`, both
 //!   with a [`SeqTag`] attachment) and `obs` ([`CameraFrame`], same `seq`);
+//!   the frame again on `preview` for viewers, at most one every 20 ms
+//!   and only while watched ([`offworld_runtime::preview`]);
 //! - serves `goto` ([`GotoRequest`]): the sim teleports;
 //! - obeys `estop` (per env and site-wide, independent latches, see
 //!   [`offworld_runtime::estop`]): a command that would move is refused on
@@ -29,6 +31,7 @@ use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, SeqTag, Time,
 };
+use offworld_runtime::preview::PreviewPublisher;
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::WireError;
 use zenoh::liveliness::LivelinessToken;
@@ -457,6 +460,8 @@ struct Worker {
 struct Publishers {
     /// The answers to a command: a dropped one fails the step.
     obs: Publisher<'static>,
+    /// The frames for viewers: thinned, droppable, only while watched.
+    preview: PreviewPublisher,
     odom: Publisher<'static>,
     pose: Publisher<'static>,
     /// The tracker-rate pose stream between commands: the next supersedes.
@@ -481,6 +486,8 @@ impl Worker {
         };
         let publishers = Publishers {
             obs: declare(Topic::Obs, Delivery::Every)?,
+            preview: PreviewPublisher::declare(&session, &env)
+                .map_err(|e| SimError::Zenoh(e.to_string()))?,
             odom: declare(Topic::Odom, Delivery::Every)?,
             pose: declare(Topic::Pose, Delivery::Every)?,
             pose_stream: declare(Topic::Pose, Delivery::Latest)?,
@@ -768,9 +775,11 @@ impl Worker {
         publish(&self.publishers.odom, &odom, tag);
         match frame {
             Ok(payload) => {
-                if let Err(e) = self.publishers.obs.put(payload).wait() {
+                if let Err(e) = self.publishers.obs.put(payload.clone()).wait() {
                     tracing::warn!("obs put failed: {e}");
                 }
+                // After the answer, like the overhead view.
+                self.publishers.preview.offer(&payload);
             }
             Err(e) => tracing::error!("cannot encode frame: {e}"),
         }

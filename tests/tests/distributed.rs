@@ -318,6 +318,8 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     let mallory = site.session(Role::Trainer).await;
     let (stolen, _stolen_sub) = Seen::watch(&mallory, &env.key(Topic::Pose)).await;
     let (stolen_obs, _stolen_obs_sub) = Seen::watch(&mallory, &env.key(Topic::Obs)).await;
+    let (stolen_preview, _stolen_preview_sub) =
+        Seen::watch(&mallory, &env.key(Topic::Preview)).await;
     // …but may watch episode events.
     let (events, _events_sub) = Seen::watch(&mallory, &env.key(Topic::Reward)).await;
     settle().await;
@@ -328,6 +330,13 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     assert!(spy.count("pose", None) >= 3, "control: poses flow");
     assert_eq!(stolen.count("pose", None), 0, "a trainer read poses");
     assert_eq!(stolen_obs.count("obs", None), 0, "a trainer read frames");
+    // The operator watching the env is what has the twin send its preview.
+    assert!(spy.count("preview", None) >= 1, "control: previews flow");
+    assert_eq!(
+        stolen_preview.count("preview", None),
+        0,
+        "a trainer read the camera's preview"
+    );
     assert!(
         events.count("reward", None) >= 3,
         "spectator keys are readable"
@@ -470,7 +479,8 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     let web = site.session(Role::LabWeb).await;
     let (status, _status_sub) = Seen::watch(&web, &env.key(Topic::Status)).await;
     let (stolen, _stolen_sub) = Seen::watch(&web, &format!("{}/pose", env.prefix())).await;
-    let (frames, _frames_sub) = Seen::watch(&web, &env.key(Topic::Obs)).await;
+    let (frames, _frames_sub) = Seen::watch(&web, &env.key(Topic::Preview)).await;
+    let (every_frame, _every_frame_sub) = Seen::watch(&web, &env.key(Topic::Obs)).await;
     settle().await;
 
     // What its pages read: the listing with the lease's holder, a
@@ -528,8 +538,13 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
     settle().await;
     assert!(status.count("status", None) >= 2, "status reaches the page");
     assert!(
-        frames.count("obs", None) >= 1,
-        "camera frames reach its thumbnails"
+        frames.count("preview", None) >= 1,
+        "the camera's preview reaches its thumbnails"
+    );
+    assert_eq!(
+        every_frame.count("obs", None),
+        0,
+        "the web page received every frame"
     );
     // It never reads localisation…
     assert_eq!(stolen.count("pose", None), 0, "the web page read poses");
@@ -894,11 +909,15 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::SimTwin, sim.key(Topic::Pose), true),
         (Role::SimTwin, real.key(Topic::Pose), false),
         (Role::SimTwin, real.key(Topic::Obs), false),
+        (Role::SimTwin, sim.key(Topic::Preview), true),
+        (Role::SimTwin, real.key(Topic::Preview), false),
         (Role::SimTwin, sim.key(Topic::Cmd), false),
         (Role::RobotAgent, real.key(Topic::Obs), true),
         (Role::RobotAgent, real.key(Topic::Pose), false),
         (Role::RobotAgent, real.key(Topic::Cmd), false),
         (Role::RobotAgent, sim.key(Topic::Obs), false),
+        (Role::RobotAgent, real.key(Topic::Preview), true),
+        (Role::Controller, real.key(Topic::Preview), false),
         (Role::TrackerAgent, real.key(Topic::Pose), true),
         (Role::TrackerAgent, real.key(Topic::Cmd), false),
         (Role::TrackerAgent, real.key(Topic::Obs), false),

@@ -26,7 +26,7 @@ pub const MAX_WIDTH: u32 = 240;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, strum::IntoStaticStr)]
 #[strum(serialize_all = "snake_case")]
 pub enum View {
-    /// The robot's camera (`obs`, its colour image).
+    /// The robot's camera (its preview, `preview`: the colour image).
     Camera,
     /// The enclosure's overhead camera (`overhead/*`).
     Overhead,
@@ -40,7 +40,9 @@ impl View {
 
     fn key(self, env: &EnvId) -> String {
         match self {
-            View::Camera => env.key(Topic::Obs),
+            // The preview, not `obs`: this service never receives, nor
+            // slows, every frame a stepping env sends its controller.
+            View::Camera => env.key(Topic::Preview),
             View::Overhead => format!("{}/overhead/*", env.prefix()),
         }
     }

@@ -126,11 +126,17 @@ impl Event {
 
 /// The lane a sample travels in: camera images are big and expendable.
 pub(crate) fn lane_of(key: &str) -> Lane {
-    if key.ends_with("/obs") || key.contains("/overhead/") {
+    if matches!(topic_of(key), Some("obs" | "preview")) || key.contains("/overhead/") {
         Lane::Frame
     } else {
         Lane::Message
     }
+}
+
+/// An env key's topic (`cmd`, `overhead/top`, …): what follows
+/// `offworld/@v1/<realm>/<name>/`.
+pub(crate) fn topic_of(key: &str) -> Option<&str> {
+    key.splitn(5, '/').nth(4)
 }
 
 /// Counters the worker keeps (read by the handle at any time).
@@ -486,10 +492,11 @@ impl Worker {
         let Ok(env) = EnvId::from_key(key) else {
             return Err(Skip::Decode(format!("`{key}` is not an env key")));
         };
-        let topic = key.splitn(5, '/').nth(4).unwrap_or_default().to_owned();
+        let topic = topic_of(key).unwrap_or_default().to_owned();
         match topic.as_str() {
             "cmd" => self.on_cmd(&env, sample, wall),
-            "obs" => self.on_obs(&env, sample, wall),
+            // Every frame (a file) or the preview (a live view).
+            "obs" | "preview" => self.on_obs(&env, sample, wall),
             "pose" => self.on_pose(&env, sample, wall),
             "odom" => self.on_odom(&env, sample, wall),
             "reward" => self.on_reward(&env, sample, wall),

@@ -1,0 +1,127 @@
+//! The camera's preview: an env's `obs` frames thinned for people watching.
+//!
+//! Every `obs` frame is delivered [`Delivery::Every`] (Zenoh `Block`): the
+//! controller cannot do without one, so a reader too slow for that stream
+//! slows its publisher, and a sim twin stepping thousands of times a second
+//! sends every reader every frame. A viewer (a live monitor, the web page's
+//! thumbnails) wants a few dozen frames a second and must never slow a
+//! step: it subscribes to [`Topic::Preview`] instead, where the twin or
+//! robot agent republishes the same bytes at most once every
+//! [`PREVIEW_PERIOD`], [`Delivery::Latest`], and only while a subscriber
+//! matches (Zenoh's matching status), so with nobody watching a frame costs
+//! one atomic load.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use zenoh::bytes::ZBytes;
+use zenoh::pubsub::Publisher;
+use zenoh::{Session, Wait};
+
+use crate::keys::{EnvId, Topic};
+use crate::wire::{self, Delivery};
+
+/// At most one preview frame this often (50 a second: what a viewer shows).
+pub const PREVIEW_PERIOD: Duration = Duration::from_millis(20);
+
+/// At most one frame a period: the first frame offered once `period` has
+/// passed since the last one taken is taken.
+#[derive(Debug, Clone)]
+pub struct Pacer {
+    period: Duration,
+    last: Option<Instant>,
+}
+
+impl Pacer {
+    /// A pacer taking its first frame at once.
+    pub fn new(period: Duration) -> Self {
+        Self { period, last: None }
+    }
+
+    /// Whether a frame offered at `now` is taken (it then counts as the
+    /// last one).
+    pub fn take(&mut self, now: Instant) -> bool {
+        if self
+            .last
+            .is_some_and(|last| now.saturating_duration_since(last) < self.period)
+        {
+            return false;
+        }
+        self.last = Some(now);
+        true
+    }
+}
+
+/// Publishes an env's preview: offered every frame, it puts one a
+/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise.
+pub struct PreviewPublisher {
+    publisher: Publisher<'static>,
+    /// Whether a subscriber matches, kept by Zenoh's matching listener
+    /// (which lives as long as the publisher).
+    watched: Arc<AtomicBool>,
+    pacer: Pacer,
+}
+
+impl PreviewPublisher {
+    /// Declares `env`'s preview publisher on `session` and follows whether
+    /// anyone subscribes to it (local or remote subscribers alike).
+    pub fn declare(session: &Session, env: &EnvId) -> zenoh::Result<Self> {
+        let publisher =
+            wire::publisher(session, env.key(Topic::Preview), Delivery::Latest).wait()?;
+        let watched = Arc::new(AtomicBool::new(false));
+        let flag = watched.clone();
+        publisher
+            .matching_listener()
+            .callback(move |status| flag.store(status.matching(), Ordering::Relaxed))
+            .background()
+            .wait()?;
+        Ok(Self {
+            publisher,
+            watched,
+            pacer: Pacer::new(PREVIEW_PERIOD),
+        })
+    }
+
+    /// Whether anyone subscribes to the preview now.
+    pub fn watched(&self) -> bool {
+        self.watched.load(Ordering::Relaxed)
+    }
+
+    /// Offers the encoded `obs` frame just published; returns whether it
+    /// went out as the preview. A failed put is logged, never fatal: the
+    /// preview is only for people watching.
+    pub fn offer(&mut self, frame: &ZBytes) -> bool {
+        if !self.watched() || !self.pacer.take(Instant::now()) {
+            return false;
+        }
+        match self.publisher.put(frame.clone()).wait() {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::debug!("preview put on {} failed: {e}", self.publisher.key_expr());
+                false
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pacer_takes_the_first_frame_then_one_a_period() {
+        let start = Instant::now();
+        let at = |ms: u64| start + Duration::from_millis(ms);
+        let mut pacer = Pacer::new(Duration::from_millis(20));
+        let taken: Vec<u64> = [0, 5, 19, 20, 21, 39, 41, 100, 100]
+            .into_iter()
+            .filter(|&ms| pacer.take(at(ms)))
+            .collect();
+        // 40 is due at 40 (20 + 20): 39 is early, 41 is taken.
+        assert_eq!(taken, vec![0, 20, 41, 100]);
+        // A clock read earlier than the last taken (another thread's
+        // instant) is within the period, not a panic.
+        assert!(!pacer.take(at(50)));
+    }
+}

@@ -1,0 +1,90 @@
+//! The camera's preview over real Zenoh sessions: nothing is put while
+//! nobody subscribes; a subscriber (remote or in the same session) gets the
+//! very bytes offered, at most one a period; it stops when they leave.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use offworld_runtime::codec;
+use offworld_runtime::msg::CameraFrame;
+use offworld_runtime::preview::{PreviewPublisher, PREVIEW_PERIOD};
+use offworld_runtime::session::loopback_pair;
+use offworld_runtime::{EnvId, Topic};
+use zenoh::bytes::ZBytes;
+
+/// How long a declaration may take to reach the other session.
+const PATIENCE: Duration = Duration::from_secs(10);
+
+async fn until(what: &str, mut done: impl FnMut() -> bool) {
+    let started = Instant::now();
+    while !done() {
+        assert!(
+            started.elapsed() < PATIENCE,
+            "{what}: not within {PATIENCE:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_preview_goes_out_only_while_watched_and_at_most_once_a_period() -> anyhow::Result<()> {
+    let (twin, viewer) = loopback_pair().await?;
+    let env = EnvId::sim(&format!("preview-{}", std::process::id()))?;
+    let mut preview = PreviewPublisher::declare(&twin, &env).map_err(|e| anyhow::anyhow!(e))?;
+    let frame = ZBytes::from(codec::encode(&common::camera_frame())?);
+
+    assert!(!preview.watched());
+    assert!(!preview.offer(&frame), "put with nobody watching");
+
+    let sub = viewer
+        .declare_subscriber(env.key(Topic::Preview))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    until("the remote subscriber is matched", || preview.watched()).await;
+    // Offered as a sim twin offers its frames (far faster than the period),
+    // for a bounded count: every one taken went out, and no more were taken
+    // than periods passed.
+    let started = Instant::now();
+    let mut sent = 0_u32;
+    for _ in 0..500 {
+        sent += u32::from(preview.offer(&frame));
+        tokio::time::sleep(Duration::from_micros(200)).await;
+    }
+    let periods = started.elapsed().as_secs_f64() / PREVIEW_PERIOD.as_secs_f64();
+    assert!(sent >= 1, "the first frame goes out at once");
+    assert!(
+        f64::from(sent) <= periods.floor() + 1.0,
+        "{sent} previews in {periods:.1} periods"
+    );
+    let mut received = 0;
+    while received < sent {
+        let sample = tokio::time::timeout(PATIENCE, sub.recv_async())
+            .await?
+            .map_err(|e| anyhow::anyhow!(e))?;
+        assert_eq!(sample.encoding(), &zenoh::bytes::Encoding::APPLICATION_CDR);
+        let got: CameraFrame = codec::decode_payload(sample.payload())?;
+        assert_eq!(got, common::camera_frame());
+        received += 1;
+    }
+
+    // Gone: nothing more is put.
+    sub.undeclare().await.map_err(|e| anyhow::anyhow!(e))?;
+    until("the subscriber's departure is seen", || !preview.watched()).await;
+    tokio::time::sleep(PREVIEW_PERIOD).await;
+    assert!(!preview.offer(&frame));
+
+    // A subscriber in the publisher's own session (an embedded monitor)
+    // watches too.
+    let local = twin
+        .declare_subscriber(env.key(Topic::Preview))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    until("the local subscriber is matched", || preview.watched()).await;
+    assert!(preview.offer(&frame));
+    let sample = tokio::time::timeout(PATIENCE, local.recv_async())
+        .await?
+        .map_err(|e| anyhow::anyhow!(e))?;
+    assert_eq!(sample.payload().to_bytes(), frame.to_bytes());
+    Ok(())
+}
