@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::embedded::{render_threads_for, Embedded, SimEnv, TwinProfile};
-use offworld_env_controller::Store;
+use offworld_env_controller::{EnvOptions, RequestLimits, Store};
 use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::{loopback_endpoint, SessionConfig};
@@ -148,7 +148,17 @@ async fn main() -> anyhow::Result<()> {
         // live monitor): the monitor competes with the render's helpers.
         render_threads: render_threads_for(1)?,
     };
-    let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
+    // As `gymnasium.make` serves itself: no request rate a client can reach
+    // (a site's 2,000 a second would cap long rounds of this bench).
+    let _embedded = Embedded::start_with(
+        &server,
+        &[sim],
+        Store::in_memory()?,
+        EnvOptions::default(),
+        RequestLimits::in_process(),
+        None,
+    )
+    .await?;
     let request = OpenRequest::anonymous(ObsOptions {
         channels: Channels::Rgbd,
         height: H,

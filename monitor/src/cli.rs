@@ -52,9 +52,11 @@ pub struct Args {
     /// Other messages queued for the worker at most.
     #[arg(long, default_value_t = 4096)]
     message_queue: usize,
-    /// Log every camera frame to a viewer or server too (default there:
-    /// each camera's newest every 20 ms, what a viewer shows, so a fast sim
-    /// env's monitor costs its steps little; `--save` keeps every frame).
+    /// Log every camera frame (`obs`) to a viewer or server too (default
+    /// there: the env's preview, at most one frame every 20 ms, dropped
+    /// rather than waited for, so a fast sim env's monitor costs its steps
+    /// little; `--save` keeps every frame). Every frame is delivered as
+    /// the controller's is: a viewer too slow for it slows the env.
     #[arg(long)]
     every_frame: bool,
     /// Do not send the default viewer layout.

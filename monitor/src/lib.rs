@@ -62,7 +62,9 @@ use std::str::FromStr;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
-use offworld_runtime::keys::{all_alive_selector, global_estop_key, ROOT, VERSION};
+use offworld_runtime::keys::{
+    all_alive_selector, global_estop_key, topic_on_all_envs, ROOT, VERSION,
+};
 use offworld_runtime::{Component, EnvId, Topic};
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber;
@@ -453,6 +455,14 @@ impl Monitor {
         } else {
             (Topic::Preview, Topic::Obs)
         };
+        if let Scope::KeyExpr(key) = &config.scope {
+            if !config.every_frame && names_every_frame(key) {
+                tracing::warn!(
+                    "`{key}` names `obs`: Zenoh delivers every frame to this live view, which \
+                     uses only the preview (name the topics instead, or `--env`)"
+                );
+            }
+        }
         for key in config.scope.data_keys(frames) {
             let (shared, running) = (shared.clone(), callbacks.clone());
             let sub = session
@@ -515,6 +525,18 @@ impl Monitor {
             inner.tokens = tokens;
         }
         Ok(handle)
+    }
+}
+
+/// Whether a key expression takes some env's every `obs` frame.
+fn names_every_frame(key: &str) -> bool {
+    let every_frame = topic_on_all_envs(Topic::Obs);
+    match (
+        zenoh::key_expr::KeyExpr::try_from(key),
+        zenoh::key_expr::KeyExpr::try_from(every_frame.as_str()),
+    ) {
+        (Ok(key), Ok(every_frame)) => key.intersects(&every_frame),
+        _ => false,
     }
 }
 
@@ -712,6 +734,9 @@ mod tests {
             Scope::env(env).alive_keys(),
             ["offworld/@v1/real/enclosure-a/alive/**"]
         );
+        assert!(names_every_frame("offworld/@v1/sim/**"));
+        assert!(names_every_frame("offworld/@v1/*/farm-0/obs"));
+        assert!(!names_every_frame("offworld/@v1/*/*/preview"));
         for key in Scope::All.data_keys(Topic::Obs) {
             zenoh::key_expr::KeyExpr::try_from(key).expect("valid key expression");
         }

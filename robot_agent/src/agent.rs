@@ -436,8 +436,23 @@ impl Outbox {
         std::thread::Builder::new()
             .name("robot_agent/outbox".into())
             .spawn(move || {
+                use std::sync::mpsc::RecvTimeoutError;
                 // Ends when the agent (the only sender) is gone.
-                for message in outgoing {
+                loop {
+                    // A preview frame held for being early goes out when its
+                    // period ends, unless the next answer's replaces it.
+                    let message = match preview.held_for() {
+                        None => outgoing.recv().map_err(|_| RecvTimeoutError::Disconnected),
+                        Some(wait) => outgoing.recv_timeout(wait),
+                    };
+                    let message = match message {
+                        Ok(message) => message,
+                        Err(RecvTimeoutError::Timeout) => {
+                            preview.flush();
+                            continue;
+                        }
+                        Err(RecvTimeoutError::Disconnected) => return,
+                    };
                     let result = match message {
                         Outgoing::Answer { seq, odom, frame } => {
                             if let Some(odom) = odom {
@@ -454,7 +469,9 @@ impl Outbox {
                                         .put(bytes.clone())
                                         .wait()
                                         .map_err(|e| RequestError::Zenoh(e.to_string()));
-                                    preview.offer(&bytes);
+                                    if sent.is_ok() {
+                                        preview.offer(&bytes);
+                                    }
                                     sent
                                 }
                                 Err(e) => Err(e.into()),

@@ -6,7 +6,8 @@
 //!   or zenoh-bridge-ros2dds keys), holds the velocity for the command's
 //!   duration, stops, lets the robot settle, then publishes the first colour
 //!   and depth frames captured after the motion ended on `obs`, tagged with
-//!   the command's sequence number (odometry on `odom`).
+//!   the command's sequence number (odometry on `odom`); the same frame on
+//!   `preview` for viewers while someone watches (`offworld_runtime::preview`).
 //! - Safety ([`watchdog`], [`limiter`]): zero velocity and motion refused
 //!   while no command or controller heartbeat arrived within the window
 //!   (default 200 ms) or the controller's liveliness token is gone; `estop`

@@ -280,7 +280,8 @@ pub fn global_estop_key() -> String {
     format!("{ROOT}/{VERSION}/estop")
 }
 
-/// Selector matching every key of every env (monitors, spectators).
+/// Selector matching every key of every env (an operator's spy: it takes
+/// every `obs` frame, and makes every twin and robot send its `preview`).
 pub fn all_envs_selector() -> String {
     format!("{ROOT}/{VERSION}/**")
 }

@@ -7,9 +7,17 @@
 //! thumbnails) wants a few dozen frames a second and must never slow a
 //! step: it subscribes to [`Topic::Preview`] instead, where the twin or
 //! robot agent republishes the same bytes at most once every
-//! [`PREVIEW_PERIOD`], [`Delivery::Latest`], and only while a subscriber
-//! matches (Zenoh's matching status), so with nobody watching a frame costs
-//! one atomic load.
+//! [`PREVIEW_PERIOD`] (a frame skipped for being early is held and put
+//! when its period ends, unless a newer one replaces it: a viewer always
+//! ends on the newest frame), [`Delivery::Latest`] at [`PREVIEW_PRIORITY`]
+//! (behind `obs`, faults and acknowledgements on every link), and only
+//! while a subscriber matches (Zenoh's matching status), so with nobody
+//! watching a frame costs one atomic load.
+//!
+//! A congested link to a viewer costs the publisher Zenoh's drop patience
+//! (`session::PATIENT_DROP_US`) once; until that link's queue drains, the
+//! next previews to it are dropped at once (Zenoh marks the queue
+//! congested).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -17,6 +25,7 @@ use std::time::{Duration, Instant};
 
 use zenoh::bytes::ZBytes;
 use zenoh::pubsub::Publisher;
+use zenoh::qos::Priority;
 use zenoh::{Session, Wait};
 
 use crate::keys::{EnvId, Topic};
@@ -24,6 +33,11 @@ use crate::wire::{self, Delivery};
 
 /// At most one preview frame this often (50 a second: what a viewer shows).
 pub const PREVIEW_PERIOD: Duration = Duration::from_millis(20);
+
+/// Below Zenoh's default (`Data`), where `obs`, `odom`, faults and e-stop
+/// acknowledgements travel: a link queues each priority apart and sends the
+/// higher first.
+pub const PREVIEW_PRIORITY: Priority = Priority::DataLow;
 
 /// At most one frame a period: the first frame offered once `period` has
 /// passed since the last one taken is taken.
@@ -42,33 +56,41 @@ impl Pacer {
     /// Whether a frame offered at `now` is taken (it then counts as the
     /// last one).
     pub fn take(&mut self, now: Instant) -> bool {
-        if self
-            .last
-            .is_some_and(|last| now.saturating_duration_since(last) < self.period)
-        {
+        if self.wait(now).is_some() {
             return false;
         }
         self.last = Some(now);
         true
     }
+
+    /// How long from `now` until a frame would be taken; `None`: at once.
+    pub fn wait(&self, now: Instant) -> Option<Duration> {
+        let next = self.last? + self.period;
+        (next > now).then(|| next - now)
+    }
 }
 
 /// Publishes an env's preview: offered every frame, it puts one a
-/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise.
+/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise. Its owner
+/// calls [`PreviewPublisher::flush`] once [`PreviewPublisher::held_for`]
+/// has passed with no newer frame offered (a sim paused between steps).
 pub struct PreviewPublisher {
     publisher: Publisher<'static>,
     /// Whether a subscriber matches, kept by Zenoh's matching listener
     /// (which lives as long as the publisher).
     watched: Arc<AtomicBool>,
     pacer: Pacer,
+    /// The newest frame offered too early, put when its period ends.
+    held: Option<ZBytes>,
 }
 
 impl PreviewPublisher {
     /// Declares `env`'s preview publisher on `session` and follows whether
     /// anyone subscribes to it (local or remote subscribers alike).
     pub fn declare(session: &Session, env: &EnvId) -> zenoh::Result<Self> {
-        let publisher =
-            wire::publisher(session, env.key(Topic::Preview), Delivery::Latest).wait()?;
+        let publisher = wire::publisher(session, env.key(Topic::Preview), Delivery::Latest)
+            .priority(PREVIEW_PRIORITY)
+            .wait()?;
         let watched = Arc::new(AtomicBool::new(false));
         let flag = watched.clone();
         publisher
@@ -80,6 +102,7 @@ impl PreviewPublisher {
             publisher,
             watched,
             pacer: Pacer::new(PREVIEW_PERIOD),
+            held: None,
         })
     }
 
@@ -89,13 +112,45 @@ impl PreviewPublisher {
     }
 
     /// Offers the encoded `obs` frame just published; returns whether it
-    /// went out as the preview. A failed put is logged, never fatal: the
-    /// preview is only for people watching.
+    /// went out as the preview now. An early one is held for
+    /// [`PreviewPublisher::flush`], replacing any frame held before.
     pub fn offer(&mut self, frame: &ZBytes) -> bool {
-        if !self.watched() || !self.pacer.take(Instant::now()) {
+        // A replaced frame's buffer goes back to its pool now.
+        self.held = None;
+        if !self.watched() {
             return false;
         }
-        match self.publisher.put(frame.clone()).wait() {
+        if !self.pacer.take(Instant::now()) {
+            self.held = Some(frame.clone());
+            return false;
+        }
+        self.put(frame.clone())
+    }
+
+    /// How long until the held frame is due (zero: now); `None` when no
+    /// frame is held.
+    pub fn held_for(&self) -> Option<Duration> {
+        self.held
+            .as_ref()
+            .map(|_| self.pacer.wait(Instant::now()).unwrap_or_default())
+    }
+
+    /// Puts the held frame if its period has ended and someone still
+    /// watches; returns whether it went out.
+    pub fn flush(&mut self) -> bool {
+        if self.held_for() != Some(Duration::ZERO) {
+            return false;
+        }
+        match self.held.take() {
+            Some(frame) if self.watched() && self.pacer.take(Instant::now()) => self.put(frame),
+            _ => false,
+        }
+    }
+
+    /// A failed put is logged, never fatal: the preview is only for people
+    /// watching.
+    fn put(&self, frame: ZBytes) -> bool {
+        match self.publisher.put(frame).wait() {
             Ok(()) => true,
             Err(e) => {
                 tracing::debug!("preview put on {} failed: {e}", self.publisher.key_expr());
@@ -114,12 +169,16 @@ mod tests {
         let start = Instant::now();
         let at = |ms: u64| start + Duration::from_millis(ms);
         let mut pacer = Pacer::new(Duration::from_millis(20));
+        assert_eq!(pacer.wait(at(0)), None);
         let taken: Vec<u64> = [0, 5, 19, 20, 21, 39, 41, 100, 100]
             .into_iter()
             .filter(|&ms| pacer.take(at(ms)))
             .collect();
         // 40 is due at 40 (20 + 20): 39 is early, 41 is taken.
         assert_eq!(taken, vec![0, 20, 41, 100]);
+        assert_eq!(pacer.wait(at(100)), Some(Duration::from_millis(20)));
+        assert_eq!(pacer.wait(at(115)), Some(Duration::from_millis(5)));
+        assert_eq!(pacer.wait(at(120)), None);
         // A clock read earlier than the last taken (another thread's
         // instant) is within the period, not a panic.
         assert!(!pacer.take(at(50)));

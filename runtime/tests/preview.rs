@@ -52,7 +52,7 @@ async fn the_preview_goes_out_only_while_watched_and_at_most_once_a_period() -> 
         tokio::time::sleep(Duration::from_micros(200)).await;
     }
     let periods = started.elapsed().as_secs_f64() / PREVIEW_PERIOD.as_secs_f64();
-    assert!(sent >= 1, "the first frame goes out at once");
+    assert!(sent >= 2, "the first frame at once, then one a period");
     assert!(
         f64::from(sent) <= periods.floor() + 1.0,
         "{sent} previews in {periods:.1} periods"
@@ -66,6 +66,39 @@ async fn the_preview_goes_out_only_while_watched_and_at_most_once_a_period() -> 
         let got: CameraFrame = codec::decode_payload(sample.payload())?;
         assert_eq!(got, common::camera_frame());
         received += 1;
+    }
+    // The last frame offered, if early, is held (not put) until flushed.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert!(sub.try_recv().map_err(|e| anyhow::anyhow!(e))?.is_none());
+
+    // The newest frame is the last one a viewer gets: one offered early is
+    // put by `flush` once its period has ended.
+    let newer = {
+        let mut frame = common::camera_frame();
+        frame.seq += 1;
+        frame
+    };
+    if preview.flush() {
+        // The loop's last frame, held.
+        tokio::time::timeout(PATIENCE, sub.recv_async())
+            .await?
+            .map_err(|e| anyhow::anyhow!(e))?;
+    }
+    tokio::time::sleep(PREVIEW_PERIOD).await;
+    assert!(preview.offer(&frame));
+    if !preview.offer(&ZBytes::from(codec::encode(&newer)?)) {
+        let wait = preview.held_for().expect("held");
+        assert!(wait <= PREVIEW_PERIOD, "{wait:?}");
+        tokio::time::sleep(wait).await;
+        assert!(preview.flush());
+    }
+    assert_eq!(preview.held_for(), None);
+    for expected in [common::camera_frame(), newer] {
+        let sample = tokio::time::timeout(PATIENCE, sub.recv_async())
+            .await?
+            .map_err(|e| anyhow::anyhow!(e))?;
+        let got: CameraFrame = codec::decode_payload(sample.payload())?;
+        assert_eq!(got, expected);
     }
 
     // Gone: nothing more is put.

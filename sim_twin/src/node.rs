@@ -525,7 +525,21 @@ impl Worker {
     }
 
     fn run_lockstep(&mut self, events: Receiver<Event>) {
-        while let Ok(event) = events.recv() {
+        loop {
+            // A preview frame held for being early goes out when its period
+            // ends, unless the next step's frame replaces it first.
+            let event = match self.publishers.preview.held_for() {
+                None => events.recv().map_err(|_| RecvTimeoutError::Disconnected),
+                Some(wait) => events.recv_timeout(wait),
+            };
+            let event = match event {
+                Ok(event) => event,
+                Err(RecvTimeoutError::Timeout) => {
+                    self.publishers.preview.flush();
+                    continue;
+                }
+                Err(RecvTimeoutError::Disconnected) => return,
+            };
             self.busy.begin();
             let go_on = self.handle_lockstep(event);
             self.busy.end();
@@ -643,6 +657,9 @@ impl Worker {
                 next_pose = now + tracker_period;
                 self.publish_overhead();
             }
+            // This loop wakes every substep: a held preview frame goes out
+            // on time.
+            self.publishers.preview.flush();
             self.busy.end();
         }
     }
@@ -774,13 +791,13 @@ impl Worker {
         let odom = ros_out::odometry(&self.twin, stamp);
         publish(&self.publishers.odom, &odom, tag);
         match frame {
-            Ok(payload) => {
-                if let Err(e) = self.publishers.obs.put(payload.clone()).wait() {
-                    tracing::warn!("obs put failed: {e}");
-                }
+            Ok(payload) => match self.publishers.obs.put(payload.clone()).wait() {
                 // After the answer, like the overhead view.
-                self.publishers.preview.offer(&payload);
-            }
+                Ok(()) => {
+                    self.publishers.preview.offer(&payload);
+                }
+                Err(e) => tracing::warn!("obs put failed: {e}"),
+            },
             Err(e) => tracing::error!("cannot encode frame: {e}"),
         }
         // After the answer: the step never waits for the spectators' view.

@@ -482,3 +482,40 @@ async fn a_stuck_simulation_thread_withdraws_its_twin() {
     }
     drop(server);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watched_twins_preview_ends_on_its_newest_frame() {
+    let (_node, client, _server) = setup("monolith", Resolution::new(32, 24)).await;
+    client.connect().await;
+    let preview = client
+        .session
+        .declare_subscriber(client.env.key(Topic::Preview))
+        .await
+        .expect("subscriber");
+    let mut seq = 1;
+    // Until the subscription has reached the twin (bounded).
+    for _attempt in 0..50 {
+        // A burst of steps far faster than the preview's period.
+        let mut newest_answer = None;
+        for _ in 0..5 {
+            seq += 1;
+            client.command(seq, 0.0, 0.5, 0.1).await;
+            newest_answer = client.answer(seq).await.map(|(frame, _, _)| frame);
+        }
+        let newest_answer = newest_answer.expect("the twin answers");
+        // The last preview after the burst is the burst's last frame: held
+        // for being early, then put when its period ended.
+        let mut newest_preview = None;
+        while let Ok(Ok(sample)) =
+            tokio::time::timeout(Duration::from_millis(300), preview.recv_async()).await
+        {
+            let frame: CameraFrame = codec::decode_payload(sample.payload()).expect("frame");
+            newest_preview = Some(frame);
+        }
+        if let Some(frame) = newest_preview {
+            assert_eq!(frame, newest_answer);
+            return;
+        }
+    }
+    panic!("no preview while watched");
+}

@@ -565,6 +565,12 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         reason: "forged".into(),
     };
     wire::put(&web, &env.key(Topic::Fault), &fault).await?;
+    let frame = CameraFrame {
+        seq: 1,
+        color: Image::default(),
+        depth: Image::default(),
+    };
+    wire::put(&web, &env.key(Topic::Preview), &frame).await?;
     settle().await;
     assert_eq!(
         forged.count("estop_ack", None),
@@ -572,6 +578,7 @@ async fn the_lab_web_role_reads_the_site_and_presses_estops_but_never_drives() -
         "a forged acknowledgement arrived"
     );
     assert_eq!(forged.count("fault", None), 0, "a forged fault arrived");
+    assert_eq!(forged.count("preview", None), 0, "a forged preview arrived");
     // Control: the twin's own acknowledgement reaches the same observer.
     press_as(&web, &env, false, "control").await?;
     settle().await;
@@ -917,7 +924,10 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::RobotAgent, real.key(Topic::Cmd), false),
         (Role::RobotAgent, sim.key(Topic::Obs), false),
         (Role::RobotAgent, real.key(Topic::Preview), true),
+        (Role::RobotAgent, sim.key(Topic::Preview), false),
         (Role::Controller, real.key(Topic::Preview), false),
+        (Role::SimController, sim.key(Topic::Preview), false),
+        (Role::TrackerAgent, real.key(Topic::Preview), false),
         (Role::TrackerAgent, real.key(Topic::Pose), true),
         (Role::TrackerAgent, real.key(Topic::Cmd), false),
         (Role::TrackerAgent, real.key(Topic::Obs), false),
