@@ -76,6 +76,23 @@ async fn wait_for_route(
     Ok(())
 }
 
+/// A step's event with nothing to note: no reward, the episode going on.
+fn plain_event(step: u32, command_seq: u64) -> EpisodeEvent {
+    EpisodeEvent {
+        experiment: "monitor-test".into(),
+        episode_id: 0,
+        step,
+        reward: 0.0,
+        episode_return: 0.0,
+        terminated: false,
+        truncated: false,
+        success: false,
+        end_reason: String::new(),
+        experiment_id: 1,
+        command_seq,
+    }
+}
+
 fn stamp(seq: u64) -> Time {
     Time::from_secs_f64(10.0 + seq as f64 * 0.5)
 }
@@ -493,19 +510,8 @@ async fn a_flood_of_frames_drops_frames_not_messages_and_never_blocks() -> anyho
             .await
             .map_err(|e| anyhow!(e))?;
         slowest = slowest.max(started.elapsed());
-        let event = EpisodeEvent {
-            experiment: String::new(),
-            episode_id: 0,
-            step: seq as u32,
-            reward: 0.0,
-            episode_return: 0.0,
-            terminated: false,
-            truncated: false,
-            success: false,
-            end_reason: String::new(),
-            experiment_id: 0,
-            command_seq: 1, // every frame of the flood is `camera_frame(1)`
-        };
+        // Every frame of the flood is `camera_frame(1)`.
+        let event = plain_event(seq as u32, 1);
         wire::put(&session, &env.key(Topic::Reward), &event).await?;
     }
     let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
@@ -758,19 +764,7 @@ async fn a_live_view_takes_the_preview_and_a_file_every_frame() -> anyhow::Resul
         None,
     )
     .await?;
-    let event = EpisodeEvent {
-        experiment: "monitor-test".into(),
-        episode_id: 0,
-        step: 0,
-        reward: 0.0,
-        episode_return: 0.0,
-        terminated: false,
-        truncated: false,
-        success: false,
-        end_reason: String::new(),
-        experiment_id: 1,
-        command_seq: 3,
-    };
+    let event = plain_event(0, 3);
     put(&pubs, &env.key(Topic::Reward), encode(&event)?, None).await?;
     for (monitor, frames) in [(file, 2), (live, 1), (live_keyexpr, 1)] {
         wait_for(&monitor, "the reward", |s| s.rewards == 1).await?;
