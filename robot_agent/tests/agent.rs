@@ -700,6 +700,32 @@ async fn a_motion_command_is_driven_then_answered_with_frames_captured_after_it(
     rig.finish().await;
 }
 
+/// A viewer subscribed to the env's preview gets the very frame each answer
+/// carries (a real robot answers far less often than the preview's period).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watched_agent_shows_each_answers_frame_as_the_preview() {
+    let mut rig = Rig::start("preview", config()).await;
+    let preview = rig
+        .ctl
+        .declare_subscriber(rig.env.key(Topic::Preview))
+        .await
+        .expect("preview subscriber");
+    // Until the subscription has reached the agent (bounded).
+    for seq in 1..=20 {
+        rig.cmd(seq, 0.0, 0.0, 0.0).await;
+        let answer = rig.answer(seq).await;
+        if let Ok(Ok(sample)) =
+            tokio::time::timeout(Duration::from_secs(1), preview.recv_async()).await
+        {
+            let shown: CameraFrame = codec::decode_payload(sample.payload()).expect("CameraFrame");
+            assert_eq!(shown, answer);
+            rig.finish().await;
+            return;
+        }
+    }
+    panic!("no preview while watched");
+}
+
 /// 2.0 m/s and −9 rad/s are clamped to exactly the ROSbot's 0.7 m/s and
 /// −2.5 rad/s, reached through a ramp within the acceleration limits.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
