@@ -63,7 +63,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
 use offworld_runtime::keys::{
-    all_alive_selector, global_estop_key, topic_on_all_envs, ROOT, VERSION,
+    all_alive_selector, global_estop_key, overhead_on_all_envs, topic_on_all_envs,
 };
 use offworld_runtime::{Component, EnvId, Topic};
 use zenoh::liveliness::LivelinessToken;
@@ -188,19 +188,18 @@ impl Scope {
     /// each env (camera frames from `frames`), and the site-wide e-stop; a
     /// [`Scope::KeyExpr`] as given.
     fn data_keys(&self, frames: Topic) -> Vec<String> {
-        let chunks = [frames.as_str(), "overhead/*"]
-            .into_iter()
-            .chain(DRAWN_TOPICS.iter().map(|topic| topic.as_str()));
         match self {
-            Scope::All => chunks
-                .map(|chunk| format!("{ROOT}/{VERSION}/*/*/{chunk}"))
+            Scope::All => [topic_on_all_envs(frames), overhead_on_all_envs()]
+                .into_iter()
+                .chain(DRAWN_TOPICS.map(topic_on_all_envs))
                 .chain([global_estop_key()])
                 .collect(),
             Scope::Envs(envs) => envs
                 .iter()
                 .flat_map(|env| {
-                    let prefix = env.prefix();
-                    chunks.clone().map(move |chunk| format!("{prefix}/{chunk}"))
+                    [env.key(frames), env.overhead_selector()]
+                        .into_iter()
+                        .chain(DRAWN_TOPICS.map(|topic| env.key(topic)))
                 })
                 .chain([global_estop_key()])
                 .collect(),
@@ -455,6 +454,8 @@ impl Monitor {
         } else {
             (Topic::Preview, Topic::Obs)
         };
+        // Only a key expression can deliver the other kind.
+        let mixed_frames = matches!(config.scope, Scope::KeyExpr(_));
         if let Scope::KeyExpr(key) = &config.scope {
             if !config.every_frame && names_every_frame(key) {
                 tracing::warn!(
@@ -470,7 +471,7 @@ impl Monitor {
                 .callback(move |sample: Sample| {
                     let _running = &running;
                     let key = sample.key_expr().as_str();
-                    if topic_of(key) == Some(ignored_frames.as_str()) {
+                    if mixed_frames && topic_of(key) == Some(ignored_frames.as_str()) {
                         return;
                     }
                     let lane = lane_of(key);

@@ -436,23 +436,10 @@ impl Outbox {
         std::thread::Builder::new()
             .name("robot_agent/outbox".into())
             .spawn(move || {
-                use std::sync::mpsc::RecvTimeoutError;
-                // Ends when the agent (the only sender) is gone.
-                loop {
-                    // A preview frame held for being early goes out when its
-                    // period ends, unless the next answer's replaces it.
-                    let message = match preview.held_for() {
-                        None => outgoing.recv().map_err(|_| RecvTimeoutError::Disconnected),
-                        Some(wait) => outgoing.recv_timeout(wait),
-                    };
-                    let message = match message {
-                        Ok(message) => message,
-                        Err(RecvTimeoutError::Timeout) => {
-                            preview.flush();
-                            continue;
-                        }
-                        Err(RecvTimeoutError::Disconnected) => return,
-                    };
+                // Ends when the agent (the only sender) is gone. A preview
+                // frame held for being early goes out when its period ends,
+                // unless the next answer's replaces it.
+                while let Ok(message) = preview.recv_flushing(&outgoing) {
                     let result = match message {
                         Outgoing::Answer { seq, odom, frame } => {
                             if let Some(odom) = odom {

@@ -127,6 +127,11 @@ impl EnvId {
         Ok(format!("{}/overhead/{camera}", self.prefix()))
     }
 
+    /// Selector matching every overhead camera stream of this env.
+    pub fn overhead_selector(&self) -> String {
+        format!("{}/overhead/*", self.prefix())
+    }
+
     /// Parses an env id back out of any key under it.
     pub fn from_key(key: &str) -> Result<Self, ContractError> {
         let mut chunks = key.split('/');
@@ -291,6 +296,11 @@ pub fn topic_on_all_envs(topic: Topic) -> String {
     format!("{ROOT}/{VERSION}/*/*/{}", topic.as_str())
 }
 
+/// Selector matching every overhead camera of every env.
+pub fn overhead_on_all_envs() -> String {
+    format!("{ROOT}/{VERSION}/*/*/overhead/*")
+}
+
 /// Selector matching every liveliness token of every env.
 pub fn all_alive_selector() -> String {
     format!("{ROOT}/{VERSION}/*/*/alive/**")
@@ -318,6 +328,11 @@ mod tests {
             real.overhead_key("cam1").expect("valid"),
             "offworld/@v1/real/enclosure-a/overhead/cam1"
         );
+        assert_eq!(
+            real.overhead_selector(),
+            "offworld/@v1/real/enclosure-a/overhead/*"
+        );
+        assert_eq!(overhead_on_all_envs(), "offworld/@v1/*/*/overhead/*");
     }
 
     #[test]

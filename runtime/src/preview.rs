@@ -20,6 +20,7 @@
 //! congested).
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, RecvError, RecvTimeoutError};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -71,9 +72,10 @@ impl Pacer {
 }
 
 /// Publishes an env's preview: offered every frame, it puts one a
-/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise. Its owner
-/// calls [`PreviewPublisher::flush`] once [`PreviewPublisher::held_for`]
-/// has passed with no newer frame offered (a sim paused between steps).
+/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise. Its owner's
+/// loop waits with [`PreviewPublisher::recv_flushing`], which puts a held
+/// frame when its period ends with no newer one offered (a sim paused
+/// between steps).
 pub struct PreviewPublisher {
     publisher: Publisher<'static>,
     /// Whether a subscriber matches, kept by Zenoh's matching listener
@@ -138,12 +140,30 @@ impl PreviewPublisher {
     /// Puts the held frame if its period has ended and someone still
     /// watches; returns whether it went out.
     pub fn flush(&mut self) -> bool {
-        if self.held_for() != Some(Duration::ZERO) {
+        let now = Instant::now();
+        if self.held.is_none() || self.pacer.wait(now).is_some() {
             return false;
         }
         match self.held.take() {
-            Some(frame) if self.watched() && self.pacer.take(Instant::now()) => self.put(frame),
+            Some(frame) if self.watched() && self.pacer.take(now) => self.put(frame),
             _ => false,
+        }
+    }
+
+    /// The next item from `items`, putting the held frame meanwhile when
+    /// its period ends; an error once every sender is gone.
+    pub fn recv_flushing<T>(&mut self, items: &Receiver<T>) -> Result<T, RecvError> {
+        loop {
+            let Some(wait) = self.held_for() else {
+                return items.recv();
+            };
+            match items.recv_timeout(wait) {
+                Ok(item) => return Ok(item),
+                Err(RecvTimeoutError::Timeout) => {
+                    self.flush();
+                }
+                Err(RecvTimeoutError::Disconnected) => return Err(RecvError),
+            }
         }
     }
 

@@ -525,21 +525,9 @@ impl Worker {
     }
 
     fn run_lockstep(&mut self, events: Receiver<Event>) {
-        loop {
-            // A preview frame held for being early goes out when its period
-            // ends, unless the next step's frame replaces it first.
-            let event = match self.publishers.preview.held_for() {
-                None => events.recv().map_err(|_| RecvTimeoutError::Disconnected),
-                Some(wait) => events.recv_timeout(wait),
-            };
-            let event = match event {
-                Ok(event) => event,
-                Err(RecvTimeoutError::Timeout) => {
-                    self.publishers.preview.flush();
-                    continue;
-                }
-                Err(RecvTimeoutError::Disconnected) => return,
-            };
+        // A preview frame held for being early goes out when its period
+        // ends, unless the next step's frame replaces it first.
+        while let Ok(event) = self.publishers.preview.recv_flushing(&events) {
             self.busy.begin();
             let go_on = self.handle_lockstep(event);
             self.busy.end();

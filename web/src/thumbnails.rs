@@ -43,7 +43,7 @@ impl View {
             // The preview, not `obs`: this service never receives, nor
             // slows, every frame a stepping env sends its controller.
             View::Camera => env.key(Topic::Preview),
-            View::Overhead => format!("{}/overhead/*", env.prefix()),
+            View::Overhead => env.overhead_selector(),
         }
     }
 

@@ -126,7 +126,8 @@ impl Event {
 
 /// The lane a sample travels in: camera images are big and expendable.
 pub(crate) fn lane_of(key: &str) -> Lane {
-    if matches!(topic_of(key), Some("obs" | "preview")) || key.contains("/overhead/") {
+    let topic = topic_of(key).unwrap_or_default();
+    if matches!(topic, "obs" | "preview") || topic.starts_with("overhead/") {
         Lane::Frame
     } else {
         Lane::Message
