@@ -13,12 +13,13 @@ use offworld_runtime::msg::{
     PoseStamped, SeqTag, TrackingStatus,
 };
 use offworld_runtime::pool::BufferPool;
+use offworld_runtime::preview::WatchedPublisher;
 use offworld_runtime::seal::{Gate, SealKey, Sealer};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::WireError;
 use tokio::sync::watch;
 use zenoh::bytes::ZBytes;
-use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::pubsub::Subscriber;
 use zenoh::sample::{Sample, SampleKind};
 use zenoh::Session;
 
@@ -174,7 +175,8 @@ impl LinkSeals {
 pub struct RobotLink {
     session: Session,
     env: EnvId,
-    cmd: Publisher<'static>,
+    /// Commands, and their copy for viewers (never waited for).
+    cmd: WatchedPublisher,
     sealer: Option<Arc<Sealer>>,
     frames: watch::Receiver<Option<Arc<Frame>>>,
     pending: Pending,
@@ -312,6 +314,7 @@ impl RobotLink {
         let cmd = wire::publisher(session, env.key(Topic::Cmd), Delivery::Every)
             .priority(wire::CONTROL_PRIORITY)
             .await?;
+        let cmd = WatchedPublisher::declare(session, env, Topic::Cmd, cmd)?;
         Ok(Self {
             session: session.clone(),
             env: env.clone(),
@@ -404,7 +407,8 @@ impl RobotLink {
         lost.mark_unchanged();
         let mut closing = self.closing.subscribe();
         closing.mark_unchanged();
-        wire::publish_sealed(&self.cmd, cmd, self.sealer.as_deref())
+        self.cmd
+            .publish_sealed(cmd, self.sealer.as_deref())
             .map_err(|e| WireError::internal(format!("cannot send the command: {e}")))?;
         let limit = Duration::from_secs_f64(cmd.duration_s.max(0.0)) + self.timeouts.answer_margin;
         let seq = cmd.seq;
@@ -555,7 +559,7 @@ impl RobotLink {
             angular_z: 0.0,
             duration_s: 0.0,
         };
-        if let Err(e) = wire::publish_sealed(&self.cmd, &halt, self.sealer.as_deref()) {
+        if let Err(e) = self.cmd.publish_sealed(&halt, self.sealer.as_deref()) {
             tracing::error!(env = %self.env, "cannot send stop: {e}");
         }
     }

@@ -52,11 +52,13 @@ pub struct Args {
     /// Other messages queued for the worker at most.
     #[arg(long, default_value_t = 4096)]
     message_queue: usize,
-    /// Log every camera frame (`obs`) to a viewer or server too (default
-    /// there: the env's preview, at most one frame every 20 ms, dropped
-    /// rather than waited for, so a fast sim env's monitor costs its steps
-    /// little; `--save` keeps every frame). Every frame is delivered as
-    /// the controller's is: a viewer too slow for it slows the env.
+    /// Log every camera frame (`obs`), command, pose and odometry message
+    /// to a viewer or server too (default there: their viewers' copies —
+    /// the env's preview, at most one frame every 20 ms — dropped rather
+    /// than waited for, so a fast sim env's monitor costs its steps little
+    /// and a stalled one holds up nothing; `--save` keeps every message).
+    /// They are then delivered as the controller's are: a viewer too slow
+    /// for them, or frozen, holds up the env.
     #[arg(long)]
     every_frame: bool,
     /// Do not send the default viewer layout.

@@ -147,11 +147,13 @@ impl FromStr for Sink {
     }
 }
 
-/// The per-env topics a monitor draws after the camera's frames and the
-/// overhead views (`overhead/*`), in the order subscribed: `status` last, so
-/// a publisher that has heard the monitor's `status` subscription has heard
-/// the others (one session's declarations travel in order).
-const DRAWN_TOPICS: [Topic; 7] = [
+/// The per-env topics a monitor draws after the overhead views
+/// (`overhead/*`), in the order subscribed: `status` last, so a publisher
+/// that has heard the monitor's `status` subscription has heard the others
+/// (one session's declarations travel in order). A live view subscribes
+/// to the viewers' copy of those that have one ([`Topic::viewers_copy`]).
+const DRAWN_TOPICS: [Topic; 8] = [
+    Topic::Obs,
     Topic::Cmd,
     Topic::Pose,
     Topic::Odom,
@@ -173,8 +175,9 @@ pub enum Scope {
     /// `alive/monitor` on each.
     Envs(Vec<EnvId>),
     /// Any key expression under `offworld/@v1/`, e.g. `offworld/@v1/sim/**`:
-    /// what it names is delivered (every `obs` frame too, if it names them,
-    /// even to a live view, which ignores them). Liveliness is not followed.
+    /// what it names is delivered (every `obs` frame, command, pose and
+    /// odometry message too, if it names them, even to a live view, which
+    /// ignores them for their viewers' copies). Liveliness is not followed.
     KeyExpr(String),
 }
 
@@ -185,21 +188,26 @@ impl Scope {
     }
 
     /// The key expressions of the data subscriptions: each drawn topic of
-    /// each env (camera frames from `frames`), and the site-wide e-stop; a
-    /// [`Scope::KeyExpr`] as given.
-    fn data_keys(&self, frames: Topic) -> Vec<String> {
+    /// each env (for a live view, its viewers' copy if it has one, unless
+    /// `every_message`), and the site-wide e-stop; a [`Scope::KeyExpr`] as
+    /// given.
+    fn data_keys(&self, every_message: bool) -> Vec<String> {
+        let topics = DRAWN_TOPICS.map(|topic| match topic.viewers_copy() {
+            Some(copy) if !every_message => copy,
+            _ => topic,
+        });
         match self {
-            Scope::All => [topic_on_all_envs(frames), overhead_on_all_envs()]
+            Scope::All => [overhead_on_all_envs()]
                 .into_iter()
-                .chain(DRAWN_TOPICS.map(topic_on_all_envs))
+                .chain(topics.map(topic_on_all_envs))
                 .chain([global_estop_key()])
                 .collect(),
             Scope::Envs(envs) => envs
                 .iter()
                 .flat_map(|env| {
-                    [env.key(frames), env.overhead_selector()]
+                    [env.overhead_selector()]
                         .into_iter()
-                        .chain(DRAWN_TOPICS.map(|topic| env.key(topic)))
+                        .chain(topics.map(|topic| env.key(topic)))
                 })
                 .chain([global_estop_key()])
                 .collect(),
@@ -256,13 +264,15 @@ pub struct MonitorConfig {
     pub recording_name: Option<String>,
     /// How long shutdown waits for the sink to take the last data.
     pub flush_timeout: Duration,
-    /// Log every camera frame (`obs`): the default for a file (a record of
-    /// the run). Off (the default for a viewer or server), the monitor takes
-    /// the env's preview (`preview`: at most one frame every 20 ms, sent
-    /// only while someone watches and dropped rather than waited for, see
-    /// `offworld_runtime::preview`), and a camera's frame waiting for the
-    /// worker is replaced by its next one (counted as superseded): what a
-    /// viewer shows, while a sim env steps thousands a second.
+    /// Log every camera frame (`obs`), command, pose and odometry message:
+    /// the default for a file (a record of the run). Off (the default for a
+    /// viewer or server), the monitor takes their viewers' copies (the
+    /// env's `preview`, at most one frame every 20 ms, `preview_cmd`,
+    /// `preview_pose`, `preview_odom`: sent only while someone watches and
+    /// dropped rather than waited for, see `offworld_runtime::preview`), and
+    /// a camera's frame waiting for the worker is replaced by its next one
+    /// (counted as superseded): what a viewer shows, while a sim env steps
+    /// thousands a second, and a stalled viewer holds up no publisher.
     pub every_frame: bool,
 }
 
@@ -445,33 +455,31 @@ impl Monitor {
         // From here on, an error drops `handle`, which stops the worker.
         let mut subscribers = Vec::new();
         let newest_frames = !config.every_frame;
-        // A file takes every `obs` frame; a live view the preview, which the
-        // twin thins and Zenoh may drop: it never receives, nor slows, the
-        // thousands of frames a second a sim env's controller takes. A
-        // `Scope::KeyExpr` may name both: the other is ignored.
-        let (frames, ignored_frames) = if config.every_frame {
-            (Topic::Obs, Topic::Preview)
-        } else {
-            (Topic::Preview, Topic::Obs)
-        };
-        // Only a key expression can deliver the other kind.
-        let mixed_frames = matches!(config.scope, Scope::KeyExpr(_));
+        let every_message = config.every_frame;
+        // A file takes every `obs` frame, command, pose and odometry
+        // message; a live view their viewers' copies (the frames thinned),
+        // which Zenoh drops rather than wait for: it never receives the
+        // thousands of frames a second a sim env's controller takes, nor
+        // holds up their publishers when it stalls. A `Scope::KeyExpr` may
+        // name both: the other kind is ignored.
+        let mixed = matches!(config.scope, Scope::KeyExpr(_));
         if let Scope::KeyExpr(key) = &config.scope {
-            if !config.every_frame && names_every_frame(key) {
+            if !every_message && names_an_original(key) {
                 tracing::warn!(
-                    "`{key}` names `obs`: Zenoh delivers every frame to this live view, which \
-                     uses only the preview (name the topics instead, or `--env`)"
+                    "`{key}` names `obs`, `cmd`, `pose` or `odom`: Zenoh delivers each of their \
+                     messages to this live view, which uses only their viewers' copies, and a \
+                     stall of it holds up their publishers (name the topics instead, or `--env`)"
                 );
             }
         }
-        for key in config.scope.data_keys(frames) {
+        for key in config.scope.data_keys(every_message) {
             let (shared, running) = (shared.clone(), callbacks.clone());
             let sub = session
                 .declare_subscriber(key.as_str())
                 .callback(move |sample: Sample| {
                     let _running = &running;
                     let key = sample.key_expr().as_str();
-                    if mixed_frames && topic_of(key) == Some(ignored_frames.as_str()) {
+                    if mixed && !takes(every_message, key) {
                         return;
                     }
                     let lane = lane_of(key);
@@ -529,15 +537,32 @@ impl Monitor {
     }
 }
 
-/// Whether a key expression takes some env's every `obs` frame.
-fn names_every_frame(key: &str) -> bool {
-    let every_frame = topic_on_all_envs(Topic::Obs);
-    match (
-        zenoh::key_expr::KeyExpr::try_from(key),
-        zenoh::key_expr::KeyExpr::try_from(every_frame.as_str()),
-    ) {
-        (Ok(key), Ok(every_frame)) => key.intersects(&every_frame),
-        _ => false,
+/// Whether a key expression names some env's `obs`, `cmd`, `pose` or
+/// `odom`, which a live view reads from their viewers' copies.
+fn names_an_original(key: &str) -> bool {
+    let Ok(key) = zenoh::key_expr::KeyExpr::try_from(key) else {
+        return false;
+    };
+    DRAWN_TOPICS
+        .iter()
+        .filter(|topic| topic.viewers_copy().is_some())
+        .filter_map(|&topic| zenoh::key_expr::KeyExpr::try_from(topic_on_all_envs(topic)).ok())
+        .any(|original| key.intersects(&original))
+}
+
+/// Whether a monitor taking `every_message` (or, if not, the viewers'
+/// copies) logs a sample on `key`.
+fn takes(every_message: bool, key: &str) -> bool {
+    let topic = topic_of(key).unwrap_or_default();
+    let is = |t: Topic| t.as_str() == topic;
+    let original = DRAWN_TOPICS
+        .iter()
+        .any(|&t| t.viewers_copy().is_some() && is(t));
+    let copy = DRAWN_TOPICS.iter().filter_map(|t| t.viewers_copy()).any(is);
+    if every_message {
+        !copy
+    } else {
+        !original
     }
 }
 
@@ -708,38 +733,77 @@ mod tests {
     #[test]
     fn scopes_subscribe_below_the_verbatim_version_chunk() {
         let env: EnvId = "real/enclosure-a".parse().expect("env");
-        let drawn = [
-            "cmd", "pose", "odom", "reward", "tracking", "estop", "status",
-        ];
-        let expected = |prefix: &str, frames: &str| -> Vec<String> {
-            [frames, "overhead/*"]
+        let drawn = |cmd: &str, pose: &str, odom: &str, frames: &str| {
+            [
+                "overhead/*",
+                frames,
+                cmd,
+                pose,
+                odom,
+                "reward",
+                "tracking",
+                "estop",
+                "status",
+            ]
+            .map(str::to_owned)
+        };
+        let live = drawn("preview_cmd", "preview_pose", "preview_odom", "preview");
+        let every = drawn("cmd", "pose", "odom", "obs");
+        let expected = |prefix: &str, chunks: &[String]| -> Vec<String> {
+            chunks
                 .iter()
-                .chain(&drawn)
                 .map(|chunk| format!("{prefix}/{chunk}"))
                 .chain(["offworld/@v1/estop".to_owned()])
                 .collect()
         };
         assert_eq!(
-            Scope::All.data_keys(Topic::Preview),
-            expected("offworld/@v1/*/*", "preview")
+            Scope::All.data_keys(false),
+            expected("offworld/@v1/*/*", &live)
         );
         assert_eq!(
-            Scope::env(env.clone()).data_keys(Topic::Obs),
-            expected("offworld/@v1/real/enclosure-a", "obs")
+            Scope::env(env.clone()).data_keys(true),
+            expected("offworld/@v1/real/enclosure-a", &every)
         );
         assert_eq!(
-            Scope::KeyExpr("offworld/@v1/sim/**".into()).data_keys(Topic::Obs),
+            Scope::KeyExpr("offworld/@v1/sim/**".into()).data_keys(true),
             ["offworld/@v1/sim/**"]
         );
         assert_eq!(
             Scope::env(env).alive_keys(),
             ["offworld/@v1/real/enclosure-a/alive/**"]
         );
-        assert!(names_every_frame("offworld/@v1/sim/**"));
-        assert!(names_every_frame("offworld/@v1/*/farm-0/obs"));
-        assert!(!names_every_frame("offworld/@v1/*/*/preview"));
-        for key in Scope::All.data_keys(Topic::Obs) {
-            zenoh::key_expr::KeyExpr::try_from(key).expect("valid key expression");
+        assert!(names_an_original("offworld/@v1/sim/**"));
+        assert!(names_an_original("offworld/@v1/*/farm-0/obs"));
+        assert!(names_an_original("offworld/@v1/*/farm-0/pose"));
+        assert!(!names_an_original("offworld/@v1/*/*/preview"));
+        assert!(!names_an_original("offworld/@v1/*/*/preview_cmd"));
+        assert!(!names_an_original("offworld/@v1/*/*/reward"));
+        for every_message in [false, true] {
+            for key in Scope::All.data_keys(every_message) {
+                zenoh::key_expr::KeyExpr::try_from(key).expect("valid key expression");
+            }
+        }
+    }
+
+    /// A key expression naming originals and copies alike logs each
+    /// message once: a live view the copies, a file the originals.
+    #[test]
+    fn a_monitor_logs_either_the_originals_or_their_copies() {
+        let key = |topic: &str| format!("offworld/@v1/sim/farm-0/{topic}");
+        for (topic, live, file) in [
+            ("obs", false, true),
+            ("preview", true, false),
+            ("cmd", false, true),
+            ("preview_cmd", true, false),
+            ("pose", false, true),
+            ("preview_pose", true, false),
+            ("odom", false, true),
+            ("preview_odom", true, false),
+            ("reward", true, true),
+            ("overhead/top", true, true),
+        ] {
+            assert_eq!(takes(false, &key(topic)), live, "a live view, {topic}");
+            assert_eq!(takes(true, &key(topic)), file, "a file, {topic}");
         }
     }
 }

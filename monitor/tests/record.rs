@@ -191,21 +191,19 @@ async fn publish_step(pubs: &Session, env: &EnvId, step: u32, last: bool) -> any
         angular_z: if step.is_multiple_of(2) { 0.0 } else { 1.25 },
         duration_s: if step == 0 { 0.0 } else { 0.6 },
     };
-    put(pubs, &env.key(Topic::Cmd), encode(&cmd)?, None).await?;
-    // Every frame, and (as a watched twin does) the same frame as the
-    // preview a live view takes.
-    let frame = encode(&camera_frame(seq))?;
-    put(pubs, &env.key(Topic::Obs), frame.clone(), None).await?;
-    put(pubs, &env.key(Topic::Preview), frame, None).await?;
+    // Each message, and (as a watched controller and twin do) its viewers'
+    // copy, which a live view takes.
     let tag = SeqTag { seq };
-    put(pubs, &env.key(Topic::Pose), encode(&pose(seq))?, Some(tag)).await?;
-    put(
-        pubs,
-        &env.key(Topic::Odom),
-        encode(&odometry(seq))?,
-        Some(tag),
-    )
-    .await?;
+    for (topic, payload, tag) in [
+        (Topic::Cmd, encode(&cmd)?, None),
+        (Topic::Obs, encode(&camera_frame(seq))?, None),
+        (Topic::Pose, encode(&pose(seq))?, Some(tag)),
+        (Topic::Odom, encode(&odometry(seq))?, Some(tag)),
+    ] {
+        put(pubs, &env.key(topic), payload.clone(), tag).await?;
+        let copy = topic.viewers_copy().context("a copied topic")?;
+        put(pubs, &env.key(copy), payload, tag).await?;
+    }
     let reward = if last { 1.0 } else { -0.01 };
     let event = EpisodeEvent {
         experiment: "monitor-test".into(),
@@ -725,9 +723,10 @@ async fn many_envs_share_one_recording_each_under_its_own_root() -> anyhow::Resu
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_live_view_takes_the_preview_and_a_file_every_frame() -> anyhow::Result<()> {
-    // Two `obs` frames, then one `preview`, then a reward (after which every
-    // earlier sample was handled: lanes are taken in arrival order).
+async fn a_live_view_takes_the_viewers_copies_and_a_file_every_message() -> anyhow::Result<()> {
+    // Two of each message the controller reads whole (`obs`, `cmd`, `pose`,
+    // `odom`), then one of each viewers' copy, then a reward (after which
+    // every earlier sample was handled: lanes are taken in arrival order).
     let (monitor_session, pubs) = loopback_pair().await?;
     let env = unique_env("preview")?;
     let paths = ["preview-file", "preview-live", "preview-keyexpr"].map(temp_rrd);
@@ -739,7 +738,7 @@ async fn a_live_view_takes_the_preview_and_a_file_every_frame() -> anyhow::Resul
             .newest_frames()
             .scope(Scope::env(env.clone())),
     )?;
-    // A key expression naming both kinds: the live view ignores `obs`.
+    // A key expression naming both kinds: the live view ignores the originals.
     let live_keyexpr = spawn(
         MonitorConfig::new(Sink::File(paths[2].clone()))
             .newest_frames()
@@ -748,30 +747,48 @@ async fn a_live_view_takes_the_preview_and_a_file_every_frame() -> anyhow::Resul
     for monitor in [&file, &live, &live_keyexpr] {
         wait_for_route(&pubs, &env, monitor).await?;
     }
+    let messages = |seq: u64| -> anyhow::Result<_> {
+        let cmd = MotionCommand {
+            seq,
+            linear_x: 0.1,
+            angular_z: 0.0,
+            duration_s: 0.6,
+        };
+        let tag = Some(SeqTag { seq });
+        Ok([
+            (Topic::Obs, encode(&camera_frame(seq))?, None),
+            (Topic::Cmd, encode(&cmd)?, None),
+            (Topic::Pose, encode(&pose(seq))?, tag),
+            (Topic::Odom, encode(&odometry(seq))?, tag),
+        ])
+    };
     for seq in [1, 2] {
-        put(
-            &pubs,
-            &env.key(Topic::Obs),
-            encode(&camera_frame(seq))?,
-            None,
-        )
-        .await?;
+        for (topic, payload, tag) in messages(seq)? {
+            put(&pubs, &env.key(topic), payload, tag).await?;
+        }
     }
-    put(
-        &pubs,
-        &env.key(Topic::Preview),
-        encode(&camera_frame(3))?,
-        None,
-    )
-    .await?;
+    for (topic, payload, tag) in messages(3)? {
+        let copy = topic.viewers_copy().context("a copied topic")?;
+        put(&pubs, &env.key(copy), payload, tag).await?;
+    }
     let event = plain_event(0, 3);
     put(&pubs, &env.key(Topic::Reward), encode(&event)?, None).await?;
-    for (monitor, frames) in [(file, 2), (live, 1), (live_keyexpr, 1)] {
+    for (monitor, each) in [(file, 2), (live, 1), (live_keyexpr, 1)] {
         wait_for(&monitor, "the reward", |s| s.rewards == 1).await?;
         let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
         assert_eq!(
             (stats.frames, stats.superseded_frames, stats.dropped_frames),
-            (frames, 0, 0),
+            (each, 0, 0),
+            "{stats:?}"
+        );
+        assert_eq!(
+            (
+                stats.commands,
+                stats.poses,
+                stats.odometry,
+                stats.decode_errors
+            ),
+            (each, each, each, 0),
             "{stats:?}"
         );
     }

@@ -16,7 +16,7 @@ use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault,
     Pose2D, PoseStamped, SeqTag, Time, TrackingStatus,
 };
-use offworld_runtime::preview::PreviewPublisher;
+use offworld_runtime::preview::{PreviewPublisher, WatchedPublisher};
 use offworld_runtime::seal::{Gate, SealKey, Sealed};
 use offworld_runtime::wire::{self, Delivery, RequestError};
 use offworld_runtime::WireError;
@@ -427,6 +427,7 @@ impl Outbox {
         let obs = wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?;
         let mut preview = PreviewPublisher::declare(session, env)?;
         let odom_out = wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?;
+        let odom_out = WatchedPublisher::declare(session, env, Topic::Odom, odom_out)?;
         let fault = wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?;
         let ack = wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?;
         let echo = wire::publisher(session, env.key(Topic::HeartbeatEcho), Delivery::Latest)
@@ -444,7 +445,7 @@ impl Outbox {
                         Outgoing::Answer { seq, odom, frame } => {
                             if let Some(odom) = odom {
                                 let tag = SeqTag { seq };
-                                if let Err(e) = wire::publish_tagged(&odom_out, &*odom, tag) {
+                                if let Err(e) = odom_out.publish_tagged(&*odom, tag) {
                                     tracing::warn!("odom put failed: {e}");
                                 }
                             }
@@ -506,6 +507,7 @@ impl OdometryStream {
         mut sensors: watch::Receiver<Sensors>,
     ) -> Result<Self, AgentError> {
         let out = wire::publisher(session, env.key(Topic::Odom), Delivery::Latest).await?;
+        let out = WatchedPublisher::declare(session, env, Topic::Odom, out)?;
         let task = tokio::spawn(async move {
             let mut last = None;
             // Ends when the robot's sensors are gone (or on drop, aborted).
@@ -523,7 +525,7 @@ impl OdometryStream {
                 {
                     continue;
                 }
-                if let Err(e) = wire::publish(&out, &*odom) {
+                if let Err(e) = out.publish(&*odom) {
                     tracing::debug!("odometry stream put failed: {e}");
                 }
                 last = Some(odom);

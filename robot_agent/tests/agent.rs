@@ -19,7 +19,8 @@ use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrame, EStop, EStopAck, GotoReply, GotoRequest, Header, Heartbeat, Image, MotionCommand,
-    MotionFault, Odometry, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, Time,
+    MotionFault, Odometry, PixelEncoding, Point, Pose, Pose2D, PoseStamped, Quaternion, SeqTag,
+    Time,
 };
 use offworld_runtime::seal::{SealKey, Sealer};
 use offworld_runtime::session::loopback_pair;
@@ -724,6 +725,37 @@ async fn a_watched_agent_shows_each_answers_frame_as_the_preview() {
         }
     }
     panic!("no preview while watched");
+}
+
+/// A viewer of the odometry reads its copy (`preview_odom`, never holding
+/// the agent up): the answer to a command, tagged with it, comes through.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watched_agent_copies_each_answers_odometry_for_viewers() {
+    let mut rig = Rig::start("odom-copy", config()).await;
+    let base = rig.robot.simulate_base(None);
+    let copies = rig
+        .ctl
+        .declare_subscriber(rig.env.key(Topic::PreviewOdom))
+        .await
+        .expect("copy subscriber");
+    // Until the subscription has reached the agent (bounded); the base's
+    // untagged stream is copied too.
+    for seq in 1..=20 {
+        rig.cmd(seq, 0.0, 0.0, 0.0).await;
+        rig.answer(seq).await;
+        let deadline = Instant::now() + Duration::from_secs(1);
+        while let Ok(Ok(sample)) =
+            tokio::time::timeout_at(deadline.into(), copies.recv_async()).await
+        {
+            codec::decode_payload::<Odometry>(sample.payload()).expect("Odometry");
+            if wire::decode_attachment::<SeqTag>(&sample).map(|t| t.seq) == Some(seq) {
+                base.abort();
+                rig.finish().await;
+                return;
+            }
+        }
+    }
+    panic!("no tagged odometry copy while watched");
 }
 
 /// 2.0 m/s and −9 rad/s are clamped to exactly the ROSbot's 0.7 m/s and

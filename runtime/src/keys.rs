@@ -181,6 +181,14 @@ pub enum Topic {
     /// dropped rather than waited for, published only while someone
     /// subscribes ([`crate::preview::PreviewPublisher`]).
     Preview,
+    /// Controller → viewers: each `cmd`, dropped rather than waited for,
+    /// published only while someone subscribes
+    /// ([`crate::preview::WatchedPublisher`]).
+    PreviewCmd,
+    /// Twin/tracker → viewers: each `pose`, as [`Topic::PreviewCmd`].
+    PreviewPose,
+    /// Twin/robot → viewers: each `odom`, as [`Topic::PreviewCmd`].
+    PreviewOdom,
     /// Twin/robot → all: `nav_msgs/Odometry` (pub/sub).
     Odom,
     /// Robot → controller: [`crate::msg::MotionFault`], a command that
@@ -242,6 +250,30 @@ impl Topic {
     /// The key chunk of this topic.
     pub fn as_str(self) -> &'static str {
         self.into()
+    }
+
+    /// Where viewers read this topic: its copy, delivered [`Latest`] and
+    /// put only while watched, for the topics the controller and recorders
+    /// must receive whole (delivered [`Every`]); `None` for the others,
+    /// which viewers read as they are. A viewer reading the originals
+    /// would hold up their publishers when it stalls.
+    ///
+    /// [`Latest`]: crate::wire::Delivery::Latest
+    /// [`Every`]: crate::wire::Delivery::Every
+    pub fn viewers_copy(self) -> Option<Topic> {
+        match self {
+            Topic::Obs => Some(Topic::Preview),
+            Topic::Cmd => Some(Topic::PreviewCmd),
+            Topic::Pose => Some(Topic::PreviewPose),
+            Topic::Odom => Some(Topic::PreviewOdom),
+            _ => None,
+        }
+    }
+
+    /// The topic whose viewers' copy this is ([`Topic::viewers_copy`]).
+    pub fn copied_from(self) -> Option<Topic> {
+        use strum::IntoEnumIterator;
+        Topic::iter().find(|t| t.viewers_copy() == Some(self))
     }
 }
 
@@ -319,6 +351,10 @@ mod tests {
             "offworld/@v1/sim/monolith-0/preview"
         );
         assert_eq!(
+            env.key(Topic::PreviewOdom),
+            "offworld/@v1/sim/monolith-0/preview_odom"
+        );
+        assert_eq!(
             env.alive_key(Component::Controller),
             "offworld/@v1/sim/monolith-0/alive/controller"
         );
@@ -357,5 +393,29 @@ mod tests {
         }
         zenoh::key_expr::KeyExpr::try_from(all_envs_selector()).expect("selector");
         zenoh::key_expr::KeyExpr::try_from(topic_on_all_envs(Topic::Spec)).expect("sel");
+    }
+
+    /// Viewers read a copy of exactly the streams delivered `Every`, and
+    /// each copy names its original.
+    #[test]
+    fn viewers_read_copies_of_the_every_streams() {
+        use strum::IntoEnumIterator;
+        let copied: Vec<(Topic, Topic)> = Topic::iter()
+            .filter_map(|t| t.viewers_copy().map(|copy| (t, copy)))
+            .collect();
+        assert_eq!(
+            copied,
+            vec![
+                (Topic::Cmd, Topic::PreviewCmd),
+                (Topic::Obs, Topic::Preview),
+                (Topic::Odom, Topic::PreviewOdom),
+                (Topic::Pose, Topic::PreviewPose),
+            ]
+        );
+        for (original, copy) in copied {
+            assert_eq!(copy.copied_from(), Some(original));
+        }
+        assert_eq!(Topic::Reward.copied_from(), None);
+        assert_eq!(Topic::Reward.viewers_copy(), None);
     }
 }

@@ -14,6 +14,16 @@
 //! while a subscriber matches (Zenoh's matching status), so with nobody
 //! watching a frame costs one atomic load.
 //!
+//! The other streams delivered `Every` — `cmd`, and the `pose` and `odom`
+//! answering it — have a viewers' copy too ([`Topic::viewers_copy`],
+//! [`WatchedPublisher`]): every message, not thinned (a few small ones a
+//! step), `Latest` at [`PREVIEW_PRIORITY`], put only while watched. Their
+//! publishers' streams between commands (tracker poses, the base's
+//! odometry) are copied alike, so a viewer reads the copies only. A viewer
+//! reading an original would hold its publisher up whenever it stalls: a
+//! frozen live monitor held every step of its env through the router for
+//! the 5 s Zenoh waits before closing a blocked link.
+//!
 //! A congested link to a viewer costs the publisher Zenoh's drop patience
 //! (`session::PATIENT_DROP_US`) once; until that link's queue drains, the
 //! next previews to it are dropped at once (Zenoh marks the queue
@@ -29,8 +39,11 @@ use zenoh::pubsub::Publisher;
 use zenoh::qos::Priority;
 use zenoh::{Session, Wait};
 
+use crate::codec;
 use crate::keys::{EnvId, Topic};
-use crate::wire::{self, Delivery};
+use crate::msg::SeqTag;
+use crate::seal::Sealer;
+use crate::wire::{self, Delivery, RequestError};
 
 /// At most one preview frame this often (50 a second: what a viewer shows).
 pub const PREVIEW_PERIOD: Duration = Duration::from_millis(20);
@@ -71,26 +84,24 @@ impl Pacer {
     }
 }
 
-/// Publishes an env's preview: offered every frame, it puts one a
-/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise. Its owner's
-/// loop waits with [`PreviewPublisher::recv_flushing`], which puts a held
-/// frame when its period ends with no newer one offered (a sim paused
-/// between steps).
-pub struct PreviewPublisher {
+/// The viewers' copy of one of an env's topics ([`Topic::viewers_copy`]):
+/// `Latest` at [`PREVIEW_PRIORITY`], put only while a subscriber matches.
+pub struct ViewerCopy {
     publisher: Publisher<'static>,
     /// Whether a subscriber matches, kept by Zenoh's matching listener
     /// (which lives as long as the publisher).
     watched: Arc<AtomicBool>,
-    pacer: Pacer,
-    /// The newest frame offered too early, put when its period ends.
-    held: Option<ZBytes>,
 }
 
-impl PreviewPublisher {
-    /// Declares `env`'s preview publisher on `session` and follows whether
-    /// anyone subscribes to it (local or remote subscribers alike).
-    pub fn declare(session: &Session, env: &EnvId) -> zenoh::Result<Self> {
-        let publisher = wire::publisher(session, env.key(Topic::Preview), Delivery::Latest)
+impl ViewerCopy {
+    /// Declares the copy of `env`'s `topic` on `session` and follows whether
+    /// anyone subscribes to it (local or remote subscribers alike). An
+    /// error for a topic viewers read as it is.
+    pub fn declare(session: &Session, env: &EnvId, topic: Topic) -> zenoh::Result<Self> {
+        let copy = topic
+            .viewers_copy()
+            .ok_or_else(|| format!("`{}` has no viewers' copy", topic.as_str()))?;
+        let publisher = wire::publisher(session, env.key(copy), Delivery::Latest)
             .priority(PREVIEW_PRIORITY)
             .wait()?;
         let watched = Arc::new(AtomicBool::new(false));
@@ -100,9 +111,121 @@ impl PreviewPublisher {
             .callback(move |status| flag.store(status.matching(), Ordering::Relaxed))
             .background()
             .wait()?;
+        Ok(Self { publisher, watched })
+    }
+
+    /// Whether anyone subscribes to the copy now.
+    pub fn watched(&self) -> bool {
+        self.watched.load(Ordering::Relaxed)
+    }
+
+    /// Puts `payload` (and its `attachment`) if someone watches; returns
+    /// whether it went out. A failed put is logged, never fatal: the copy
+    /// is only for people watching.
+    pub fn put(&self, payload: ZBytes, attachment: Option<ZBytes>) -> bool {
+        if !self.watched() {
+            return false;
+        }
+        match self.publisher.put(payload).attachment(attachment).wait() {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::debug!("put on {} failed: {e}", self.publisher.key_expr());
+                false
+            }
+        }
+    }
+}
+
+/// A publisher of an env's `cmd`, `pose` or `odom` that also puts each
+/// message, the same bytes, on the topic's [`ViewerCopy`] while someone
+/// watches it (after the original went out).
+pub struct WatchedPublisher {
+    publisher: Publisher<'static>,
+    copy: ViewerCopy,
+}
+
+impl WatchedPublisher {
+    /// `publisher`, declared on `env`'s `topic`, with the topic's copy.
+    pub fn declare(
+        session: &Session,
+        env: &EnvId,
+        topic: Topic,
+        publisher: Publisher<'static>,
+    ) -> zenoh::Result<Self> {
         Ok(Self {
             publisher,
-            watched,
+            copy: ViewerCopy::declare(session, env, topic)?,
+        })
+    }
+
+    /// Whether anyone subscribes to the viewers' copy now.
+    pub fn watched(&self) -> bool {
+        self.copy.watched()
+    }
+
+    /// The original's key.
+    pub fn key_expr(&self) -> &str {
+        self.publisher.key_expr().as_str()
+    }
+
+    /// Publishes `msg` ([`wire::publish`]).
+    pub fn publish<T: serde::Serialize>(&self, msg: &T) -> Result<(), RequestError> {
+        self.send(codec::encode(msg)?, None)
+    }
+
+    /// Publishes `msg` tagged with the command it answers
+    /// ([`wire::publish_tagged`]).
+    pub fn publish_tagged<T: serde::Serialize>(
+        &self,
+        msg: &T,
+        tag: SeqTag,
+    ) -> Result<(), RequestError> {
+        self.send(codec::encode(msg)?, Some(codec::encode(&tag)?.into()))
+    }
+
+    /// Publishes `msg`, sealed by `sealer` when there is one
+    /// ([`wire::publish_sealed`]); viewers get the seal too.
+    pub fn publish_sealed<T: serde::Serialize>(
+        &self,
+        msg: &T,
+        sealer: Option<&Sealer>,
+    ) -> Result<(), RequestError> {
+        let bytes = codec::encode(msg)?;
+        let seal =
+            sealer.map(|s| ZBytes::from(s.seal(self.publisher.key_expr().as_str(), &bytes, &[])));
+        self.send(bytes, seal)
+    }
+
+    fn send(&self, bytes: Vec<u8>, attachment: Option<ZBytes>) -> Result<(), RequestError> {
+        let bytes = ZBytes::from(bytes);
+        self.publisher
+            .put(bytes.clone())
+            .attachment(attachment.clone())
+            .wait()
+            .map_err(|e| RequestError::Zenoh(e.to_string()))?;
+        self.copy.put(bytes, attachment);
+        Ok(())
+    }
+}
+
+/// Publishes an env's preview: offered every frame, it puts one a
+/// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise. Its owner's
+/// loop waits with [`PreviewPublisher::recv_flushing`], which puts a held
+/// frame when its period ends with no newer one offered (a sim paused
+/// between steps).
+pub struct PreviewPublisher {
+    copy: ViewerCopy,
+    pacer: Pacer,
+    /// The newest frame offered too early, put when its period ends.
+    held: Option<ZBytes>,
+}
+
+impl PreviewPublisher {
+    /// Declares `env`'s preview publisher on `session` and follows whether
+    /// anyone subscribes to it (local or remote subscribers alike).
+    pub fn declare(session: &Session, env: &EnvId) -> zenoh::Result<Self> {
+        Ok(Self {
+            copy: ViewerCopy::declare(session, env, Topic::Obs)?,
             pacer: Pacer::new(PREVIEW_PERIOD),
             held: None,
         })
@@ -110,7 +233,7 @@ impl PreviewPublisher {
 
     /// Whether anyone subscribes to the preview now.
     pub fn watched(&self) -> bool {
-        self.watched.load(Ordering::Relaxed)
+        self.copy.watched()
     }
 
     /// Offers the encoded `obs` frame just published; returns whether it
@@ -126,7 +249,7 @@ impl PreviewPublisher {
             self.held = Some(frame.clone());
             return false;
         }
-        self.put(frame.clone())
+        self.copy.put(frame.clone(), None)
     }
 
     /// How long until the held frame is due (zero: now); `None` when no
@@ -145,7 +268,7 @@ impl PreviewPublisher {
             return false;
         }
         match self.held.take() {
-            Some(frame) if self.watched() && self.pacer.take(now) => self.put(frame),
+            Some(frame) if self.watched() && self.pacer.take(now) => self.copy.put(frame, None),
             _ => false,
         }
     }
@@ -163,18 +286,6 @@ impl PreviewPublisher {
                     self.flush();
                 }
                 Err(RecvTimeoutError::Disconnected) => return Err(RecvError),
-            }
-        }
-    }
-
-    /// A failed put is logged, never fatal: the preview is only for people
-    /// watching.
-    fn put(&self, frame: ZBytes) -> bool {
-        match self.publisher.put(frame).wait() {
-            Ok(()) => true,
-            Err(e) => {
-                tracing::debug!("preview put on {} failed: {e}", self.publisher.key_expr());
-                false
             }
         }
     }

@@ -1,6 +1,8 @@
 //! The camera's preview over real Zenoh sessions: nothing is put while
 //! nobody subscribes; a subscriber (remote or in the same session) gets the
 //! very bytes offered, at most one a period; it stops when they leave.
+//! The viewers' copies of commands, poses and odometry carry each message
+//! with its tag, droppable and at low priority, only while watched.
 
 mod common;
 
@@ -8,10 +10,18 @@ use std::time::{Duration, Instant};
 
 use offworld_runtime::codec;
 use offworld_runtime::msg::CameraFrame;
-use offworld_runtime::preview::{PreviewPublisher, PREVIEW_PERIOD};
+use offworld_runtime::msg::{PoseStamped, SeqTag};
+use offworld_runtime::preview::{
+    PreviewPublisher, ViewerCopy, WatchedPublisher, PREVIEW_PERIOD, PREVIEW_PRIORITY,
+};
 use offworld_runtime::session::loopback_pair;
+use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::{EnvId, Topic};
 use zenoh::bytes::ZBytes;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::qos::CongestionControl;
+use zenoh::sample::Sample;
 
 /// How long a declaration may take to reach the other session.
 const PATIENCE: Duration = Duration::from_secs(10);
@@ -119,5 +129,69 @@ async fn the_preview_goes_out_only_while_watched_and_at_most_once_a_period() -> 
         .await?
         .map_err(|e| anyhow::anyhow!(e))?;
     assert_eq!(sample.payload().to_bytes(), frame.to_bytes());
+    Ok(())
+}
+
+/// The next sample `sub` receives (bounded wait).
+async fn next(sub: &Subscriber<FifoChannelHandler<Sample>>) -> anyhow::Result<Sample> {
+    tokio::time::timeout(PATIENCE, sub.recv_async())
+        .await?
+        .map_err(|e| anyhow::anyhow!(e))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewers_get_a_droppable_copy_of_each_message_only_while_watching() -> anyhow::Result<()> {
+    let (twin, others) = loopback_pair().await?;
+    let env = EnvId::sim(&format!("copy-{}", std::process::id()))?;
+    let err = |e: zenoh::Error| anyhow::anyhow!(e);
+    let pose = wire::publisher(&twin, env.key(Topic::Pose), Delivery::Every)
+        .await
+        .map_err(err)?;
+    let pose = WatchedPublisher::declare(&twin, &env, Topic::Pose, pose).map_err(err)?;
+    assert!(
+        ViewerCopy::declare(&twin, &env, Topic::Reward).is_err(),
+        "viewers read `reward` itself"
+    );
+    let message = |seq: u64| {
+        let mut msg = PoseStamped::default();
+        msg.pose.position.x = seq as f64;
+        msg
+    };
+    // Nobody watches: no copy is put.
+    assert!(!pose.watched());
+    pose.publish_tagged(&message(1), SeqTag { seq: 1 })?;
+
+    // The controller's subscription is declared first: it is routed once
+    // the viewer's is (one session's declarations travel in order).
+    let controller = others
+        .declare_subscriber(env.key(Topic::Pose))
+        .await
+        .map_err(err)?;
+    let viewer = others
+        .declare_subscriber(env.key(Topic::PreviewPose))
+        .await
+        .map_err(err)?;
+    until("the viewer is matched", || pose.watched()).await;
+    pose.publish_tagged(&message(2), SeqTag { seq: 2 })?;
+    pose.publish(&message(3))?;
+    for (seq, tag) in [(2, Some(2)), (3, None)] {
+        let original = next(&controller).await?;
+        let copy = next(&viewer).await?;
+        assert_eq!(copy.key_expr().as_str(), env.key(Topic::PreviewPose));
+        assert_eq!(copy.payload().to_bytes(), original.payload().to_bytes());
+        let got: PoseStamped = codec::decode_payload(copy.payload())?;
+        assert_eq!(got, message(seq));
+        assert_eq!(wire::decode_attachment::<SeqTag>(&copy).map(|t| t.seq), tag);
+        assert_eq!(
+            wire::decode_attachment::<SeqTag>(&original).map(|t| t.seq),
+            tag
+        );
+        assert_eq!(copy.congestion_control(), CongestionControl::Drop);
+        assert_eq!(copy.priority(), PREVIEW_PRIORITY);
+        assert_eq!(original.congestion_control(), CongestionControl::Block);
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert!(viewer.try_recv().map_err(err)?.is_none(), "one copy each");
+    assert!(controller.try_recv().map_err(err)?.is_none());
     Ok(())
 }

@@ -31,7 +31,7 @@ use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, SeqTag, Time,
 };
-use offworld_runtime::preview::PreviewPublisher;
+use offworld_runtime::preview::{PreviewPublisher, WatchedPublisher};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::WireError;
 use zenoh::liveliness::LivelinessToken;
@@ -462,10 +462,10 @@ struct Publishers {
     obs: Publisher<'static>,
     /// The frames for viewers: thinned, droppable, only while watched.
     preview: PreviewPublisher,
-    odom: Publisher<'static>,
-    pose: Publisher<'static>,
+    odom: WatchedPublisher,
+    pose: WatchedPublisher,
     /// The tracker-rate pose stream between commands: the next supersedes.
-    pose_stream: Publisher<'static>,
+    pose_stream: WatchedPublisher,
     /// Commands refused (e-stop).
     fault: Publisher<'static>,
     estop_ack: Publisher<'static>,
@@ -484,13 +484,18 @@ impl Worker {
                 .wait()
                 .map_err(|e| SimError::Zenoh(e.to_string()))
         };
+        // Viewers read a copy of what the controller reads whole.
+        let watched = |topic: Topic, delivery: Delivery| {
+            WatchedPublisher::declare(&session, &env, topic, declare(topic, delivery)?)
+                .map_err(|e| SimError::Zenoh(e.to_string()))
+        };
         let publishers = Publishers {
             obs: declare(Topic::Obs, Delivery::Every)?,
             preview: PreviewPublisher::declare(&session, &env)
                 .map_err(|e| SimError::Zenoh(e.to_string()))?,
-            odom: declare(Topic::Odom, Delivery::Every)?,
-            pose: declare(Topic::Pose, Delivery::Every)?,
-            pose_stream: declare(Topic::Pose, Delivery::Latest)?,
+            odom: watched(Topic::Odom, Delivery::Every)?,
+            pose: watched(Topic::Pose, Delivery::Every)?,
+            pose_stream: watched(Topic::Pose, Delivery::Latest)?,
             fault: declare(Topic::Fault, Delivery::Every)?,
             estop_ack: declare(Topic::EStopAck, Delivery::Every)?,
         };
@@ -639,7 +644,7 @@ impl Worker {
             }
             if now >= next_pose {
                 let msg = ros_out::world_pose(&self.twin.tracker_reading(), Time::now());
-                if let Err(e) = wire::publish(&self.publishers.pose_stream, &msg) {
+                if let Err(e) = self.publishers.pose_stream.publish(&msg) {
                     tracing::warn!("pose put failed: {e}");
                 }
                 next_pose = now + tracker_period;
@@ -794,8 +799,8 @@ impl Worker {
 }
 
 /// Publishes `msg`, tagged with the command it answers.
-fn publish<T: serde::Serialize>(publisher: &Publisher<'_>, msg: &T, tag: SeqTag) {
-    if let Err(e) = wire::publish_tagged(publisher, msg, tag) {
+fn publish<T: serde::Serialize>(publisher: &WatchedPublisher, msg: &T, tag: SeqTag) {
+    if let Err(e) = publisher.publish_tagged(msg, tag) {
         tracing::warn!("put on {} failed: {e}", publisher.key_expr());
     }
 }

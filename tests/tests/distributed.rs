@@ -15,12 +15,13 @@ use offworld_client::operator::{press_estop, EStopScope, PressError};
 
 use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::farm::SimFarm;
+use offworld_deploy::process::Process;
 use offworld_deploy::site::{generate_certificates, Role, RouterSite};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::*;
 use offworld_runtime::wire;
-use offworld_runtime::{ContractError, ErrorCode};
+use offworld_runtime::{ContractError, ErrorCode, WireError};
 use offworld_tests::netns::Namespaces;
 use zenoh::sample::Sample;
 use zenoh::Session;
@@ -320,6 +321,8 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
     let (stolen_obs, _stolen_obs_sub) = Seen::watch(&mallory, &env.key(Topic::Obs)).await;
     let (stolen_preview, _stolen_preview_sub) =
         Seen::watch(&mallory, &env.key(Topic::Preview)).await;
+    let (stolen_copies, _stolen_copies_sub) =
+        Seen::watch(&mallory, &format!("{}/preview_$*", env.prefix())).await;
     // …but may watch episode events.
     let (events, _events_sub) = Seen::watch(&mallory, &env.key(Topic::Reward)).await;
     settle().await;
@@ -337,6 +340,12 @@ async fn access_control_denies_each_role_what_it_may_not_do() -> anyhow::Result<
         0,
         "a trainer read the camera's preview"
     );
+    // …nor the viewers' copies of commands, poses and odometry, which the
+    // operator (watching every key) has the controller and twin send.
+    for copy in ["preview_cmd", "preview_pose", "preview_odom"] {
+        assert!(spy.count(copy, None) >= 3, "control: {copy} flows");
+        assert_eq!(stolen_copies.count(copy, None), 0, "a trainer read {copy}");
+    }
     assert!(
         events.count("reward", None) >= 3,
         "spectator keys are readable"
@@ -929,6 +938,20 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::SimController, sim.key(Topic::Preview), false),
         (Role::TrackerAgent, real.key(Topic::Preview), false),
         (Role::TrackerAgent, real.key(Topic::Pose), true),
+        // The viewers' copies: each from whoever publishes the original.
+        (Role::Controller, real.key(Topic::PreviewCmd), true),
+        (Role::SimController, sim.key(Topic::PreviewCmd), true),
+        (Role::SimController, real.key(Topic::PreviewCmd), false),
+        (Role::Controller, real.key(Topic::PreviewPose), false),
+        (Role::SimTwin, sim.key(Topic::PreviewPose), true),
+        (Role::SimTwin, sim.key(Topic::PreviewOdom), true),
+        (Role::SimTwin, real.key(Topic::PreviewPose), false),
+        (Role::SimTwin, sim.key(Topic::PreviewCmd), false),
+        (Role::RobotAgent, real.key(Topic::PreviewOdom), true),
+        (Role::RobotAgent, real.key(Topic::PreviewPose), false),
+        (Role::TrackerAgent, real.key(Topic::PreviewPose), true),
+        (Role::TrackerAgent, real.key(Topic::PreviewCmd), false),
+        (Role::Trainer, real.key(Topic::PreviewPose), false),
         (Role::TrackerAgent, real.key(Topic::Cmd), false),
         (Role::TrackerAgent, real.key(Topic::Obs), false),
         (Role::TrackerAgent, sim.key(Topic::Pose), false),
@@ -1085,5 +1108,97 @@ async fn the_robot_agent_joins_the_mtls_router_with_its_role_file() -> anyhow::R
             .collect();
         assert_eq!(acks, [("real/mtls-0", "robot_agent", summary)]);
     }
+    Ok(())
+}
+
+/// Steps for `span` (at most 20,000 steps), starting a new episode at each
+/// end; the number of steps, or the first step's error.
+async fn step_for(gym: &mut EnvClient, span: Duration) -> Result<u32, WireError> {
+    let started = std::time::Instant::now();
+    let mut steps = 0;
+    while started.elapsed() < span && steps < 20_000 {
+        let reply = gym.step(Action::Discrete(i64::from(steps % 3))).await?;
+        steps += 1;
+        if reply.terminated || reply.truncated {
+            gym.reset(Seed::Continue).await?;
+        }
+    }
+    Ok(steps)
+}
+
+/// An operator's monitor on the env, a process of its own, subscribed.
+async fn watching(site: &SimSite, extra: &[&str]) -> anyhow::Result<Process> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let (env, serve) = (site.env.to_string(), format!("127.0.0.1:{port}"));
+    let mut command = vec!["monitor", "--env", &env, "--serve", &serve];
+    command.extend(["--serve-memory-mib", "16", "--no-blueprint"]);
+    command.extend(extra);
+    let mut monitor = site.farm.site.spawn(Role::Operator, &command)?;
+    // It serves viewers once its sink is open, then subscribes.
+    for _ in 0..300 {
+        if let Some(status) = monitor.0.try_wait()? {
+            anyhow::bail!("the monitor exited: {status}");
+        }
+        if std::net::TcpStream::connect(&serve).is_ok() {
+            tokio::time::sleep(Duration::from_secs(2)).await;
+            return Ok(monitor);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    anyhow::bail!("the monitor did not start within 30 s")
+}
+
+/// A live monitor that freezes (an operator's laptop asleep mid-view, a
+/// process stopped) holds up no step: it reads only the viewers' copies,
+/// which the router drops for it. Control: a frozen monitor that takes
+/// every message (`--every-frame`, as the controller reads them) does hold
+/// its env's steps up, for the 5 s the router waits before closing its link.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frozen_live_monitor_holds_up_no_step() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = SimSite::start("frozen")?;
+    let trainer = site.session(Role::Trainer).await;
+    // A step of this twin answers within milliseconds: one held up for
+    // 2 s fails.
+    let timeouts = ClientTimeouts {
+        step: Duration::from_secs(2),
+        ..ClientTimeouts::default()
+    };
+    let mut gym = EnvClient::open_when_ready(
+        &trainer,
+        &site.env,
+        request("frozen", false),
+        timeouts,
+        Duration::from_secs(30),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!(e))?;
+    gym.reset(Seed::Fixed(1))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let freeze = Duration::from_secs(8);
+
+    let control = watching(&site, &["--every-frame"]).await?;
+    step_for(&mut gym, Duration::from_secs(1)).await?;
+    control.signal("STOP");
+    let held_up = step_for(&mut gym, freeze).await;
+    drop(control); // killed
+    let error = held_up.expect_err("control: a frozen reader of every message holds steps up");
+    assert_eq!(error.code, ErrorCode::Timeout, "{error}");
+    // The router closed the frozen monitor's link: steps go on.
+    tokio::time::sleep(Duration::from_secs(6)).await;
+    gym.reset(Seed::Fixed(2))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+
+    let live = watching(&site, &[]).await?;
+    step_for(&mut gym, Duration::from_secs(1)).await?;
+    live.signal("STOP");
+    let steps = step_for(&mut gym, freeze).await?;
+    live.signal("CONT");
+    assert!(steps > 100, "{steps} steps while the monitor was frozen");
+    gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
     Ok(())
 }

@@ -21,8 +21,9 @@ use std::time::Duration;
 use nalgebra::Isometry3;
 use offworld_runtime::keys::{Component, EnvId, Topic};
 use offworld_runtime::msg::{Header, Point, Pose, PoseStamped, Quaternion, Time, TrackingStatus};
+use offworld_runtime::preview::WatchedPublisher;
 use offworld_runtime::seal::{SealKey, Sealer};
-use offworld_runtime::wire;
+use offworld_runtime::wire::{self, Delivery};
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
@@ -189,7 +190,8 @@ pub struct TrackerNode {
     env: EnvId,
     calibration: Calibration,
     config: AgentConfig,
-    pose_key: String,
+    /// Poses (`Latest`: the next supersedes), and their copy for viewers.
+    pose: WatchedPublisher,
     tracking_key: String,
     sealer: Option<Arc<Sealer>>,
     samples: mpsc::Receiver<SourceItem>,
@@ -226,6 +228,12 @@ impl TrackerNode {
             .declare_token(env.alive_key(Component::TrackerAgent))
             .await
             .map_err(|e| AgentError::Zenoh(e.to_string()))?;
+        let zenoh_error = |e: zenoh::Error| AgentError::Zenoh(e.to_string());
+        let pose = wire::publisher(session, env.key(Topic::Pose), Delivery::Latest)
+            .await
+            .map_err(zenoh_error)?;
+        let pose =
+            WatchedPublisher::declare(session, &env, Topic::Pose, pose).map_err(zenoh_error)?;
         let source_name = source.describe();
         let (tx, samples) = mpsc::channel(QUEUE);
         let pump = AbortOnDrop(tokio::spawn(pump(source, tx)));
@@ -238,7 +246,7 @@ impl TrackerNode {
         });
         Ok(Self {
             session: session.clone(),
-            pose_key: env.key(Topic::Pose),
+            pose,
             tracking_key: env.key(Topic::Tracking),
             sealer: config.seal_key.clone().map(|k| Arc::new(Sealer::new(k))),
             env,
@@ -360,8 +368,8 @@ impl TrackerNode {
             header: Header::new(Time::now(), WORLD_FRAME),
             pose: to_pose_msg(&pose),
         };
-        wire::put_sealed(&self.session, &self.pose_key, &msg, self.sealer.as_deref())
-            .await
+        self.pose
+            .publish_sealed(&msg, self.sealer.as_deref())
             .map_err(|e| AgentError::Zenoh(e.to_string()))?;
         self.stats.published += 1;
         self.last_accepted = Some(Instant::now());

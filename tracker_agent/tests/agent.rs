@@ -169,6 +169,8 @@ struct Observed {
     client: Session,
     env: EnvId,
     poses: Subscriber<FifoChannelHandler<Sample>>,
+    /// The poses' viewers' copy (`preview_pose`).
+    copies: Subscriber<FifoChannelHandler<Sample>>,
     tracking: Subscriber<FifoChannelHandler<Sample>>,
 }
 
@@ -179,6 +181,10 @@ async fn observe(env: &str) -> Observed {
         .declare_subscriber(env.key(Topic::Pose))
         .await
         .expect("pose subscriber");
+    let copies = client
+        .declare_subscriber(env.key(Topic::PreviewPose))
+        .await
+        .expect("copy subscriber");
     let tracking = client
         .declare_subscriber(env.key(Topic::Tracking))
         .await
@@ -189,6 +195,7 @@ async fn observe(env: &str) -> Observed {
         client,
         env,
         poses,
+        copies,
         tracking,
     }
 }
@@ -201,6 +208,7 @@ async fn agent_publishes_world_poses_skips_bad_lines_and_reports_tracking_loss()
             client,
             env,
             poses,
+            copies,
             tracking,
         } = observe("real/enclosure-t").await;
 
@@ -261,6 +269,11 @@ async fn agent_publishes_world_poses_skips_bad_lines_and_reports_tracking_loss()
                 .await
                 .unwrap_or_else(|| panic!("pose {i}"));
             assert_pose_eq(&got, want);
+            // Viewers read the same poses from their copy.
+            let copy: PoseStamped = next(&copies, Duration::from_secs(3))
+                .await
+                .unwrap_or_else(|| panic!("copy of pose {i}"));
+            assert_eq!(copy, got);
         }
         let status = status_where(&tracking, Duration::from_secs(2), |s| s.tracking).await;
         assert_eq!(status.reason, "tracking");
@@ -322,6 +335,7 @@ async fn replayed_file_keeps_its_timing_then_tracking_ends() {
             env,
             poses,
             tracking,
+            ..
         } = observe("real/replay-t").await;
 
         // 6 poses 40 ms apart (unix-time stamps), replayed twice as fast.
@@ -387,6 +401,7 @@ async fn outliers_lose_tracking_until_the_relock_and_dropping_the_agent_reports_
             env,
             poses,
             tracking,
+            ..
         } = observe("real/relock-t").await;
         let server = LineServer::start();
         let config = AgentConfig {

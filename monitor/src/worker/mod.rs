@@ -494,12 +494,12 @@ impl Worker {
             return Err(Skip::Decode(format!("`{key}` is not an env key")));
         };
         let topic = topic_of(key).unwrap_or_default().to_owned();
+        // Each message (a file) or the viewers' copy (a live view).
         match topic.as_str() {
-            "cmd" => self.on_cmd(&env, sample, wall),
-            // Every frame (a file) or the preview (a live view).
+            "cmd" | "preview_cmd" => self.on_cmd(&env, sample, wall),
             "obs" | "preview" => self.on_obs(&env, sample, wall),
-            "pose" => self.on_pose(&env, sample, wall),
-            "odom" => self.on_odom(&env, sample, wall),
+            "pose" | "preview_pose" => self.on_pose(&env, sample, wall),
+            "odom" | "preview_odom" => self.on_odom(&env, sample, wall),
             "reward" => self.on_reward(&env, sample, wall),
             "tracking" => self.on_tracking(&env, sample, wall),
             "status" => self.on_status(&env, sample, wall),
