@@ -314,7 +314,7 @@ impl RobotLink {
         let cmd = wire::publisher(session, env.key(Topic::Cmd), Delivery::Every)
             .priority(wire::CONTROL_PRIORITY)
             .await?;
-        let cmd = WatchedPublisher::declare(session, env, Topic::Cmd, cmd)?;
+        let cmd = WatchedPublisher::new(session, env, Topic::Cmd, cmd);
         Ok(Self {
             session: session.clone(),
             env: env.clone(),

@@ -116,9 +116,10 @@ async fn with_monitor(
 ) -> anyhow::Result<(Vec<f64>, f64, MonitorStats)> {
     let monitor = Monitor::spawn(
         session,
-        // As a live view logs (each camera's newest frame), into
-        // a file so the sink is real; a file's own default, every frame,
-        // cost 15–21 % of the rate here (docs/performance.md, session 33).
+        // As a live view logs (the viewers' copies, each camera's newest
+        // frame), into a file so the sink is real; a file's own default,
+        // every message, cost 15–21 % of the rate here (docs/performance.md,
+        // session 33).
         MonitorConfig::new(Sink::File(path.to_owned()))
             .scope(Scope::env(env.clone()))
             .newest_frames(),

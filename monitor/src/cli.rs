@@ -56,7 +56,7 @@ pub struct Args {
     /// to a viewer or server too (default there: their viewers' copies —
     /// the env's preview, at most one frame every 20 ms — dropped rather
     /// than waited for, so a fast sim env's monitor costs its steps little
-    /// and a stalled one holds up nothing; `--save` keeps every message).
+    /// and a stalled one holds up no step; `--save` keeps every message).
     /// They are then delivered as the controller's are: a viewer too slow
     /// for them, or frozen, holds up the env.
     #[arg(long)]

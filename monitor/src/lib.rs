@@ -272,7 +272,7 @@ pub struct MonitorConfig {
     /// dropped rather than waited for, see `offworld_runtime::preview`), and
     /// a camera's frame waiting for the worker is replaced by its next one
     /// (counted as superseded): what a viewer shows, while a sim env steps
-    /// thousands a second, and a stalled viewer holds up no publisher.
+    /// thousands a second, and a stalled viewer holds up no step.
     pub every_frame: bool,
 }
 
@@ -297,13 +297,17 @@ impl MonitorConfig {
         }
     }
 
-    /// Log every camera frame, not only each camera's newest.
+    /// Log every camera frame, command, pose and odometry message, as the
+    /// controller receives them (a stall of this monitor then holds their
+    /// publishers up), not the viewers' copies.
     pub fn every_frame(mut self) -> Self {
         self.every_frame = true;
         self
     }
 
-    /// Log each camera's newest frame only, whatever the sink.
+    /// Log what a live view logs, whatever the sink: the viewers' copies
+    /// (frames thinned, commands, poses and odometry droppable), of the
+    /// frames each camera's newest.
     pub fn newest_frames(mut self) -> Self {
         self.every_frame = false;
         self
@@ -461,25 +465,27 @@ impl Monitor {
         // which Zenoh drops rather than wait for: it never receives the
         // thousands of frames a second a sim env's controller takes, nor
         // holds up their publishers when it stalls. A `Scope::KeyExpr` may
-        // name both: the other kind is ignored.
-        let mixed = matches!(config.scope, Scope::KeyExpr(_));
+        // name both an original and its copy: the other is ignored.
+        let mut ignored = Vec::new();
         if let Scope::KeyExpr(key) = &config.scope {
+            ignored = ignored_topics(key, every_message);
             if !every_message && names_an_original(key) {
                 tracing::warn!(
                     "`{key}` names `obs`, `cmd`, `pose` or `odom`: Zenoh delivers each of their \
-                     messages to this live view, which uses only their viewers' copies, and a \
-                     stall of it holds up their publishers (name the topics instead, or `--env`)"
+                     messages to this live view, and a stall of it holds up their publishers \
+                     (name their viewers' copies `preview`, `preview_cmd`, `preview_pose`, \
+                     `preview_odom` instead, or use `--env`)"
                 );
             }
         }
         for key in config.scope.data_keys(every_message) {
-            let (shared, running) = (shared.clone(), callbacks.clone());
+            let (shared, running, ignored) = (shared.clone(), callbacks.clone(), ignored.clone());
             let sub = session
                 .declare_subscriber(key.as_str())
                 .callback(move |sample: Sample| {
                     let _running = &running;
                     let key = sample.key_expr().as_str();
-                    if mixed && !takes(every_message, key) {
+                    if ignored.contains(&topic_of(key).unwrap_or_default()) {
                         return;
                     }
                     let lane = lane_of(key);
@@ -550,20 +556,29 @@ fn names_an_original(key: &str) -> bool {
         .any(|original| key.intersects(&original))
 }
 
-/// Whether a monitor taking `every_message` (or, if not, the viewers'
-/// copies) logs a sample on `key`.
-fn takes(every_message: bool, key: &str) -> bool {
-    let topic = topic_of(key).unwrap_or_default();
-    let is = |t: Topic| t.as_str() == topic;
-    let original = DRAWN_TOPICS
+/// The topics a monitor on key expression `key` ignores: of each original
+/// and viewers' copy it names both of, the one it does not log (the copy
+/// when taking `every_message`, else the original).
+fn ignored_topics(key: &str, every_message: bool) -> Vec<&'static str> {
+    let Ok(key) = zenoh::key_expr::KeyExpr::try_from(key) else {
+        return Vec::new();
+    };
+    let names = |topic: Topic| {
+        zenoh::key_expr::KeyExpr::try_from(topic_on_all_envs(topic))
+            .is_ok_and(|all| key.intersects(&all))
+    };
+    DRAWN_TOPICS
         .iter()
-        .any(|&t| t.viewers_copy().is_some() && is(t));
-    let copy = DRAWN_TOPICS.iter().filter_map(|t| t.viewers_copy()).any(is);
-    if every_message {
-        !copy
-    } else {
-        !original
-    }
+        .filter_map(|&original| Some((original, original.viewers_copy()?)))
+        .filter(|&(original, copy)| names(original) && names(copy))
+        .map(|(original, copy)| {
+            if every_message {
+                copy.as_str()
+            } else {
+                original.as_str()
+            }
+        })
+        .collect()
 }
 
 /// How long shutdown waits for callbacks still running after their
@@ -785,25 +800,27 @@ mod tests {
         }
     }
 
-    /// A key expression naming originals and copies alike logs each
-    /// message once: a live view the copies, a file the originals.
+    /// A key expression naming an original and its viewers' copy logs
+    /// each message once: a live view the copy, a file the original. One
+    /// naming only an original or only a copy logs what it names.
     #[test]
     fn a_monitor_logs_either_the_originals_or_their_copies() {
-        let key = |topic: &str| format!("offworld/@v1/sim/farm-0/{topic}");
-        for (topic, live, file) in [
-            ("obs", false, true),
-            ("preview", true, false),
-            ("cmd", false, true),
-            ("preview_cmd", true, false),
-            ("pose", false, true),
-            ("preview_pose", true, false),
-            ("odom", false, true),
-            ("preview_odom", true, false),
-            ("reward", true, true),
-            ("overhead/top", true, true),
-        ] {
-            assert_eq!(takes(false, &key(topic)), live, "a live view, {topic}");
-            assert_eq!(takes(true, &key(topic)), file, "a file, {topic}");
+        let every = "offworld/@v1/sim/farm-0/**";
+        assert_eq!(
+            ignored_topics(every, false),
+            ["obs", "cmd", "pose", "odom"],
+            "a live view"
+        );
+        assert_eq!(
+            ignored_topics(every, true),
+            ["preview", "preview_cmd", "preview_pose", "preview_odom"],
+            "a file"
+        );
+        for only in ["offworld/@v1/*/*/pose", "offworld/@v1/*/*/preview_pose"] {
+            for every_message in [false, true] {
+                assert!(ignored_topics(only, every_message).is_empty(), "{only}");
+            }
         }
+        assert!(ignored_topics("offworld/@v1/*/*/reward", false).is_empty());
     }
 }

@@ -427,7 +427,7 @@ impl Outbox {
         let obs = wire::publisher(session, env.key(Topic::Obs), Delivery::Every).await?;
         let mut preview = PreviewPublisher::declare(session, env)?;
         let odom_out = wire::publisher(session, env.key(Topic::Odom), Delivery::Every).await?;
-        let odom_out = WatchedPublisher::declare(session, env, Topic::Odom, odom_out)?;
+        let odom_out = WatchedPublisher::new(session, env, Topic::Odom, odom_out);
         let fault = wire::publisher(session, env.key(Topic::Fault), Delivery::Every).await?;
         let ack = wire::publisher(session, env.key(Topic::EStopAck), Delivery::Every).await?;
         let echo = wire::publisher(session, env.key(Topic::HeartbeatEcho), Delivery::Latest)
@@ -443,14 +443,14 @@ impl Outbox {
                 while let Ok(message) = preview.recv_flushing(&outgoing) {
                     let result = match message {
                         Outgoing::Answer { seq, odom, frame } => {
-                            if let Some(odom) = odom {
-                                let tag = SeqTag { seq };
-                                if let Err(e) = odom_out.publish_tagged(&*odom, tag) {
-                                    tracing::warn!("odom put failed: {e}");
-                                }
-                            }
+                            let odom_copy = odom.and_then(|odom| {
+                                odom_out
+                                    .answer_tagged(&*odom, SeqTag { seq })
+                                    .inspect_err(|e| tracing::warn!("odom put failed: {e}"))
+                                    .ok()
+                            });
                             // Encoded once: the same bytes go to viewers.
-                            match codec::encode(&*frame) {
+                            let sent = match codec::encode(&*frame) {
                                 Ok(bytes) => {
                                     let bytes = ZBytes::from(bytes);
                                     let sent = obs
@@ -463,7 +463,12 @@ impl Outbox {
                                     sent
                                 }
                                 Err(e) => Err(e.into()),
+                            };
+                            // The viewers' copy once the answer is out.
+                            if let Some(copy) = odom_copy {
+                                copy.put();
                             }
+                            sent
                         }
                         Outgoing::Fault(f) => wire::publish(&fault, &f),
                         Outgoing::Ack(a) => wire::publish(&ack, &a),
@@ -507,7 +512,7 @@ impl OdometryStream {
         mut sensors: watch::Receiver<Sensors>,
     ) -> Result<Self, AgentError> {
         let out = wire::publisher(session, env.key(Topic::Odom), Delivery::Latest).await?;
-        let out = WatchedPublisher::declare(session, env, Topic::Odom, out)?;
+        let out = WatchedPublisher::new(session, env, Topic::Odom, out);
         let task = tokio::spawn(async move {
             let mut last = None;
             // Ends when the robot's sensors are gone (or on drop, aborted).

@@ -1,4 +1,5 @@
-//! The camera's preview: an env's `obs` frames thinned for people watching.
+//! What people watching read: the camera's preview (an env's `obs` frames
+//! thinned) and the viewers' copies of its commands, poses and odometry.
 //!
 //! Every `obs` frame is delivered [`Delivery::Every`] (Zenoh `Block`): the
 //! controller cannot do without one, so a reader too slow for that stream
@@ -48,9 +49,10 @@ use crate::wire::{self, Delivery, RequestError};
 /// At most one preview frame this often (50 a second: what a viewer shows).
 pub const PREVIEW_PERIOD: Duration = Duration::from_millis(20);
 
-/// Below Zenoh's default (`Data`), where `obs`, `odom`, faults and e-stop
-/// acknowledgements travel: a link queues each priority apart and sends the
-/// higher first.
+/// The priority of every viewers' copy (the preview, `preview_cmd`,
+/// `preview_pose`, `preview_odom`): below Zenoh's default (`Data`), where
+/// `obs`, `odom`, faults and e-stop acknowledgements travel: a link queues
+/// each priority apart and sends the higher first.
 pub const PREVIEW_PRIORITY: Priority = Priority::DataLow;
 
 /// At most one frame a period: the first frame offered once `period` has
@@ -137,30 +139,57 @@ impl ViewerCopy {
 }
 
 /// A publisher of an env's `cmd`, `pose` or `odom` that also puts each
-/// message, the same bytes, on the topic's [`ViewerCopy`] while someone
-/// watches it (after the original went out).
+/// message, the same bytes and tag, on the topic's [`ViewerCopy`] while
+/// someone watches it, after the original went out. A copy's put can wait
+/// Zenoh's drop patience (50 ms) on a link congested at its priority: an
+/// answer's copies are put once the whole answer is out
+/// ([`WatchedPublisher::answer_tagged`]).
 pub struct WatchedPublisher {
     publisher: Publisher<'static>,
-    copy: ViewerCopy,
+    /// `None` if it could not be declared: viewers then see nothing of
+    /// this topic, and the publisher works on.
+    copy: Option<ViewerCopy>,
+}
+
+/// An answer's copy for viewers, to be put once the whole answer is out.
+#[must_use = "put it once the answer is out"]
+pub struct DueCopy<'a> {
+    copy: Option<&'a ViewerCopy>,
+    payload: ZBytes,
+    tag: ZBytes,
+}
+
+impl DueCopy<'_> {
+    /// Puts the copy if someone watches; returns whether it went out.
+    pub fn put(self) -> bool {
+        self.copy
+            .is_some_and(|copy| copy.put(self.payload, Some(self.tag)))
+    }
 }
 
 impl WatchedPublisher {
-    /// `publisher`, declared on `env`'s `topic`, with the topic's copy.
-    pub fn declare(
+    /// `publisher`, declared on `env`'s `topic`, with the topic's copy (a
+    /// copy that cannot be declared is logged and left out).
+    pub fn new(
         session: &Session,
         env: &EnvId,
         topic: Topic,
         publisher: Publisher<'static>,
-    ) -> zenoh::Result<Self> {
-        Ok(Self {
-            publisher,
-            copy: ViewerCopy::declare(session, env, topic)?,
-        })
+    ) -> Self {
+        let copy = ViewerCopy::declare(session, env, topic)
+            .inspect_err(|e| {
+                tracing::warn!(
+                    "no viewers' copy of {}: {e}; live monitors will not show it",
+                    publisher.key_expr()
+                )
+            })
+            .ok();
+        Self { publisher, copy }
     }
 
     /// Whether anyone subscribes to the viewers' copy now.
     pub fn watched(&self) -> bool {
-        self.copy.watched()
+        self.copy.as_ref().is_some_and(ViewerCopy::watched)
     }
 
     /// The original's key.
@@ -168,43 +197,60 @@ impl WatchedPublisher {
         self.publisher.key_expr().as_str()
     }
 
-    /// Publishes `msg` ([`wire::publish`]).
+    /// Publishes `msg` ([`wire::publish`]), then its copy.
     pub fn publish<T: serde::Serialize>(&self, msg: &T) -> Result<(), RequestError> {
-        self.send(codec::encode(msg)?, None)
+        let payload = self.send(codec::encode(msg)?, None)?;
+        self.copy_now(payload, None);
+        Ok(())
     }
 
     /// Publishes `msg` tagged with the command it answers
-    /// ([`wire::publish_tagged`]).
-    pub fn publish_tagged<T: serde::Serialize>(
+    /// ([`wire::publish_tagged`]); its copy is put by the [`DueCopy`]
+    /// returned, once the rest of the answer is out.
+    pub fn answer_tagged<T: serde::Serialize>(
         &self,
         msg: &T,
         tag: SeqTag,
-    ) -> Result<(), RequestError> {
-        self.send(codec::encode(msg)?, Some(codec::encode(&tag)?.into()))
+    ) -> Result<DueCopy<'_>, RequestError> {
+        let tag = ZBytes::from(codec::encode(&tag)?);
+        let payload = self.send(codec::encode(msg)?, Some(tag.clone()))?;
+        Ok(DueCopy {
+            copy: self.copy.as_ref(),
+            payload,
+            tag,
+        })
     }
 
     /// Publishes `msg`, sealed by `sealer` when there is one
-    /// ([`wire::publish_sealed`]); viewers get the seal too.
+    /// ([`wire::publish_sealed`]), then its copy, unsealed (a seal is made
+    /// for the original's key, and nobody acts on a copy).
     pub fn publish_sealed<T: serde::Serialize>(
         &self,
         msg: &T,
         sealer: Option<&Sealer>,
     ) -> Result<(), RequestError> {
         let bytes = codec::encode(msg)?;
-        let seal =
-            sealer.map(|s| ZBytes::from(s.seal(self.publisher.key_expr().as_str(), &bytes, &[])));
-        self.send(bytes, seal)
+        let seal = sealer.map(|s| ZBytes::from(s.seal(self.key_expr(), &bytes, &[])));
+        let payload = self.send(bytes, seal)?;
+        self.copy_now(payload, None);
+        Ok(())
     }
 
-    fn send(&self, bytes: Vec<u8>, attachment: Option<ZBytes>) -> Result<(), RequestError> {
-        let bytes = ZBytes::from(bytes);
+    /// Puts the original; returns its payload for the copy.
+    fn send(&self, bytes: Vec<u8>, attachment: Option<ZBytes>) -> Result<ZBytes, RequestError> {
+        let payload = ZBytes::from(bytes);
         self.publisher
-            .put(bytes.clone())
-            .attachment(attachment.clone())
+            .put(payload.clone())
+            .attachment(attachment)
             .wait()
             .map_err(|e| RequestError::Zenoh(e.to_string()))?;
-        self.copy.put(bytes, attachment);
-        Ok(())
+        Ok(payload)
+    }
+
+    fn copy_now(&self, payload: ZBytes, attachment: Option<ZBytes>) {
+        if let Some(copy) = &self.copy {
+            copy.put(payload, attachment);
+        }
     }
 }
 

@@ -147,7 +147,7 @@ async fn viewers_get_a_droppable_copy_of_each_message_only_while_watching() -> a
     let pose = wire::publisher(&twin, env.key(Topic::Pose), Delivery::Every)
         .await
         .map_err(err)?;
-    let pose = WatchedPublisher::declare(&twin, &env, Topic::Pose, pose).map_err(err)?;
+    let pose = WatchedPublisher::new(&twin, &env, Topic::Pose, pose);
     assert!(
         ViewerCopy::declare(&twin, &env, Topic::Reward).is_err(),
         "viewers read `reward` itself"
@@ -157,9 +157,9 @@ async fn viewers_get_a_droppable_copy_of_each_message_only_while_watching() -> a
         msg.pose.position.x = seq as f64;
         msg
     };
-    // Nobody watches: no copy is put.
+    // Nobody watches: no copy is due.
     assert!(!pose.watched());
-    pose.publish_tagged(&message(1), SeqTag { seq: 1 })?;
+    assert!(!pose.answer_tagged(&message(1), SeqTag { seq: 1 })?.put());
 
     // The controller's subscription is declared first: it is routed once
     // the viewer's is (one session's declarations travel in order).
@@ -172,7 +172,9 @@ async fn viewers_get_a_droppable_copy_of_each_message_only_while_watching() -> a
         .await
         .map_err(err)?;
     until("the viewer is matched", || pose.watched()).await;
-    pose.publish_tagged(&message(2), SeqTag { seq: 2 })?;
+    // An answer's copy is put when due; a stream's at once.
+    let due = pose.answer_tagged(&message(2), SeqTag { seq: 2 })?;
+    assert!(due.put());
     pose.publish(&message(3))?;
     for (seq, tag) in [(2, Some(2)), (3, None)] {
         let original = next(&controller).await?;
@@ -193,5 +195,9 @@ async fn viewers_get_a_droppable_copy_of_each_message_only_while_watching() -> a
     tokio::time::sleep(Duration::from_millis(100)).await;
     assert!(viewer.try_recv().map_err(err)?.is_none(), "one copy each");
     assert!(controller.try_recv().map_err(err)?.is_none());
+    // The viewer leaves: no copy is due any more.
+    viewer.undeclare().await.map_err(err)?;
+    until("the viewer has left", || !pose.watched()).await;
+    assert!(!pose.answer_tagged(&message(4), SeqTag { seq: 4 })?.put());
     Ok(())
 }

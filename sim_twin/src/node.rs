@@ -31,7 +31,7 @@ use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, SeqTag, Time,
 };
-use offworld_runtime::preview::{PreviewPublisher, WatchedPublisher};
+use offworld_runtime::preview::{DueCopy, PreviewPublisher, WatchedPublisher};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::WireError;
 use zenoh::liveliness::LivelinessToken;
@@ -486,8 +486,12 @@ impl Worker {
         };
         // Viewers read a copy of what the controller reads whole.
         let watched = |topic: Topic, delivery: Delivery| {
-            WatchedPublisher::declare(&session, &env, topic, declare(topic, delivery)?)
-                .map_err(|e| SimError::Zenoh(e.to_string()))
+            Ok::<_, SimError>(WatchedPublisher::new(
+                &session,
+                &env,
+                topic,
+                declare(topic, delivery)?,
+            ))
         };
         let publishers = Publishers {
             obs: declare(Topic::Obs, Delivery::Every)?,
@@ -780,9 +784,9 @@ impl Worker {
         // bytes, and hands the buffer back when done.
         let frame = self.frames.render(&mut self.twin, seq, stamp);
         self.stats.record(compute_started.elapsed());
-        publish(&self.publishers.pose, &pose, tag);
+        let pose_copy = answer(&self.publishers.pose, &pose, tag);
         let odom = ros_out::odometry(&self.twin, stamp);
-        publish(&self.publishers.odom, &odom, tag);
+        let odom_copy = answer(&self.publishers.odom, &odom, tag);
         match frame {
             Ok(payload) => match self.publishers.obs.put(payload.clone()).wait() {
                 // After the answer, like the overhead view.
@@ -793,14 +797,23 @@ impl Worker {
             },
             Err(e) => tracing::error!("cannot encode frame: {e}"),
         }
-        // After the answer: the step never waits for the spectators' view.
+        // After the answer: the step never waits for the viewers.
+        for copy in [pose_copy, odom_copy].into_iter().flatten() {
+            copy.put();
+        }
         self.publish_overhead();
     }
 }
 
-/// Publishes `msg`, tagged with the command it answers.
-fn publish<T: serde::Serialize>(publisher: &WatchedPublisher, msg: &T, tag: SeqTag) {
-    if let Err(e) = publisher.publish_tagged(msg, tag) {
-        tracing::warn!("put on {} failed: {e}", publisher.key_expr());
-    }
+/// Publishes `msg`, tagged with the command it answers; its copy for
+/// viewers is due once the answer is out.
+fn answer<'a, T: serde::Serialize>(
+    publisher: &'a WatchedPublisher,
+    msg: &T,
+    tag: SeqTag,
+) -> Option<DueCopy<'a>> {
+    publisher
+        .answer_tagged(msg, tag)
+        .inspect_err(|e| tracing::warn!("put on {} failed: {e}", publisher.key_expr()))
+        .ok()
 }

@@ -952,6 +952,10 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::TrackerAgent, real.key(Topic::PreviewPose), true),
         (Role::TrackerAgent, real.key(Topic::PreviewCmd), false),
         (Role::Trainer, real.key(Topic::PreviewPose), false),
+        (Role::Controller, real.key(Topic::PreviewOdom), false),
+        (Role::SimController, sim.key(Topic::PreviewPose), false),
+        (Role::RobotAgent, real.key(Topic::PreviewCmd), false),
+        (Role::TrackerAgent, real.key(Topic::PreviewOdom), false),
         (Role::TrackerAgent, real.key(Topic::Cmd), false),
         (Role::TrackerAgent, real.key(Topic::Obs), false),
         (Role::TrackerAgent, sim.key(Topic::Pose), false),
@@ -1136,7 +1140,9 @@ async fn watching(site: &SimSite, extra: &[&str]) -> anyhow::Result<Process> {
     command.extend(["--serve-memory-mib", "16", "--no-blueprint"]);
     command.extend(extra);
     let mut monitor = site.farm.site.spawn(Role::Operator, &command)?;
-    // It serves viewers once its sink is open, then subscribes.
+    // It serves viewers once its sink is open, then subscribes at once
+    // (the test's control proves that within 2 s it has; an operator's
+    // `alive/monitor` token does not cross the router's ACL).
     for _ in 0..300 {
         if let Some(status) = monitor.0.try_wait()? {
             anyhow::bail!("the monitor exited: {status}");

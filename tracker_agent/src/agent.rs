@@ -228,12 +228,10 @@ impl TrackerNode {
             .declare_token(env.alive_key(Component::TrackerAgent))
             .await
             .map_err(|e| AgentError::Zenoh(e.to_string()))?;
-        let zenoh_error = |e: zenoh::Error| AgentError::Zenoh(e.to_string());
         let pose = wire::publisher(session, env.key(Topic::Pose), Delivery::Latest)
             .await
-            .map_err(zenoh_error)?;
-        let pose =
-            WatchedPublisher::declare(session, &env, Topic::Pose, pose).map_err(zenoh_error)?;
+            .map_err(|e| AgentError::Zenoh(e.to_string()))?;
+        let pose = WatchedPublisher::new(session, &env, Topic::Pose, pose);
         let source_name = source.describe();
         let (tx, samples) = mpsc::channel(QUEUE);
         let pump = AbortOnDrop(tokio::spawn(pump(source, tx)));
