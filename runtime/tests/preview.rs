@@ -177,7 +177,12 @@ async fn viewers_get_a_droppable_copy_of_each_message_only_while_watching() -> a
     assert!(due.put());
     pose.publish(&message(3))?;
     for (seq, tag) in [(2, Some(2)), (3, None)] {
-        let original = next(&controller).await?;
+        // Message 1, put before the controller subscribed, may still reach
+        // it (it was in flight): the originals from 2 on are compared.
+        let mut original = next(&controller).await?;
+        if codec::decode_payload::<PoseStamped>(original.payload())? == message(1) {
+            original = next(&controller).await?;
+        }
         let copy = next(&viewer).await?;
         assert_eq!(copy.key_expr().as_str(), env.key(Topic::PreviewPose));
         assert_eq!(copy.payload().to_bytes(), original.payload().to_bytes());
