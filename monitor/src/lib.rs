@@ -546,27 +546,27 @@ impl Monitor {
 /// Whether a key expression names some env's `obs`, `cmd`, `pose` or
 /// `odom`, which a live view reads from their viewers' copies.
 fn names_an_original(key: &str) -> bool {
-    let Ok(key) = zenoh::key_expr::KeyExpr::try_from(key) else {
-        return false;
-    };
+    let names = names_on_some_env(key);
     DRAWN_TOPICS
         .iter()
-        .filter(|topic| topic.viewers_copy().is_some())
-        .filter_map(|&topic| zenoh::key_expr::KeyExpr::try_from(topic_on_all_envs(topic)).ok())
-        .any(|original| key.intersects(&original))
+        .any(|&topic| topic.viewers_copy().is_some() && names(topic))
+}
+
+/// Whether key expression `key` names `topic` of some env (never, for a
+/// malformed `key`).
+fn names_on_some_env(key: &str) -> impl Fn(Topic) -> bool {
+    let key = zenoh::key_expr::OwnedKeyExpr::try_from(key.to_owned()).ok();
+    move |topic| {
+        let all = zenoh::key_expr::OwnedKeyExpr::try_from(topic_on_all_envs(topic));
+        matches!((&key, all), (Some(key), Ok(all)) if key.intersects(&all))
+    }
 }
 
 /// The topics a monitor on key expression `key` ignores: of each original
 /// and viewers' copy it names both of, the one it does not log (the copy
 /// when taking `every_message`, else the original).
 fn ignored_topics(key: &str, every_message: bool) -> Vec<&'static str> {
-    let Ok(key) = zenoh::key_expr::KeyExpr::try_from(key) else {
-        return Vec::new();
-    };
-    let names = |topic: Topic| {
-        zenoh::key_expr::KeyExpr::try_from(topic_on_all_envs(topic))
-            .is_ok_and(|all| key.intersects(&all))
-    };
+    let names = names_on_some_env(key);
     DRAWN_TOPICS
         .iter()
         .filter_map(|&original| Some((original, original.viewers_copy()?)))

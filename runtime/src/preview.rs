@@ -221,8 +221,8 @@ impl WatchedPublisher {
         })
     }
 
-    /// Publishes `msg`, sealed by `sealer` when there is one
-    /// ([`wire::publish_sealed`]), then its copy, unsealed (a seal is made
+    /// Publishes `msg`, sealed by `sealer` when there is one (as
+    /// [`wire::put_sealed`] seals), then its copy, unsealed (a seal is made
     /// for the original's key, and nobody acts on a copy).
     pub fn publish_sealed<T: serde::Serialize>(
         &self,

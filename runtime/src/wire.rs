@@ -140,20 +140,8 @@ pub fn publisher(
 /// whether awaited or not (an [`Delivery::Every`] put holds the caller while
 /// it waits for room), so this one is plainly blocking.
 pub fn publish<T: Serialize>(publisher: &Publisher<'_>, msg: &T) -> Result<(), RequestError> {
-    publish_sealed(publisher, msg, None)
-}
-
-/// [`publish`], sealed by `sealer` when there is one ([`crate::seal`]).
-pub fn publish_sealed<T: Serialize>(
-    publisher: &Publisher<'_>,
-    msg: &T,
-    sealer: Option<&Sealer>,
-) -> Result<(), RequestError> {
-    let bytes = codec::encode(msg)?;
-    let seal = sealer.map(|s| s.seal(publisher.key_expr().as_str(), &bytes, &[]));
     publisher
-        .put(bytes)
-        .attachment(seal.map(ZBytes::from))
+        .put(codec::encode(msg)?)
         .wait()
         .map_err(|e| RequestError::Zenoh(e.to_string()))
 }
