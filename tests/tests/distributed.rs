@@ -985,6 +985,9 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
             real.alive_key(Component::RobotAgent),
             false,
         ),
+        (Role::Operator, real.alive_key(Component::Monitor), true),
+        (Role::Operator, real.alive_key(Component::RobotAgent), false),
+        (Role::Trainer, sim.alive_key(Component::Monitor), false),
     ];
     let mut sessions = Vec::new();
     let mut put_by = Vec::new();
@@ -1139,21 +1142,40 @@ async fn watching(site: &SimSite, extra: &[&str]) -> anyhow::Result<Process> {
     let mut command = vec!["monitor", "--env", &env, "--serve", &serve];
     command.extend(["--serve-memory-mib", "16", "--no-blueprint"]);
     command.extend(extra);
+    // A previous monitor's token is gone once the router dropped its link.
+    let (onlooker, token) = (
+        site.session(Role::Trainer).await,
+        site.env.alive_key(Component::Monitor),
+    );
+    let watched = || async {
+        match onlooker.liveliness().get(token.as_str()).await {
+            Ok(replies) => replies
+                .recv_async()
+                .await
+                .is_ok_and(|reply| reply.result().is_ok()),
+            Err(_) => false,
+        }
+    };
+    for _ in 0..300 {
+        if !watched().await {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     let mut monitor = site.farm.site.spawn(Role::Operator, &command)?;
-    // It serves viewers once its sink is open, then subscribes at once
-    // (the test's control proves that within 2 s it has; an operator's
-    // `alive/monitor` token does not cross the router's ACL).
+    // Its `alive/monitor` token follows its subscriptions on the same link:
+    // once the router passes it on, the router sends this monitor the env's
+    // messages.
     for _ in 0..300 {
         if let Some(status) = monitor.0.try_wait()? {
             anyhow::bail!("the monitor exited: {status}");
         }
-        if std::net::TcpStream::connect(&serve).is_ok() {
-            tokio::time::sleep(Duration::from_secs(2)).await;
+        if watched().await {
             return Ok(monitor);
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    anyhow::bail!("the monitor did not start within 30 s")
+    anyhow::bail!("the monitor did not watch the env within 30 s")
 }
 
 /// A live monitor that freezes (an operator's laptop asleep mid-view, a
