@@ -1,7 +1,8 @@
 //! Step rate of a sim env with and without a monitor attached (issue 25:
 //! the monitor must cost at most 3 %). An embedded twin + controller at 84×84
-//! RGBD on one session, the gym client on a second, the monitor (logging as
-//! a live view does, the env's preview, into an `.rrd` in the temp dir) on
+//! RGBD on one session, the gym client on a second, the monitor (a live
+//! view as `offworld monitor --serve` runs one: the viewers' copies, served
+//! to rerun viewers over gRPC) on
 //! the first (embedded) or a third (remote), all over loopback TCP; a bare
 //! subscriber to every key of the env (`obs` too) on the third shows what
 //! Zenoh's delivery of every frame costs. Rounds alternate the modes and
@@ -105,24 +106,32 @@ async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
     Ok((times, process_cpu() - cpu))
 }
 
-/// One round of steps with a monitor (saving to `path`) on `session`, and
+/// A loopback address with a port free a moment ago.
+fn free_local_port() -> anyhow::Result<std::net::SocketAddr> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?)
+}
+
+/// One round of steps with a live monitor on `session`, and
 /// the CPU the process used from the first step to the monitor's last
 /// row written.
 async fn with_monitor(
     session: &zenoh::Session,
     env: &EnvId,
-    path: &std::path::Path,
     gym: &mut EnvClient,
 ) -> anyhow::Result<(Vec<f64>, f64, MonitorStats)> {
     let monitor = Monitor::spawn(
         session,
-        // As a live view logs (the viewers' copies, each camera's newest
-        // frame), into a file so the sink is real; a file's own default,
+        // A live view as `offworld monitor --serve` runs one (the viewers'
+        // copies, each camera's newest frame, rerun's gRPC server holding
+        // the history for viewers; none connected). A file's own default,
         // every message, cost 15–21 % of the rate here (docs/performance.md,
         // session 33).
-        MonitorConfig::new(Sink::File(path.to_owned()))
-            .scope(Scope::env(env.clone()))
-            .newest_frames(),
+        MonitorConfig::new(Sink::Serve {
+            addr: free_local_port()?,
+            memory_limit_bytes: Some(64 << 20),
+        })
+        .scope(Scope::env(env.clone()))
+        .newest_frames(),
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
     let (times, steps_cpu) = run_steps(gym).await?;
@@ -181,8 +190,6 @@ async fn main() -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!(e))?;
     run_steps(&mut gym).await?; // warm-up
 
-    let path =
-        std::env::temp_dir().join(format!("offworld-monitor-bench-{}.rrd", std::process::id()));
     // Step times per mode: off, embedded monitor, remote monitor, bare remote subscriber.
     let mut times: [Vec<f64>; 4] = Default::default();
     // Process CPU per mode, s.
@@ -205,7 +212,7 @@ async fn main() -> anyhow::Result<()> {
                 // The monitor embedded next to the env (its session: local delivery).
                 1 | 2 => {
                     let session = if mode == 1 { &server } else { &watcher };
-                    let (block, used, stats) = with_monitor(session, &env, &path, &mut gym).await?;
+                    let (block, used, stats) = with_monitor(session, &env, &mut gym).await?;
                     dropped += stats.dropped_frames;
                     superseded += stats.superseded_frames;
                     (block, used)
@@ -234,7 +241,6 @@ async fn main() -> anyhow::Result<()> {
         );
     }
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
-    std::fs::remove_file(&path).ok();
     let [off, embedded, remote, bare] = times.map(|t| 1.0 / median(t));
     let cost = |rate: f64| (1.0 - rate / off) * 100.0;
     // CPU per step, µs, per mode.

@@ -1,11 +1,15 @@
-//! Publishes the four discrete motions of the Monolith task in a loop.
+//! Publishes the four discrete motions of the Monolith task in a loop, as
+//! the controller does: `cmd` at the control priority, each message also on
+//! its viewers' copy (`preview_cmd`) while a live monitor watches.
 
 use std::time::Duration;
 
 use clap::Parser;
 use offworld_program::CommonArgs;
 use offworld_runtime::msg::MotionCommand;
-use offworld_runtime::{wire, EnvId, Topic};
+use offworld_runtime::preview::WatchedPublisher;
+use offworld_runtime::wire::{self, Delivery};
+use offworld_runtime::{EnvId, Topic};
 
 #[derive(Parser)]
 struct Args {
@@ -25,6 +29,11 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let session = args.common.client_config().open().await?;
     let key = args.env.key(Topic::Cmd);
+    let cmd = wire::publisher(&session, key.clone(), Delivery::Every)
+        .priority(wire::CONTROL_PRIORITY)
+        .await
+        .map_err(|e| anyhow::anyhow!("declaring `{key}`: {e}"))?;
+    let cmd = WatchedPublisher::new(&session, &args.env, Topic::Cmd, cmd);
     let table = [
         (0.07, 1.25, 1.2),
         (0.07, -1.25, 1.2),
@@ -34,13 +43,13 @@ async fn main() -> anyhow::Result<()> {
     let mut seq = 0;
     while args.count == 0 || seq < args.count {
         let (linear_x, angular_z, duration_s) = table[(seq % 4) as usize];
-        let cmd = MotionCommand {
+        let motion = MotionCommand {
             seq,
             linear_x,
             angular_z,
             duration_s,
         };
-        wire::put(&session, &key, &cmd).await?;
+        cmd.publish_sealed(&motion, None)?;
         println!("sent seq {seq} on {key}");
         seq += 1;
         tokio::time::sleep(Duration::from_millis(500)).await;
