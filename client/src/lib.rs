@@ -529,7 +529,8 @@ pub struct EnvListing {
 }
 
 /// Lists the envs reachable through `session`: every env with a liveliness
-/// token (controller, twin or agents), with its task and availability from
+/// token of a component (controller, twin or agents; a client's or a
+/// monitor's only watches it), with its task and availability from
 /// its controller's `spec` and `status`. Sorted by env id. Bounded by
 /// `timeout` per query; an env whose controller does not answer is listed
 /// `Offline`, never dropped. Each listing carries the env's booked slots
@@ -550,8 +551,10 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
         else {
             continue;
         };
-        // Clients' tokens are `alive/client/<id>`: not a component.
-        if !component.starts_with("client/") {
+        // Clients' tokens (`alive/client/<id>`) and monitors' are watchers,
+        // not components: an env only watched (an operator's typo in
+        // `monitor --env`) is not listed.
+        if !component.starts_with("client/") && component != Component::Monitor.as_str() {
             components
                 .entry(env)
                 .or_default()

@@ -106,11 +106,6 @@ async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
     Ok((times, process_cpu() - cpu))
 }
 
-/// A loopback address with a port free a moment ago.
-fn free_local_port() -> anyhow::Result<std::net::SocketAddr> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?)
-}
-
 /// One round of steps with a live monitor on `session`, and
 /// the CPU the process used from the first step to the monitor's last
 /// row written.
@@ -123,12 +118,13 @@ async fn with_monitor(
         session,
         // A live view as `offworld monitor --serve` runs one (the viewers'
         // copies, each camera's newest frame, rerun's gRPC server holding
-        // the history for viewers; none connected). A file's own default,
+        // a quarter of RAM of history for viewers; none connected). A file's own default,
         // every message, cost 15–21 % of the rate here (docs/performance.md,
         // session 33).
         MonitorConfig::new(Sink::Serve {
-            addr: free_local_port()?,
-            memory_limit_bytes: Some(64 << 20),
+            // No viewer connects: the kernel picks the port.
+            addr: std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+            memory_limit_bytes: None,
         })
         .scope(Scope::env(env.clone()))
         .newest_frames(),

@@ -1134,48 +1134,55 @@ async fn step_for(gym: &mut EnvClient, span: Duration) -> Result<u32, WireError>
 }
 
 /// An operator's monitor on the env, a process of its own, subscribed.
-async fn watching(site: &SimSite, extra: &[&str]) -> anyhow::Result<Process> {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port();
-    let (env, serve) = (site.env.to_string(), format!("127.0.0.1:{port}"));
-    let mut command = vec!["monitor", "--env", &env, "--serve", &serve];
+async fn watching(site: &SimSite, env: &EnvId, extra: &[&str]) -> anyhow::Result<Process> {
+    // Nobody connects to its viewer port: the kernel picks one.
+    let env_arg = env.to_string();
+    let mut command = vec!["monitor", "--env", &env_arg, "--serve", "127.0.0.1:0"];
     command.extend(["--serve-memory-mib", "16", "--no-blueprint"]);
     command.extend(extra);
-    // A previous monitor's token is gone once the router dropped its link.
     let (onlooker, token) = (
         site.session(Role::Trainer).await,
-        site.env.alive_key(Component::Monitor),
+        env.alive_key(Component::Monitor),
     );
+    // Whether the env is watched; `None` when the router did not answer.
     let watched = || async {
-        match onlooker.liveliness().get(token.as_str()).await {
-            Ok(replies) => replies
-                .recv_async()
-                .await
-                .is_ok_and(|reply| reply.result().is_ok()),
-            Err(_) => false,
+        let replies = onlooker
+            .liveliness()
+            .get(token.as_str())
+            .timeout(Duration::from_millis(500))
+            .await
+            .ok()?;
+        let mut seen = false;
+        while let Ok(reply) = replies.recv_async().await {
+            seen |= reply.result().is_ok();
         }
+        Some(seen)
     };
-    for _ in 0..300 {
-        if !watched().await {
-            break;
-        }
+    let deadline = |s| std::time::Instant::now() + Duration::from_secs(s);
+    // A previous monitor's token is gone once the router dropped its link.
+    let gone_by = deadline(30);
+    while watched().await != Some(false) {
+        anyhow::ensure!(
+            std::time::Instant::now() < gone_by,
+            "a previous monitor still watches {env} after 30 s"
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     let mut monitor = site.farm.site.spawn(Role::Operator, &command)?;
     // Its `alive/monitor` token follows its subscriptions on the same link:
     // once the router passes it on, the router sends this monitor the env's
     // messages.
-    for _ in 0..300 {
+    let watching_by = deadline(30);
+    while std::time::Instant::now() < watching_by {
         if let Some(status) = monitor.0.try_wait()? {
             anyhow::bail!("the monitor exited: {status}");
         }
-        if watched().await {
+        if watched().await == Some(true) {
             return Ok(monitor);
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    anyhow::bail!("the monitor did not watch the env within 30 s")
+    anyhow::bail!("the monitor did not watch {env} within 30 s")
 }
 
 /// A live monitor that freezes (an operator's laptop asleep mid-view, a
@@ -1208,7 +1215,7 @@ async fn a_frozen_live_monitor_holds_up_no_step() -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!(e))?;
     let freeze = Duration::from_secs(8);
 
-    let control = watching(&site, &["--every-frame"]).await?;
+    let control = watching(&site, &site.env, &["--every-frame"]).await?;
     step_for(&mut gym, Duration::from_secs(1)).await?;
     control.signal("STOP");
     let held_up = step_for(&mut gym, freeze).await;
@@ -1221,12 +1228,28 @@ async fn a_frozen_live_monitor_holds_up_no_step() -> anyhow::Result<()> {
         .await
         .map_err(|e| anyhow::anyhow!(e))?;
 
-    let live = watching(&site, &[]).await?;
+    let live = watching(&site, &site.env, &[]).await?;
     step_for(&mut gym, Duration::from_secs(1)).await?;
     live.signal("STOP");
     let steps = step_for(&mut gym, freeze).await?;
     live.signal("CONT");
     assert!(steps > 100, "{steps} steps while the monitor was frozen");
     gym.close().await.map_err(|e| anyhow::anyhow!(e))?;
+
+    // A monitor watches an env; it is no part of one: discovery lists
+    // neither it among the env's components nor an env it alone watches.
+    let nobody = EnvId::sim("nobody-0")?;
+    let _typo = watching(&site, &nobody, &[]).await?;
+    let listed = offworld_client::discover(&trainer, Duration::from_secs(3))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let listed: Vec<_> = listed.iter().map(|l| (&l.env, &l.components)).collect();
+    assert_eq!(
+        listed,
+        [(
+            &site.env,
+            &vec!["controller".to_owned(), "sim_twin".to_owned()]
+        )]
+    );
     Ok(())
 }
