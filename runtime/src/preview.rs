@@ -199,9 +199,7 @@ impl WatchedPublisher {
 
     /// Publishes `msg` ([`wire::publish`]), then its copy.
     pub fn publish<T: serde::Serialize>(&self, msg: &T) -> Result<(), RequestError> {
-        let payload = self.send(codec::encode(msg)?, None)?;
-        self.copy_now(payload, None);
-        Ok(())
+        self.publish_sealed(msg, None)
     }
 
     /// Publishes `msg` tagged with the command it answers

@@ -10,6 +10,7 @@ pub mod netns;
 
 use std::path::Path;
 use std::process::Stdio;
+use std::time::Duration;
 
 pub use offworld_deploy::process::{binary_dir, Process};
 
@@ -67,3 +68,19 @@ pub trait Spawn {
 }
 
 impl Spawn for Process {}
+
+/// Whether a liveliness token on `key` is seen through `session` (one ask,
+/// answered within 500 ms); `None` when the ask itself failed.
+pub async fn token_seen(session: &zenoh::Session, key: &str) -> Option<bool> {
+    let replies = session
+        .liveliness()
+        .get(key)
+        .timeout(Duration::from_millis(500))
+        .await
+        .ok()?;
+    let mut seen = false;
+    while let Ok(reply) = replies.recv_async().await {
+        seen |= reply.result().is_ok();
+    }
+    Some(seen)
+}

@@ -1144,20 +1144,7 @@ async fn watching(site: &SimSite, env: &EnvId, extra: &[&str]) -> anyhow::Result
         site.session(Role::Trainer).await,
         env.alive_key(Component::Monitor),
     );
-    // Whether the env is watched; `None` when the router did not answer.
-    let watched = || async {
-        let replies = onlooker
-            .liveliness()
-            .get(token.as_str())
-            .timeout(Duration::from_millis(500))
-            .await
-            .ok()?;
-        let mut seen = false;
-        while let Ok(reply) = replies.recv_async().await {
-            seen |= reply.result().is_ok();
-        }
-        Some(seen)
-    };
+    let watched = || offworld_tests::token_seen(&onlooker, &token);
     let deadline = |s| std::time::Instant::now() + Duration::from_secs(s);
     // A previous monitor's token is gone once the router dropped its link.
     let gone_by = deadline(30);

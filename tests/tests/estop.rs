@@ -304,14 +304,8 @@ impl Rig {
         };
         let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
         loop {
-            let replies = self
-                .operator
-                .liveliness()
-                .get(&token)
-                .timeout(Duration::from_millis(500))
-                .await
-                .expect("liveliness get");
-            if replies.recv_async().await.is_ok_and(|r| r.result().is_ok()) {
+            let seen = offworld_tests::token_seen(&self.operator, &token).await;
+            if seen.expect("liveliness get") {
                 break;
             }
             assert!(
