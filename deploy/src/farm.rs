@@ -1,7 +1,9 @@
 //! A sim farm behind the site's router: sim twin processes (agent role,
 //! 84×84) under `sim/<name>-<i>` and one gym server process (the sim-farm
 //! controller role, confined to `sim/`) serving them all, with one registered user — what a lab runs to
-//! give researchers many simulated enclosures through one router.
+//! give researchers many simulated enclosures through one router. On the
+//! router's own host the farm reaches it over its local socket
+//! ([`Link::LocalSocket`]: no TLS to pay on every frame).
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -10,7 +12,7 @@ use offworld_env_controller::Store;
 use offworld_runtime::EnvId;
 
 use crate::process::Process;
-use crate::site::{Role, RouterSite};
+use crate::site::{Link, Role, RouterSite, SITE_LOG};
 
 /// The user registered on a farm (its token is [`SimFarm::token`]).
 pub const FARM_USER: &str = "alice";
@@ -29,20 +31,29 @@ pub struct SimFarm {
 }
 
 impl SimFarm {
-    /// Starts the router, the twins and the gym server (not waiting for
-    /// them to answer: see [`SimFarm::ready`]).
+    /// Starts the router, the twins and the gym server on this host, the
+    /// farm on the router's local socket (not waiting for them to answer:
+    /// see [`SimFarm::ready`]).
     pub fn start(name: &str, twins: usize, task: &str) -> anyhow::Result<Self> {
-        Self::start_on(RouterSite::start(name)?, name, twins, task)
+        Self::start_on(
+            RouterSite::start(name)?,
+            name,
+            twins,
+            task,
+            Link::LocalSocket,
+        )
     }
 
-    /// Like [`SimFarm::start`] behind an already started router.
+    /// Like [`SimFarm::start`] behind an already started router, the
+    /// farm's processes reaching it over `link`.
     pub fn start_on(
         site: RouterSite,
         name: &str,
         twins: usize,
         task: &str,
+        link: Link,
     ) -> anyhow::Result<Self> {
-        Self::start_profiled(site, name, twins, task, None)
+        Self::start_profiled(site, name, twins, task, None, link)
     }
 
     /// Like [`SimFarm::start_on`], every twin built with the twin profile
@@ -53,6 +64,7 @@ impl SimFarm {
         twins: usize,
         task: &str,
         twin_profile: Option<&Path>,
+        link: Link,
     ) -> anyhow::Result<Self> {
         let envs: Vec<EnvId> = (0..twins.max(1))
             .map(|i| EnvId::sim(&format!("{name}-{i}")))
@@ -67,7 +79,7 @@ impl SimFarm {
             if let Some(profile) = &profile {
                 twin.extend(["--profile", profile]);
             }
-            processes.push(site.spawn(Role::SimTwin, &twin)?);
+            processes.push(site.spawn_over(Role::SimTwin, link, &twin, SITE_LOG)?);
         }
         let mut serve = vec!["--db".to_owned(), db, "serve".to_owned()];
         for env in &envs {
@@ -75,7 +87,7 @@ impl SimFarm {
             serve.push(format!("{env}={task}"));
         }
         let serve: Vec<&str> = serve.iter().map(String::as_str).collect();
-        processes.push(site.spawn(Role::SimController, &serve)?);
+        processes.push(site.spawn_over(Role::SimController, link, &serve, SITE_LOG)?);
         Ok(Self {
             _processes: processes,
             site,

@@ -3,6 +3,7 @@
 //! a listener to come up.
 
 use std::net::{SocketAddr, TcpStream};
+use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -98,6 +99,9 @@ pub fn offworld_command() -> PathBuf {
     }
 }
 
+/// The prefix of a Unix-socket endpoint (`unixsock-stream/PATH`).
+pub const UNIX_SOCKET_LINK: &str = "unixsock-stream/";
+
 /// The address of a `PROTOCOL/HOST:PORT` endpoint (`tcp/`, `tls/`, …;
 /// `#…` options ignored).
 pub fn endpoint_addr(endpoint: &str) -> std::io::Result<SocketAddr> {
@@ -109,21 +113,29 @@ pub fn endpoint_addr(endpoint: &str) -> std::io::Result<SocketAddr> {
         .map_err(|e| std::io::Error::other(format!("{endpoint}: {e}")))
 }
 
-/// Waits (bounded) until something accepts TCP connections at a
-/// `tcp/HOST:PORT` or `tls/HOST:PORT` endpoint; inside network namespace
-/// `netns` if given.
+/// Waits (bounded) until something accepts connections at a
+/// `tcp/HOST:PORT` or `tls/HOST:PORT` endpoint (inside network namespace
+/// `netns` if given) or at a `unixsock-stream/PATH` one.
 pub fn wait_until_listening(
     netns: Option<&str>,
     endpoint: &str,
     limit: Duration,
 ) -> std::io::Result<()> {
-    let addr = endpoint_addr(endpoint)?;
+    let socket = endpoint.strip_prefix(UNIX_SOCKET_LINK);
+    let addr = match socket {
+        Some(_) => None,
+        None => Some(endpoint_addr(endpoint)?),
+    };
     let deadline = Instant::now() + limit;
     loop {
-        let listening = match netns {
-            None => TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok(),
+        let listening = match (addr, netns) {
+            // A path: the same in every network namespace.
+            (None, _) => socket.is_some_and(|path| UnixStream::connect(path).is_ok()),
+            (Some(addr), None) => {
+                TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok()
+            }
             // This process cannot reach into the namespace: a shell there can.
-            Some(ns) => Command::new("ip")
+            (Some(addr), Some(ns)) => Command::new("ip")
                 .args(["netns", "exec", ns, "bash", "-c"])
                 .arg(format!("exec 3<>/dev/tcp/{}/{}", addr.ip(), addr.port()))
                 .stderr(Stdio::null())

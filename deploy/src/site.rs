@@ -11,7 +11,9 @@
 //! 127.0.0.1: `127.0.0.2` for trainers (server-authenticated TLS) and
 //! `127.0.0.3` for site components (mutual TLS). With [`Namespaced`] the
 //! router and the site components run in network namespaces made
-//! beforehand instead.
+//! beforehand instead. It also listens on a Unix socket in the site's
+//! directory, the way a sim farm on the router's own host reaches it
+//! ([`Link::LocalSocket`]).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -21,7 +23,7 @@ use std::time::Duration;
 use offworld_runtime::session::free_loopback_port;
 use offworld_runtime::SessionConfig;
 
-use crate::process::{offworld_command, wait_until_listening, Process};
+use crate::process::{offworld_command, wait_until_listening, Process, UNIX_SOCKET_LINK};
 
 /// The router's configuration (`deploy/router/zenohd.json5`).
 const ROUTER_CONFIG: &str = include_str!("../router/zenohd.json5");
@@ -31,6 +33,22 @@ const ROUTER_START_LIMIT: Duration = Duration::from_secs(20);
 
 /// The certificate generator (`deploy/certs/generate.sh`).
 const GENERATE_CERTIFICATES: &str = include_str!("../certs/generate.sh");
+
+/// The router's local socket in the site's directory (a deployment's is
+/// `/run/offworld-router/zenohd.sock`: `deploy/router/zenohd.json5`).
+const LOCAL_SOCKET: &str = "zenohd.sock";
+
+/// How a component reaches the router.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Link {
+    /// Over the network: QUIC with the role's TLS (mutual TLS for site
+    /// components), as a component on another host does.
+    Network,
+    /// Over the router's local Unix socket, as a sim farm on the router's
+    /// own host does: a password and no certificate; the router's access
+    /// control lets only the sim roles act through it.
+    LocalSocket,
+}
 
 /// The roles of `deploy/roles/` (and of the router's ACL subjects).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -145,8 +163,14 @@ pub const ACL_LOG_TARGET: &str = acl_log_target!();
 /// The log filter of the router and the components (`ZENOHD_LOG` overrides
 /// the router's): warnings, except the access-control module's warning on
 /// every link that rules naming network interfaces may misapply
-/// (eclipse-zenoh/zenoh#1204): the deployment's rules name none.
-pub const SITE_LOG: &str = concat!("warn,", acl_log_target!(), "=error");
+/// (eclipse-zenoh/zenoh#1204): the deployment's rules name none; and
+/// except the Unix-socket link's warning on every connection it makes
+/// (zenoh 1.10.2 warns that a connecting socket has no name of its own).
+pub const SITE_LOG: &str = concat!(
+    "warn,",
+    acl_log_target!(),
+    "=error,zenoh_link_unixsock_stream=error"
+);
 
 /// Where a namespaced site runs: network namespaces made beforehand (`ip
 /// netns add`; needs CAP_NET_ADMIN), the router reachable from this host
@@ -176,6 +200,8 @@ pub struct RouterSite {
     site_endpoint_inside: String,
     /// The router's listeners (QUIC; TLS over TCP added on the same ports).
     listen: [String; 2],
+    /// The router's local socket ([`Link::LocalSocket`]).
+    local_socket: PathBuf,
     router: Option<Process>,
     /// Extra `--cfg` of the router (see [`RouterSite::restart_router_with`]).
     router_cfg: Vec<String>,
@@ -209,6 +235,13 @@ impl RouterSite {
             std::process::id(),
             offworld_runtime::keys::random_id()
         ));
+        let local_socket = dir.join(LOCAL_SOCKET);
+        // The kernel's limit on a socket's path (`sun_path`, 108 bytes).
+        anyhow::ensure!(
+            local_socket.as_os_str().len() < 108,
+            "the router's socket path {} is too long for a Unix socket: set TMPDIR to a shorter directory",
+            local_socket.display()
+        );
         let mut site = match &namespaced {
             None => {
                 let trainer = format!("quic/127.0.0.2:{}", free_loopback_port("127.0.0.2")?);
@@ -218,6 +251,7 @@ impl RouterSite {
                     trainer_endpoint: trainer,
                     site_endpoint_inside: site.clone(),
                     site_endpoint: site,
+                    local_socket,
                     dir,
                     router: None,
                     router_cfg: Vec::new(),
@@ -231,6 +265,7 @@ impl RouterSite {
                 trainer_endpoint: format!("quic/{}:7447", ns.router_host_ip),
                 site_endpoint: format!("quic/{}:7448", ns.router_host_ip),
                 site_endpoint_inside: format!("quic/{}:7448", ns.router_site_ip),
+                local_socket,
                 dir,
                 router: None,
                 router_cfg: Vec::new(),
@@ -291,11 +326,12 @@ impl RouterSite {
         let mtls = |endpoint: &str| format!("{endpoint}#enable_mtls=true");
         let [trainers, site] = &self.listen;
         let listen = format!(
-            "[{},{},{},{}]",
+            "[{},{},{},{},{}]",
             json_string(trainers),
             json_string(&mtls(site)),
             json_string(&Self::over_tcp(trainers)),
-            json_string(&mtls(&Self::over_tcp(site)))
+            json_string(&mtls(&Self::over_tcp(site))),
+            json_string(&self.local_endpoint())
         );
         let overrides = [
             format!("transport/link/tls/root_ca_certificate:{}", file("ca.pem")),
@@ -363,8 +399,12 @@ impl RouterSite {
         self.router = Some(Process(child));
         // zenohd opens its listeners together: the TCP ones answering
         // means the QUIC ones are up too.
-        for endpoint in [&self.trainer_endpoint, &self.site_endpoint] {
-            wait_until_listening(None, &Self::over_tcp(endpoint), ROUTER_START_LIMIT)
+        for endpoint in [
+            Self::over_tcp(&self.trainer_endpoint),
+            Self::over_tcp(&self.site_endpoint),
+            self.local_endpoint(),
+        ] {
+            wait_until_listening(None, &endpoint, ROUTER_START_LIMIT)
                 .map_err(|e| anyhow::anyhow!("zenohd: {e}"))?;
         }
         Ok(())
@@ -404,6 +444,19 @@ impl RouterSite {
             &self.site_endpoint
         } else {
             &self.trainer_endpoint
+        }
+    }
+
+    /// The router's local socket: `unixsock-stream/<site dir>/zenohd.sock`.
+    pub fn local_endpoint(&self) -> String {
+        format!("{UNIX_SOCKET_LINK}{}", self.local_socket.display())
+    }
+
+    /// Where a component of `role` connects over `link`.
+    fn endpoint_over(&self, role: Role, link: Link) -> String {
+        match link {
+            Link::Network => self.endpoint(role).to_owned(),
+            Link::LocalSocket => self.local_endpoint(),
         }
     }
 
@@ -453,9 +506,15 @@ impl RouterSite {
 
     /// The session config of an in-process participant of `role`.
     pub fn session(&self, role: Role) -> SessionConfig {
+        self.session_over(role, Link::Network)
+    }
+
+    /// The session config of an in-process participant of `role` reaching
+    /// the router over `link`.
+    pub fn session_over(&self, role: Role, link: Link) -> SessionConfig {
         SessionConfig {
             config_file: Some(self.role_file(role)),
-            connect: vec![self.endpoint(role).to_owned()],
+            connect: vec![self.endpoint_over(role, link)],
             overrides: self.overrides(role),
             ..SessionConfig::default()
         }
@@ -489,14 +548,30 @@ impl RouterSite {
 
     /// Like [`RouterSite::spawn`] with the child's `RUST_LOG` filter.
     pub fn spawn_logged(&self, role: Role, command: &[&str], log: &str) -> anyhow::Result<Process> {
+        self.spawn_over(role, Link::Network, command, log)
+    }
+
+    /// Like [`RouterSite::spawn_logged`], the component reaching the router
+    /// over `link`.
+    pub fn spawn_over(
+        &self,
+        role: Role,
+        link: Link,
+        command: &[&str],
+        log: &str,
+    ) -> anyhow::Result<Process> {
         let (netns, endpoint) = match &self.namespaced {
             Some(ns) if role.is_site() => {
-                (Some(ns.site.as_str()), self.site_endpoint_inside.as_str())
+                let endpoint = match link {
+                    Link::Network => self.site_endpoint_inside.clone(),
+                    Link::LocalSocket => self.local_endpoint(),
+                };
+                (Some(ns.site.as_str()), endpoint)
             }
-            _ => (None, self.endpoint(role)),
+            _ => (None, self.endpoint_over(role, link)),
         };
         let mut args: Vec<String> = command.iter().map(|s| s.to_string()).collect();
-        args.extend(self.role_args_to(role, endpoint));
+        args.extend(self.role_args_to(role, &endpoint));
         let refs: Vec<&str> = args.iter().map(String::as_str).collect();
         Ok(Process::start(
             netns,

@@ -158,8 +158,12 @@ pub fn end_quietly_when_output_closes() {
 /// (stdout stays for a command's output, e.g. a printed token).
 pub fn init_logging() {
     use std::io::IsTerminal;
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    // zenoh 1.10.2's Unix-socket link warns on every connection it makes
+    // (a connecting socket has no name of its own): a sim farm's components
+    // on the router's local socket would log it at each (re)connect.
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        tracing_subscriber::EnvFilter::new("info,zenoh=warn,zenoh_link_unixsock_stream=error")
+    });
     // Colour for people at a terminal; plain text in files, pipes and
     // journald, and wherever NO_COLOR is set (no-color.org).
     let colour = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();

@@ -341,18 +341,19 @@ impl SessionConfig {
     }
 }
 
-/// Refuses TLS and QUIC endpoints in a build without those links (the
-/// `tls-quic` feature off: the demo's lean wheel), where Zenoh would fail
-/// later with its bare "unsupported protocol".
+/// Refuses the site's links (TLS, QUIC, the router's local socket) in a
+/// build without them (the `tls-quic` feature off: the demo's lean wheel),
+/// where Zenoh would fail later with its bare "unsupported protocol".
 fn links_compiled_in(config: &zenoh::Config, tls_quic: bool) -> Result<(), ContractError> {
     if tls_quic {
         return Ok(());
     }
     for key in ["connect/endpoints", "listen/endpoints"] {
         let endpoints = config.get_json(key).unwrap_or_default();
-        if endpoints.contains("\"tls/") || endpoints.contains("\"quic/") {
+        let site_links = ["\"tls/", "\"quic/", "\"unixsock-stream/"];
+        if site_links.iter().any(|link| endpoints.contains(link)) {
             return Err(ContractError::Config(format!(
-                "{key} = {endpoints}: this build has no TLS or QUIC links (offworld-runtime's \
+                "{key} = {endpoints}: this build has no TLS, QUIC or Unix-socket links (offworld-runtime's \
                  `tls-quic` feature; the demo's lean offworld_gym package is built without \
                  it): `bash .ci/setup` builds the full one"
             )));
@@ -485,15 +486,22 @@ mod tests {
     }
 
     #[test]
-    fn tls_and_quic_endpoints_are_refused_in_a_build_without_them() {
-        for endpoint in ["quic/router.example:7447", "tls/127.0.0.1:7447"] {
+    fn site_link_endpoints_are_refused_in_a_build_without_them() {
+        for endpoint in [
+            "quic/router.example:7447",
+            "tls/127.0.0.1:7447",
+            "unixsock-stream//run/offworld/zenohd.sock",
+        ] {
             let config = SessionConfig::connecting(endpoint)
                 .to_zenoh()
                 .expect("this test build has the links");
             match links_compiled_in(&config, false) {
                 Err(ContractError::Config(message)) => {
                     assert!(message.contains(endpoint), "{message}");
-                    assert!(message.contains("no TLS or QUIC links"), "{message}");
+                    assert!(
+                        message.contains("no TLS, QUIC or Unix-socket links"),
+                        "{message}"
+                    );
                     assert!(message.contains("bash .ci/setup"), "{message}");
                 }
                 other => panic!("{endpoint}: {other:?}"),

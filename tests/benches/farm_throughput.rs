@@ -4,14 +4,17 @@
 //! deployment files (QUIC with TLS 1.3, mTLS, passwords, ACL) against plain TCP peer to
 //! peer, in one run, in two layouts:
 //! - "twin processes": N `sim_twin` processes (84×84, lockstep) behind one
-//!   `env_controller` process — camera frames cross the router;
+//!   `env_controller` process — camera frames cross the router; the farm on
+//!   the router's local socket, the trainer over QUIC (what `offworld farm`
+//!   runs);
 //! - "controller per twin": N `offworld serve --embedded-twins` processes —
 //!   only the gym's queries and replies cross the router.
 //!
 //! A third table takes the router's cost apart for the twin-process layout
 //! at N = 1: peer to peer, a bare `zenohd` on plain TCP (no TLS, no
-//! passwords, no ACL), the site's router reached over TLS on TCP, and over
-//! QUIC (what the first table measures).
+//! passwords, no ACL), the site's router with the farm reached over TLS on
+//! TCP, over QUIC (a farm on another host), and over the router's local
+//! socket (what the first table measures).
 //!
 //! `cargo bench --bench farm_throughput`
 //! (`FARM_SECONDS` per measurement, default 8; `FARM_SIZES`, default `1,2,4`;
@@ -21,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient, VecEnvClient};
 use offworld_deploy::farm::SimFarm;
-use offworld_deploy::site::{Role, RouterSite};
+use offworld_deploy::site::{Link, Role, RouterSite};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
 use offworld_runtime::{EnvId, SessionConfig};
@@ -127,14 +130,17 @@ fn spawn(binary: &str, args: &[String]) -> anyhow::Result<Process> {
     Ok(Process::spawn_logged(binary, &refs, "warn")?)
 }
 
+/// What `offworld farm` runs: the farm on the router's local socket, the
+/// trainer over QUIC.
 async fn through_router(n: usize) -> anyhow::Result<f64> {
-    through_site(n, false, true).await
+    through_site(n, Link::LocalSocket, false, true).await
 }
 
-/// Twin processes behind the site's router (the repository's files), over
-/// QUIC or, with `tls_over_tcp`, over its TLS-on-TCP listeners; without
-/// `acl`, the router's access control is off (to measure what it costs).
-async fn through_site(n: usize, tls_over_tcp: bool, acl: bool) -> anyhow::Result<f64> {
+/// Twin processes behind the site's router (the repository's files), the
+/// farm's processes reaching it over `link`, the network's over QUIC or,
+/// with `tls_over_tcp`, over its TLS-on-TCP listeners; without `acl`, the
+/// router's access control is off (to measure what it costs).
+async fn through_site(n: usize, link: Link, tls_over_tcp: bool, acl: bool) -> anyhow::Result<f64> {
     let mut site = RouterSite::start(&format!("router-{n}"))?;
     if tls_over_tcp {
         site.use_tls_over_tcp();
@@ -142,7 +148,7 @@ async fn through_site(n: usize, tls_over_tcp: bool, acl: bool) -> anyhow::Result
     if !acl {
         site.restart_router_with(&["access_control/enabled:false"])?;
     }
-    let farm = SimFarm::start_on(site, &format!("router-{n}"), n, "MonolithDiscrete")?;
+    let farm = SimFarm::start_on(site, &format!("router-{n}"), n, "MonolithDiscrete", link)?;
     farm.ready(Duration::from_secs(60)).await?;
     let trainer = farm.site.session(Role::Trainer).open().await?;
     let mut vec = open_all(&trainer, &farm.envs, &farm.token).await?;
@@ -222,15 +228,19 @@ async fn router_breakdown(dir: &std::path::Path) {
         ),
         (
             "site zenohd, TLS over TCP + ACL",
-            Some(through_site(1, true, true).await),
+            Some(through_site(1, Link::Network, true, true).await),
         ),
         (
             "site zenohd, QUIC, ACL off",
-            Some(through_site(1, false, false).await),
+            Some(through_site(1, Link::Network, false, false).await),
         ),
         (
             "site zenohd, QUIC + ACL",
-            Some(through_site(1, false, true).await),
+            Some(through_site(1, Link::Network, false, true).await),
+        ),
+        (
+            "site zenohd, farm on its socket + ACL",
+            Some(through_router(1).await),
         ),
     ];
     for (path, rate) in rows {
@@ -253,7 +263,10 @@ fn tables() -> Vec<String> {
 }
 
 fn print_header() {
-    println!("  twins | through zenohd (QUIC+ACL) | peer to peer (TCP) | router/p2p");
+    println!(
+        "  twins | {:>24} | {:>18} | router/p2p",
+        "through the site router", "peer to peer (TCP)"
+    );
 }
 
 /// One table row; a failed measurement shows its error.
@@ -316,14 +329,16 @@ async fn per_twin(
 
 /// The two layouts, N = each of `sizes()`, routed vs peer to peer.
 async fn layouts(scratch: &std::path::Path) -> anyhow::Result<()> {
-    println!("  twin processes behind one controller (84x84 render):");
+    println!(
+        "  twin processes behind one controller (84x84 render; the farm on the router's socket):"
+    );
     print_header();
     for n in sizes() {
         let routed = through_router(n).await;
         let direct = peer_to_peer(scratch, n).await;
         print_row(n, &routed, &direct);
     }
-    println!("  controller per twin (embedded, 320x240 render, 84x84 obs):");
+    println!("  controller per twin (embedded, 320x240 render, 84x84 obs; QUIC + ACL):");
     print_header();
     let site = RouterSite::start("bench")?;
     for n in sizes() {

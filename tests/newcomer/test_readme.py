@@ -133,7 +133,7 @@ def test_the_two_commands_are_the_demo_and_the_tests_and_the_demo_prints_what_it
                 REPO,
                 timeout=120,
             )
-            assert "no TLS or QUIC links" in refused and "bash .ci/setup" in refused, refused
+            assert "no TLS, QUIC or Unix-socket links" in refused and "bash .ci/setup" in refused, refused
         finally:
             # The second command begins with the full set-up (`.ci/test`
             # runs `.ci/setup`): what the README's other blocks use.

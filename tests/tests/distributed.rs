@@ -16,7 +16,7 @@ use offworld_client::operator::{press_estop, EStopScope, PressError};
 use offworld_client::{ClientTimeouts, EnvClient};
 use offworld_deploy::farm::SimFarm;
 use offworld_deploy::process::Process;
-use offworld_deploy::site::{generate_certificates, Role, RouterSite};
+use offworld_deploy::site::{generate_certificates, Link, Role, RouterSite};
 use offworld_runtime::codec;
 use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::*;
@@ -285,6 +285,21 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
         .overrides
         .retain(|o| !o.starts_with("transport/auth"));
     refused(anonymous_tcp).await?;
+    // The local socket asks for a password too (positive control: the sim
+    // twin's own).
+    site.session_over(Role::SimTwin, Link::LocalSocket)
+        .open()
+        .await?;
+    let mut anonymous_local = site.session_over(Role::SimTwin, Link::LocalSocket);
+    anonymous_local
+        .overrides
+        .retain(|o| !o.starts_with("transport/auth"));
+    refused(anonymous_local).await?;
+    let mut wrong_local = site.session_over(Role::SimTwin, Link::LocalSocket);
+    wrong_local
+        .overrides
+        .push(r#"transport/auth/usrpwd/password:"guess""#.into());
+    refused(wrong_local).await?;
     // A certificate signed by another CA.
     let other_ca = site.dir.join("other-ca");
     generate_certificates(&other_ca, None)?;
@@ -780,7 +795,8 @@ async fn in_network_namespaces_trainers_reach_the_site_only_through_the_router(
     assert!(!Namespaces::routes(&ns.site, &ns.host_ip));
     assert!(Namespaces::routes(&ns.site, &ns.router_site_ip));
     assert!(Namespaces::routes(&ns.router, &ns.host_ip));
-    let farm = SimFarm::start_on(site, "netns", 1, "MonolithDiscrete")?;
+    // The farm on the site's network (its own namespace), not the socket.
+    let farm = SimFarm::start_on(site, "netns", 1, "MonolithDiscrete", Link::Network)?;
     let env = farm.envs[0].clone();
     let session = |role: Role| {
         let config = farm.site.session(role);
@@ -903,20 +919,22 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
     let mut site = RouterSite::start("realms")?;
     site.audit_router()?;
     let site = site;
-    let open = |role: Role| {
-        let config = site.session(role);
+    let open = |role: Role, link: Link| {
+        let config = site.session_over(role, link);
         async move {
             config
                 .open()
                 .await
-                .unwrap_or_else(|e| panic!("{} session: {e}", role.name()))
+                .unwrap_or_else(|e| panic!("{} session over {link:?}: {e}", role.name()))
         }
     };
-    let operator = open(Role::Operator).await;
+    let operator = open(Role::Operator, Link::Network).await;
     let (spy, _spy_sub) = Seen::watch(&operator, "offworld/@v1/**").await;
     let (real, sim) = (EnvId::real("enclosure")?, EnvId::sim("farm-0")?);
+    // A sim farm on the router's host, on its local socket.
+    let local = EnvId::sim("farm-1")?;
     // (role, key, allowed): a put of the action's name on the key.
-    let puts = [
+    let network_puts = [
         (Role::Controller, real.key(Topic::Cmd), true),
         (Role::Controller, real.key(Topic::Pose), false),
         (Role::SimController, sim.key(Topic::Cmd), true),
@@ -961,8 +979,35 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::TrackerAgent, sim.key(Topic::Pose), false),
         (Role::Trainer, real.key(Topic::Cmd), false),
     ];
+    // Over the local socket the sim roles keep their rights (in `sim/`
+    // only); the real site's roles, without their certificate there, have
+    // none.
+    let socket_puts = [
+        (Role::SimTwin, local.key(Topic::Pose), true),
+        (Role::SimTwin, local.key(Topic::Obs), true),
+        (Role::SimTwin, real.key(Topic::Pose), false),
+        (Role::SimTwin, local.key(Topic::Cmd), false),
+        (Role::SimController, local.key(Topic::Cmd), true),
+        (Role::SimController, real.key(Topic::Cmd), false),
+        (Role::SimController, real.key(Topic::Heartbeat), false),
+        (Role::Controller, real.key(Topic::Cmd), false),
+        (Role::Controller, real.key(Topic::Heartbeat), false),
+        (Role::RobotAgent, real.key(Topic::Obs), false),
+        (Role::TrackerAgent, real.key(Topic::Pose), false),
+        (Role::Operator, global_estop_key(), false),
+        (Role::Trainer, local.key(Topic::Cmd), false),
+    ];
+    let puts: Vec<(Role, Link, String, bool)> = network_puts
+        .into_iter()
+        .map(|(role, key, allowed)| (role, Link::Network, key, allowed))
+        .chain(
+            socket_puts
+                .into_iter()
+                .map(|(role, key, allowed)| (role, Link::LocalSocket, key, allowed)),
+        )
+        .collect();
     // (role, token key, allowed).
-    let tokens = [
+    let network_tokens = [
         (
             Role::RobotAgent,
             real.alive_key(Component::RobotAgent),
@@ -989,17 +1034,45 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::Operator, real.alive_key(Component::RobotAgent), false),
         (Role::Trainer, sim.alive_key(Component::Monitor), false),
     ];
+    let socket_tokens = [
+        (Role::SimTwin, local.alive_key(Component::SimTwin), true),
+        (
+            Role::SimController,
+            local.alive_key(Component::Controller),
+            true,
+        ),
+        (Role::SimTwin, real.alive_key(Component::RobotAgent), false),
+        (
+            Role::Controller,
+            real.alive_key(Component::Controller),
+            false,
+        ),
+        (
+            Role::RobotAgent,
+            real.alive_key(Component::RobotAgent),
+            false,
+        ),
+    ];
+    let tokens: Vec<(Role, Link, String, bool)> = network_tokens
+        .into_iter()
+        .map(|(role, key, allowed)| (role, Link::Network, key, allowed))
+        .chain(
+            socket_tokens
+                .into_iter()
+                .map(|(role, key, allowed)| (role, Link::LocalSocket, key, allowed)),
+        )
+        .collect();
     let mut sessions = Vec::new();
     let mut put_by = Vec::new();
     let mut held = Vec::new();
-    for (role, key, _) in &tokens {
-        let session = open(*role).await;
+    for (role, link, key, _) in &tokens {
+        let session = open(*role, *link).await;
         held.push(session.liveliness().declare_token(key.as_str()).await);
         sessions.push(session);
     }
     settle().await;
-    for (role, key, _) in &puts {
-        let session = open(*role).await;
+    for (role, link, key, _) in &puts {
+        let session = open(*role, *link).await;
         // Clients send only where a subscriber is known: let the spy's
         // subscription reach the new session first.
         settle().await;
@@ -1023,8 +1096,8 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         .unwrap_or_default();
     let expected: Vec<(String, String)> = puts
         .iter()
-        .filter(|(_, _, allowed)| *allowed)
-        .map(|(role, key, _)| (role.name().to_owned(), key.clone()))
+        .filter(|(_, _, _, allowed)| *allowed)
+        .map(|(role, _, key, _)| (role.name().to_owned(), key.clone()))
         .collect();
     assert_eq!(
         heard, expected,
@@ -1044,8 +1117,8 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
     alive.sort();
     let mut expected: Vec<String> = tokens
         .iter()
-        .filter(|(_, _, allowed)| *allowed)
-        .map(|(_, key, _)| key.clone())
+        .filter(|(_, _, _, allowed)| *allowed)
+        .map(|(_, _, key, _)| key.clone())
         .collect();
     expected.sort();
     assert_eq!(alive, expected, "exactly the allowed tokens are seen");
@@ -1055,7 +1128,7 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
     // `audit_router`). An agent whose role file carries its own ACL may
     // drop a forbidden put at the source: then the router never sees it.
     let log = site.router_log();
-    for ((role, key, allowed), zid) in puts.iter().zip(&put_by) {
+    for ((role, link, key, allowed), zid) in puts.iter().zip(&put_by) {
         let decided = |verdict: &str| {
             log.lines().any(|line| {
                 line.contains(zid.as_str())
@@ -1065,17 +1138,33 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         let (passed, refused) = (decided("is authorized"), decided("is unauthorized"));
         let own_acl = role.config().contains("access_control");
         let name = role.name();
+        // The real site's roles over the socket match no subject at all.
+        let sim_or_trainer = matches!(role, Role::SimTwin | Role::SimController | Role::Trainer);
+        if *link == Link::LocalSocket && !sim_or_trainer {
+            let unmatched = log.lines().any(|line| {
+                line.contains(zid.as_str())
+                    && line.contains("did not match any configured ACL subject")
+            });
+            assert!(
+                unmatched && !passed,
+                "{name} over the socket: logged as matching no subject"
+            );
+            continue;
+        }
         if *allowed {
             assert!(
                 passed && !refused,
-                "{name}'s put on {key}: logged as let through"
+                "{name}'s put on {key} over {link:?}: logged as let through"
             );
         } else if own_acl {
-            assert!(!passed, "{name}'s put on {key}: the router let it through");
+            assert!(
+                !passed,
+                "{name}'s put on {key} over {link:?}: the router let it through"
+            );
         } else {
             assert!(
                 refused && !passed,
-                "{name}'s put on {key}: logged as refused"
+                "{name}'s put on {key} over {link:?}: logged as refused"
             );
         }
     }

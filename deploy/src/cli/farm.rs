@@ -17,7 +17,7 @@ use offworld_runtime::shutdown::ShutdownSignals;
 use offworld_sim_twin::TwinProfile;
 
 use crate::farm::SimFarm;
-use crate::site::RouterSite;
+use crate::site::{Link, RouterSite};
 
 /// How long the farm may take to come up (router, twins, gym server).
 const READY_LIMIT: Duration = Duration::from_secs(60);
@@ -92,6 +92,7 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
             usize::from(args.twins),
             &args.task,
             profile.as_deref(),
+            Link::LocalSocket,
         )
         .context("starting the farm")?;
         farm.ready(READY_LIMIT)
@@ -109,6 +110,10 @@ async fn farm(args: Args) -> anyhow::Result<ExitCode> {
     eprintln!("sim farm serving {} ({})", envs.join(", "), args.task);
     eprintln!("  trainers: {}", farm.site.trainer_endpoint);
     eprintln!("  site:     {} (mutual TLS)", farm.site.site_endpoint);
+    eprintln!(
+        "  farm:     {} (this host's twins and gym server)",
+        farm.site.local_endpoint()
+    );
     if args.command.is_empty() {
         let mut out = std::io::stdout().lock();
         for (key, value) in &environment {
