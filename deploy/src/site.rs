@@ -16,6 +16,7 @@
 //! ([`Link::LocalSocket`]).
 
 use std::io::Write;
+use std::os::unix::fs::DirBuilderExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
@@ -30,6 +31,9 @@ const ROUTER_CONFIG: &str = include_str!("../router/zenohd.json5");
 
 /// How long the router may take to open its listeners.
 const ROUTER_START_LIMIT: Duration = Duration::from_secs(20);
+
+/// How often a starting router is checked for having exited.
+const ROUTER_POLL: Duration = Duration::from_millis(250);
 
 /// The certificate generator (`deploy/certs/generate.sh`).
 const GENERATE_CERTIFICATES: &str = include_str!("../certs/generate.sh");
@@ -274,7 +278,10 @@ impl RouterSite {
             },
         };
         // Made once `site` owns it: an error from here on removes it.
-        std::fs::create_dir_all(site.dir.join("roles"))?;
+        // Its owner's only: it holds the keys, and the router's socket
+        // (whose sim passwords a trial site derives from the user names).
+        std::fs::DirBuilder::new().mode(0o700).create(&site.dir)?;
+        std::fs::create_dir(site.dir.join("roles"))?;
         let san = site
             .namespaced
             .as_ref()
@@ -396,17 +403,26 @@ impl RouterSite {
             .stderr(stderr)
             .spawn()
             .map_err(|e| anyhow::anyhow!("zenohd (`.ci/setup` installs it): {e}"))?;
-        self.router = Some(Process(child));
+        let mut router = Process(child);
         // zenohd opens its listeners together: the TCP ones answering
-        // means the QUIC ones are up too.
+        // means the QUIC ones are up too. One deadline for all; a router
+        // that exits (a listener it cannot open) is reported at once.
+        let deadline = std::time::Instant::now() + ROUTER_START_LIMIT;
         for endpoint in [
             Self::over_tcp(&self.trainer_endpoint),
             Self::over_tcp(&self.site_endpoint),
             self.local_endpoint(),
         ] {
-            wait_until_listening(None, &endpoint, ROUTER_START_LIMIT)
-                .map_err(|e| anyhow::anyhow!("zenohd: {e}"))?;
+            while let Err(e) = wait_until_listening(None, &endpoint, ROUTER_POLL) {
+                if let Some(status) = router.0.try_wait()? {
+                    anyhow::bail!("zenohd exited ({status}) before listening at {endpoint}");
+                }
+                if std::time::Instant::now() >= deadline {
+                    anyhow::bail!("zenohd: {e} (waited {ROUTER_START_LIMIT:?} in all)");
+                }
+            }
         }
+        self.router = Some(router);
         Ok(())
     }
 

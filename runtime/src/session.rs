@@ -256,6 +256,9 @@ impl SessionConfig {
             };
             tracing::info!(%connect, "connecting as a client ({waiting})");
         }
+        for refusal in local_sockets_refusing(&connect) {
+            tracing::warn!("{refusal}");
+        }
         let session = if waits {
             // A stop while waiting ends the wait (the program's own signal
             // handlers only act once its session is open).
@@ -360,6 +363,37 @@ fn links_compiled_in(config: &zenoh::Config, tls_quic: bool) -> Result<(), Contr
         }
     }
     Ok(())
+}
+
+/// Why each `unixsock-stream/PATH` endpoint of `endpoints` (a config's
+/// JSON list) refuses this process, tried once: Zenoh's own warning
+/// (`zenoh_link_unixsock_stream`) is filtered out, as it also fires on
+/// every connection that succeeds, and its retries log at debug.
+fn local_sockets_refusing(endpoints: &str) -> Vec<String> {
+    let endpoints: Vec<String> = serde_json::from_str(endpoints).unwrap_or_default();
+    endpoints
+        .iter()
+        .filter_map(|endpoint| {
+            let path = endpoint.strip_prefix("unixsock-stream/")?;
+            let path = path.split(['?', '#']).next().unwrap_or(path);
+            let refused = std::os::unix::net::UnixStream::connect(path).err()?;
+            let hint = match refused.kind() {
+                std::io::ErrorKind::NotFound => {
+                    "no socket there: is the router running on this host, and is the path right?"
+                }
+                std::io::ErrorKind::PermissionDenied => {
+                    "run this program as the user the socket belongs to (`offworld` in deploy/systemd)"
+                }
+                std::io::ErrorKind::ConnectionRefused => {
+                    "the router that made it is not running"
+                }
+                _ => "is the router running on this host?",
+            };
+            Some(format!(
+                "the router's local socket {endpoint} refuses this process: {refused} ({hint})"
+            ))
+        })
+        .collect()
 }
 
 /// Whether `config` opens a client session (its own mode, or a file's).
@@ -483,6 +517,32 @@ mod tests {
             ..SessionConfig::default()
         };
         assert!(matches!(cfg.to_zenoh(), Err(ContractError::Config(_))));
+    }
+
+    #[test]
+    fn a_local_socket_that_refuses_says_why() {
+        let dir =
+            std::env::temp_dir().join(format!("offworld-sockets-{}", crate::keys::random_id()));
+        std::fs::create_dir(&dir).expect("scratch");
+        let listening = dir.join("router.sock");
+        let _listener = std::os::unix::net::UnixListener::bind(&listening).expect("bind");
+        let missing = dir.join("missing.sock");
+        let endpoints = serde_json::json!([
+            format!("unixsock-stream/{}", listening.display()),
+            format!("unixsock-stream/{}", missing.display()),
+            "tcp/127.0.0.1:7447",
+        ])
+        .to_string();
+        let refusals = local_sockets_refusing(&endpoints);
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(refusals.len(), 1, "{refusals:?}");
+        assert!(
+            refusals[0].contains(&missing.display().to_string())
+                && refusals[0].contains("is the router running on this host"),
+            "{}",
+            refusals[0]
+        );
+        assert!(local_sockets_refusing("not json").is_empty());
     }
 
     #[test]

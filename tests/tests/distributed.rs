@@ -284,6 +284,12 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
     anonymous_tcp
         .overrides
         .retain(|o| !o.starts_with("transport/auth"));
+    anonymous_tcp
+        .overrides
+        .push("transport/auth/usrpwd/user:null".into());
+    anonymous_tcp
+        .overrides
+        .push("transport/auth/usrpwd/password:null".into());
     refused(anonymous_tcp).await?;
     // The local socket asks for a password too (positive control: the sim
     // twin's own).
@@ -294,6 +300,13 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
     anonymous_local
         .overrides
         .retain(|o| !o.starts_with("transport/auth"));
+    // The role file names a user: none at all.
+    anonymous_local
+        .overrides
+        .push("transport/auth/usrpwd/user:null".into());
+    anonymous_local
+        .overrides
+        .push("transport/auth/usrpwd/password:null".into());
     refused(anonymous_local).await?;
     let mut wrong_local = site.session_over(Role::SimTwin, Link::LocalSocket);
     wrong_local
