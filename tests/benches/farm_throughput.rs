@@ -330,7 +330,7 @@ async fn per_twin(
 /// The two layouts, N = each of `sizes()`, routed vs peer to peer.
 async fn layouts(scratch: &std::path::Path) -> anyhow::Result<()> {
     println!(
-        "  twin processes behind one controller (84x84 render; the farm on the router's socket):"
+        "  twin processes behind one controller (84x84 render; the farm on the router's socket, the trainer over QUIC, ACL):"
     );
     print_header();
     for n in sizes() {
