@@ -160,6 +160,21 @@ fn planar_distance(a: &PoseStamped, b: &PoseStamped) -> f64 {
 }
 
 /// Lets denied and allowed messages cross the router (or not).
+/// `config` without credentials: no user and no password at all (a role
+/// file names a user; dropping the overrides would leave it).
+fn anonymous(mut config: offworld_runtime::SessionConfig) -> offworld_runtime::SessionConfig {
+    config
+        .overrides
+        .retain(|o| !o.starts_with("transport/auth"));
+    config
+        .overrides
+        .push("transport/auth/usrpwd/user:null".into());
+    config
+        .overrides
+        .push("transport/auth/usrpwd/password:null".into());
+    config
+}
+
 async fn settle() {
     tokio::time::sleep(Duration::from_millis(700)).await;
 }
@@ -247,17 +262,7 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
     // Positive control: the trainer's own credentials work.
     site.session(Role::Trainer).open().await?;
     // No user/password.
-    let mut anonymous = site.session(Role::Trainer);
-    anonymous
-        .overrides
-        .retain(|o| !o.starts_with("transport/auth"));
-    anonymous
-        .overrides
-        .push("transport/auth/usrpwd/user:null".into());
-    anonymous
-        .overrides
-        .push("transport/auth/usrpwd/password:null".into());
-    refused(anonymous).await?;
+    refused(anonymous(site.session(Role::Trainer))).await?;
     // A wrong password.
     let mut wrong = site.session(Role::Trainer);
     wrong
@@ -279,35 +284,18 @@ async fn connections_without_valid_credentials_are_refused() -> anyhow::Result<(
         refused(no_cert).await?;
     }
     // No credentials over the TCP fallback either.
-    let mut anonymous_tcp = site.session(Role::Trainer);
+    let mut anonymous_tcp = anonymous(site.session(Role::Trainer));
     anonymous_tcp.connect = vec![RouterSite::over_tcp(&site.trainer_endpoint)];
-    anonymous_tcp
-        .overrides
-        .retain(|o| !o.starts_with("transport/auth"));
-    anonymous_tcp
-        .overrides
-        .push("transport/auth/usrpwd/user:null".into());
-    anonymous_tcp
-        .overrides
-        .push("transport/auth/usrpwd/password:null".into());
     refused(anonymous_tcp).await?;
     // The local socket asks for a password too (positive control: the sim
     // twin's own).
     site.session_over(Role::SimTwin, Link::LocalSocket)
         .open()
         .await?;
-    let mut anonymous_local = site.session_over(Role::SimTwin, Link::LocalSocket);
-    anonymous_local
-        .overrides
-        .retain(|o| !o.starts_with("transport/auth"));
-    // The role file names a user: none at all.
-    anonymous_local
-        .overrides
-        .push("transport/auth/usrpwd/user:null".into());
-    anonymous_local
-        .overrides
-        .push("transport/auth/usrpwd/password:null".into());
-    refused(anonymous_local).await?;
+    refused(anonymous(
+        site.session_over(Role::SimTwin, Link::LocalSocket),
+    ))
+    .await?;
     let mut wrong_local = site.session_over(Role::SimTwin, Link::LocalSocket);
     wrong_local
         .overrides
@@ -817,12 +805,8 @@ async fn in_network_namespaces_trainers_reach_the_site_only_through_the_router(
     };
 
     // A client without credentials is refused.
-    let mut anonymous = farm.site.session(Role::Trainer);
-    anonymous
-        .overrides
-        .retain(|o| !o.starts_with("transport/auth"));
     assert!(matches!(
-        anonymous.open().await,
+        anonymous(farm.site.session(Role::Trainer)).open().await,
         Err(ContractError::Zenoh(_))
     ));
 
