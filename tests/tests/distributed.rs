@@ -175,6 +175,20 @@ fn anonymous(mut config: offworld_runtime::SessionConfig) -> offworld_runtime::S
     config
 }
 
+/// (role, key, allowed) rows over the network, then over the local socket,
+/// each with its link.
+fn over_links<const N: usize, const S: usize>(
+    network: [(Role, String, bool); N],
+    socket: [(Role, String, bool); S],
+) -> Vec<(Role, Link, String, bool)> {
+    let on = |link: Link| move |(role, key, allowed)| (role, link, key, allowed);
+    network
+        .into_iter()
+        .map(on(Link::Network))
+        .chain(socket.into_iter().map(on(Link::LocalSocket)))
+        .collect()
+}
+
 async fn settle() {
     tokio::time::sleep(Duration::from_millis(700)).await;
 }
@@ -994,15 +1008,7 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
         (Role::Operator, global_estop_key(), false),
         (Role::Trainer, local.key(Topic::Cmd), false),
     ];
-    let puts: Vec<(Role, Link, String, bool)> = network_puts
-        .into_iter()
-        .map(|(role, key, allowed)| (role, Link::Network, key, allowed))
-        .chain(
-            socket_puts
-                .into_iter()
-                .map(|(role, key, allowed)| (role, Link::LocalSocket, key, allowed)),
-        )
-        .collect();
+    let puts = over_links(network_puts, socket_puts);
     // (role, token key, allowed).
     let network_tokens = [
         (
@@ -1050,15 +1056,7 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
             false,
         ),
     ];
-    let tokens: Vec<(Role, Link, String, bool)> = network_tokens
-        .into_iter()
-        .map(|(role, key, allowed)| (role, Link::Network, key, allowed))
-        .chain(
-            socket_tokens
-                .into_iter()
-                .map(|(role, key, allowed)| (role, Link::LocalSocket, key, allowed)),
-        )
-        .collect();
+    let tokens = over_links(network_tokens, socket_tokens);
     let mut sessions = Vec::new();
     let mut put_by = Vec::new();
     let mut held = Vec::new();
