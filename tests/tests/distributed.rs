@@ -1151,6 +1151,21 @@ async fn no_credential_crosses_its_realm() -> anyhow::Result<()> {
                 passed && !refused,
                 "{name}'s put on {key} over {link:?}: logged as let through"
             );
+            // zenohd names the subject it matched: the user and the link
+            // the session really came over.
+            let came_over = match link {
+                Link::Network => "Transport(Quic)",
+                Link::LocalSocket => "Transport(UnixsockStream)",
+            };
+            let user = format!("Username({name})");
+            let verdict = format!("is authorized to Put (ingress) on {key}");
+            assert!(
+                log.lines()
+                    .any(|line| [zid.as_str(), &user, came_over, &verdict]
+                        .iter()
+                        .all(|part| line.contains(part))),
+                "{name}'s put on {key}: not logged as {user} over {came_over}"
+            );
         } else if own_acl {
             assert!(
                 !passed,
