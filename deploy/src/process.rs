@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use offworld_runtime::session::UNIX_SOCKET_LINK;
+
 /// A child process, killed (and reaped) when dropped.
 pub struct Process(pub Child);
 
@@ -99,9 +101,6 @@ pub fn offworld_command() -> PathBuf {
     }
 }
 
-/// The prefix of a Unix-socket endpoint (`unixsock-stream/PATH`).
-pub const UNIX_SOCKET_LINK: &str = "unixsock-stream/";
-
 /// The address of a `PROTOCOL/HOST:PORT` endpoint (`tcp/`, `tls/`, …;
 /// `#…` options ignored).
 pub fn endpoint_addr(endpoint: &str) -> std::io::Result<SocketAddr> {
@@ -121,21 +120,24 @@ pub fn wait_until_listening(
     endpoint: &str,
     limit: Duration,
 ) -> std::io::Result<()> {
-    let socket = endpoint.strip_prefix(UNIX_SOCKET_LINK);
-    let addr = match socket {
-        Some(_) => None,
-        None => Some(endpoint_addr(endpoint)?),
+    enum Listener<'a> {
+        Socket(&'a str),
+        Address(SocketAddr),
+    }
+    let listener = match endpoint.strip_prefix(UNIX_SOCKET_LINK) {
+        Some(path) => Listener::Socket(path),
+        None => Listener::Address(endpoint_addr(endpoint)?),
     };
     let deadline = Instant::now() + limit;
     loop {
-        let listening = match (addr, netns) {
+        let listening = match (&listener, netns) {
             // A path: the same in every network namespace.
-            (None, _) => socket.is_some_and(|path| UnixStream::connect(path).is_ok()),
-            (Some(addr), None) => {
-                TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok()
+            (Listener::Socket(path), _) => UnixStream::connect(path).is_ok(),
+            (Listener::Address(addr), None) => {
+                TcpStream::connect_timeout(addr, Duration::from_millis(200)).is_ok()
             }
             // This process cannot reach into the namespace: a shell there can.
-            (Some(addr), Some(ns)) => Command::new("ip")
+            (Listener::Address(addr), Some(ns)) => Command::new("ip")
                 .args(["netns", "exec", ns, "bash", "-c"])
                 .arg(format!("exec 3<>/dev/tcp/{}/{}", addr.ip(), addr.port()))
                 .stderr(Stdio::null())

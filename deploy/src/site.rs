@@ -21,10 +21,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use offworld_runtime::session::free_loopback_port;
+use offworld_runtime::session::{free_loopback_port, UNIX_SOCKET_LINK};
 use offworld_runtime::SessionConfig;
 
-use crate::process::{offworld_command, wait_until_listening, Process, UNIX_SOCKET_LINK};
+use crate::process::{offworld_command, wait_until_listening, Process};
 
 /// The router's configuration (`deploy/router/zenohd.json5`).
 const ROUTER_CONFIG: &str = include_str!("../router/zenohd.json5");

@@ -344,6 +344,10 @@ impl SessionConfig {
     }
 }
 
+/// The scheme of a Unix-socket endpoint (`unixsock-stream/PATH`): the
+/// site router's local socket, for a sim farm on its host.
+pub const UNIX_SOCKET_LINK: &str = "unixsock-stream/";
+
 /// Refuses the site's links (TLS, QUIC, the router's local socket) in a
 /// build without them (the `tls-quic` feature off: the demo's lean wheel),
 /// where Zenoh would fail later with its bare "unsupported protocol".
@@ -353,8 +357,11 @@ fn links_compiled_in(config: &zenoh::Config, tls_quic: bool) -> Result<(), Contr
     }
     for key in ["connect/endpoints", "listen/endpoints"] {
         let endpoints = config.get_json(key).unwrap_or_default();
-        let site_links = ["\"tls/", "\"quic/", "\"unixsock-stream/"];
-        if site_links.iter().any(|link| endpoints.contains(link)) {
+        let site_links = ["tls/", "quic/", UNIX_SOCKET_LINK];
+        if site_links
+            .iter()
+            .any(|link| endpoints.contains(&format!("\"{link}")))
+        {
             return Err(ContractError::Config(format!(
                 "{key} = {endpoints}: this build has no TLS, QUIC or Unix-socket links (offworld-runtime's \
                  `tls-quic` feature; the demo's lean offworld_gym package is built without \
@@ -374,7 +381,7 @@ fn local_sockets_refusing(endpoints: &str) -> Vec<String> {
     endpoints
         .iter()
         .filter_map(|endpoint| {
-            let path = endpoint.strip_prefix("unixsock-stream/")?;
+            let path = endpoint.strip_prefix(UNIX_SOCKET_LINK)?;
             let path = path.split(['?', '#']).next().unwrap_or(path);
             let refused = std::os::unix::net::UnixStream::connect(path).err()?;
             let hint = match refused.kind() {
