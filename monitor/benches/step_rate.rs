@@ -6,7 +6,10 @@
 //! the first (embedded) or a third (remote), all over loopback TCP; a bare
 //! subscriber to every key of the env (`obs` too) on the third shows what
 //! Zenoh's delivery of every frame costs. Rounds alternate the modes and
-//! the medians are compared. Run:
+//! the medians are compared, with the process CPU per step (every thread)
+//! and the monitor's own threads' CPU per step (the scheduler's count of the
+//! threads it started: its worker and rerun's; steady on a shared machine,
+//! and its start is in it, so longer rounds weigh it less). Run:
 //! `cargo bench --bench step_rate` (`STEP_RATE_ROUNDS`, `STEP_RATE_STEPS`,
 //! `STEP_RATE_MODES`: a comma list of `off,embedded,remote,bare`).
 
@@ -85,6 +88,46 @@ fn process_cpu() -> f64 {
         .map_or(f64::NAN, |p| p.accumulated_cpu_time() as f64 * 1e-3)
 }
 
+/// CPU time of each of this process's living threads, by thread id: its
+/// name and ns on a CPU (`/proc/self/task/*/schedstat`, the scheduler's own
+/// count, not ticks). Empty where the kernel keeps no such file.
+fn thread_cpu() -> std::collections::HashMap<u32, (String, u64)> {
+    let mut threads = std::collections::HashMap::new();
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
+        return threads;
+    };
+    for task in tasks.flatten() {
+        let Some(tid) = task.file_name().to_str().and_then(|t| t.parse().ok()) else {
+            continue;
+        };
+        let read = |file: &str| std::fs::read_to_string(task.path().join(file)).ok();
+        let ns = read("schedstat")
+            .and_then(|s| s.split_whitespace().next().and_then(|n| n.parse().ok()));
+        if let (Some(ns), Some(name)) = (ns, read("comm")) {
+            threads.insert(tid, (name.trim().to_owned(), ns));
+        }
+    }
+    threads
+}
+
+/// CPU the threads that are not in `before` have used, ns: the worker's
+/// (`offworld-monitor`) and the other new ones (rerun's batcher, encoder
+/// and gRPC server).
+fn new_threads_cpu(before: &std::collections::HashMap<u32, (String, u64)>) -> (u64, u64) {
+    let (mut worker, mut others) = (0, 0);
+    for (tid, (name, ns)) in thread_cpu() {
+        if before.contains_key(&tid) {
+            continue;
+        }
+        if name.starts_with("offworld-monito") {
+            worker += ns;
+        } else {
+            others += ns;
+        }
+    }
+    (worker, others)
+}
+
 /// Step durations of `steps()` steps (resets excluded), s, and the
 /// process CPU they took, s.
 async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
@@ -106,14 +149,27 @@ async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
     Ok((times, process_cpu() - cpu))
 }
 
-/// One round of steps with a live monitor on `session`, and
-/// the CPU the process used from the first step to the monitor's last
-/// row written.
+/// What one round with a monitor measured.
+struct MonitorRound {
+    /// Step durations, s.
+    times: Vec<f64>,
+    /// CPU the process used from the first step to the monitor's last row
+    /// written, s.
+    process_cpu: f64,
+    /// CPU of the monitor's own threads until its shutdown began, ns: its
+    /// worker's, and the rest (rerun's).
+    worker_ns: u64,
+    rerun_ns: u64,
+    stats: MonitorStats,
+}
+
+/// One round of steps with a live monitor on `session`.
 async fn with_monitor(
     session: &zenoh::Session,
     env: &EnvId,
     gym: &mut EnvClient,
-) -> anyhow::Result<(Vec<f64>, f64, MonitorStats)> {
+) -> anyhow::Result<MonitorRound> {
+    let before = thread_cpu();
     let monitor = Monitor::spawn(
         session,
         // A live view as `offworld monitor --serve` runs one (the viewers'
@@ -131,13 +187,31 @@ async fn with_monitor(
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
     let (times, steps_cpu) = run_steps(gym).await?;
+    let (worker_ns, rerun_ns) = new_threads_cpu(&before);
     let flush_cpu = process_cpu();
     let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
-    Ok((times, steps_cpu + process_cpu() - flush_cpu, stats))
+    Ok(MonitorRound {
+        times,
+        process_cpu: steps_cpu + process_cpu() - flush_cpu,
+        worker_ns,
+        rerun_ns,
+        stats,
+    })
 }
 
-#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
-async fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<()> {
+    // Named, so that no thread of the bench's own runtime (its blocking
+    // pool starts threads as the controller needs them) passes for one of
+    // the monitor's, whose rerun server runs a tokio runtime of its own.
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("step-rate")
+        .enable_all()
+        .build()?
+        .block_on(bench())
+}
+
+async fn bench() -> anyhow::Result<()> {
     let modes = modes()?;
     let endpoint = loopback_endpoint()?;
     let server = SessionConfig::listening(&endpoint).open().await?;
@@ -194,6 +268,9 @@ async fn main() -> anyhow::Result<()> {
         cpu[mode] = 0.0;
     }
     let (mut dropped, mut superseded) = (0, 0);
+    // The monitor's own threads' CPU per mode (embedded, remote), ns:
+    // worker, rerun.
+    let mut own = [[0u64; 2]; 2];
     // Modes run in ABCD DCBA order so a slow drift of the machine (other
     // load, clocks) weighs on every mode alike.
     for round in 0..rounds() {
@@ -208,10 +285,12 @@ async fn main() -> anyhow::Result<()> {
                 // The monitor embedded next to the env (its session: local delivery).
                 1 | 2 => {
                     let session = if mode == 1 { &server } else { &watcher };
-                    let (block, used, stats) = with_monitor(session, &env, &mut gym).await?;
-                    dropped += stats.dropped_frames;
-                    superseded += stats.superseded_frames;
-                    (block, used)
+                    let round = with_monitor(session, &env, &mut gym).await?;
+                    dropped += round.stats.dropped_frames;
+                    superseded += round.stats.superseded_frames;
+                    own[mode - 1][0] += round.worker_ns;
+                    own[mode - 1][1] += round.rerun_ns;
+                    (round.times, round.process_cpu)
                 }
                 // Every key of the env (`obs` too) to a subscriber that drops
                 // everything: what Zenoh's delivery of every frame costs.
@@ -277,5 +356,24 @@ async fn main() -> anyhow::Result<()> {
         "  bare remote subscriber, obs too : {cpu_bare:6.0} µs  ({:+.1} %)",
         extra(cpu_bare)
     );
+    // The part of a monitor's cost it spends on its own threads (the rest
+    // is its callbacks in the publishers' threads and Zenoh's delivery).
+    println!("the monitor's own threads' CPU per step (scheduler's count, until its shutdown):");
+    for (name, [worker, rerun], mode) in [
+        ("monitor embedded (same session) ", own[0], 1),
+        ("monitor remote (own session)    ", own[1], 2),
+    ] {
+        if !modes.contains(&mode) {
+            continue;
+        }
+        let per_step = |ns: u64| ns as f64 / steps_per_mode / 1e3;
+        println!(
+            "  {name}: {:6.1} µs  ({:.1} % of a step without monitor; worker {:.1} µs, rerun {:.1} µs)",
+            per_step(worker + rerun),
+            per_step(worker + rerun) / cpu_off * 100.0,
+            per_step(worker),
+            per_step(rerun),
+        );
+    }
     Ok(())
 }

@@ -1,8 +1,13 @@
 //! Episode events, tracking, status, e-stops, liveliness and the
 //! monitor's own health, as scalars and text logs.
 
-use super::motion::trajectory;
 use super::*;
+use rerun::TextLogLevel;
+
+const DEBUG: &str = TextLogLevel::DEBUG;
+const INFO: &str = TextLogLevel::INFO;
+const WARN: &str = TextLogLevel::WARN;
+const ERROR: &str = TextLogLevel::ERROR;
 
 impl Worker {
     pub(super) fn on_reward(
@@ -44,46 +49,29 @@ impl Worker {
             view.trajectory_logged = Some(wall);
             view.trajectory.clone()
         });
-        self.set_times(step, stamp, wall);
+        let stamp = Self::stamp(step, stamp, wall);
         if event.step == 0 {
-            self.anchor_odom(env)?;
+            self.anchor_odom(env, stamp);
         }
         if let Some(strip) = strip {
-            self.rec
-                .log(env_path(env, paths::TRAJECTORY), &trajectory(strip))?;
+            self.row(env, paths::TRAJECTORY, stamp, Row::Trajectory(strip));
         }
-        let stamp = Self::stamp(step, stamp, wall);
-        self.columns.push(
-            env_path(env, paths::REWARD),
-            stamp,
-            Row::Scalar(event.reward),
-        );
-        self.columns.push(
-            env_path(env, paths::RETURN),
-            stamp,
-            Row::Scalar(event.episode_return),
-        );
+        self.row(env, paths::REWARD, stamp, Row::Scalar(event.reward));
+        self.row(env, paths::RETURN, stamp, Row::Scalar(event.episode_return));
         if new_episode {
             let experiment = if event.experiment.is_empty() {
                 String::new()
             } else {
                 format!(" ({})", event.experiment)
             };
-            self.rec.log(
-                env_path(env, paths::EVENTS),
-                &TextLog::new(format!("episode {} started{experiment}", event.episode_id))
-                    .with_level(rerun::TextLogLevel::INFO),
-            )?;
+            let text = format!("episode {} started{experiment}", event.episode_id);
+            self.row(env, paths::EVENTS, stamp, Row::Text(text, INFO));
         }
         if ended {
-            self.rec.log(
-                env_path(env, paths::SUCCESS),
-                &Scalars::single(if event.success { 1.0 } else { 0.0 }),
-            )?;
-            self.rec.log(
-                env_path(env, paths::EPISODE_LENGTH),
-                &Scalars::single(f64::from(event.step)),
-            )?;
+            let success = if event.success { 1.0 } else { 0.0 };
+            self.row(env, paths::SUCCESS, stamp, Row::Scalar(success));
+            let length = f64::from(event.step);
+            self.row(env, paths::EPISODE_LENGTH, stamp, Row::Scalar(length));
             let how = if event.end_reason.is_empty() {
                 if event.truncated {
                     "truncated"
@@ -93,7 +81,7 @@ impl Worker {
             } else {
                 event.end_reason.as_str()
             };
-            self.log_end_text(env, event, how)?;
+            self.log_end_text(env, event, how, stamp);
         }
         self.count(&self.shared.counters.rewards);
         Ok(())
@@ -112,34 +100,27 @@ impl Worker {
         wall: SystemTime,
     ) -> Result<(), Skip> {
         let step = self.view(env).seq;
-        self.set_times(step, None, wall);
-        self.log_end_text(env, last, how)
+        self.log_end_text(env, last, how, Self::stamp(step, None, wall));
+        Ok(())
     }
 
-    /// "episode … ended after … steps" in the env's event log (at the times
-    /// set).
+    /// "episode … ended after … steps" in the env's event log.
     pub(super) fn log_end_text(
-        &self,
+        &mut self,
         env: &EnvId,
         last: &EpisodeEvent,
         how: &str,
-    ) -> Result<(), Skip> {
-        self.rec.log(
-            env_path(env, paths::EVENTS),
-            &TextLog::new(format!(
-                "episode {} ended after {} steps: {how} (return {:.3}{})",
-                last.episode_id,
-                last.step,
-                last.episode_return,
-                if last.success { ", success" } else { "" }
-            ))
-            .with_level(if last.success {
-                rerun::TextLogLevel::INFO
-            } else {
-                rerun::TextLogLevel::WARN
-            }),
-        )?;
-        Ok(())
+        stamp: Stamp,
+    ) {
+        let text = format!(
+            "episode {} ended after {} steps: {how} (return {:.3}{})",
+            last.episode_id,
+            last.step,
+            last.episode_return,
+            if last.success { ", success" } else { "" }
+        );
+        let level = if last.success { INFO } else { WARN };
+        self.row(env, paths::EVENTS, stamp, Row::Text(text, level));
     }
 
     pub(super) fn on_tracking(
@@ -155,19 +136,12 @@ impl Worker {
             return Ok(());
         }
         view.tracking = Some(status.tracking);
-        self.set_times(step, None, wall);
-        let (text, level) = if status.tracking {
-            ("tracking ok".to_owned(), rerun::TextLogLevel::INFO)
+        let text = if status.tracking {
+            Row::Text("tracking ok".to_owned(), INFO)
         } else {
-            (
-                format!("tracking lost: {}", status.reason),
-                rerun::TextLogLevel::WARN,
-            )
+            Row::Text(format!("tracking lost: {}", status.reason), WARN)
         };
-        self.rec.log(
-            env_path(env, paths::EVENTS),
-            &TextLog::new(text).with_level(level),
-        )?;
+        self.row(env, paths::EVENTS, Self::stamp(step, None, wall), text);
         Ok(())
     }
 
@@ -183,15 +157,15 @@ impl Worker {
         let view = self.view(env);
         let step = view.seq;
         let reset = status.last_reset;
+        let stamp = Self::stamp(step, None, wall);
         if reset.measured && view.last_reset_ms != Some(reset.unix_ms) {
             view.last_reset_ms = Some(reset.unix_ms);
-            self.set_times(step, None, wall);
             for (path, value) in [
                 (paths::RESET_POSITION_ERROR, reset.position_error_m),
                 (paths::RESET_YAW_ERROR, reset.yaw_error_rad),
                 (paths::RESET_DURATION, reset.duration_s),
             ] {
-                self.rec.log(env_path(env, path), &Scalars::single(value))?;
+                self.row(env, path, stamp, Row::Scalar(value));
             }
         }
         let view = self.view(env);
@@ -203,33 +177,23 @@ impl Worker {
             return Ok(());
         }
         let level = match status.state {
-            EnvState::Free | EnvState::Leased { .. } => rerun::TextLogLevel::INFO,
-            EnvState::Maintenance { .. } | EnvState::Offline { .. } => rerun::TextLogLevel::WARN,
+            EnvState::Free | EnvState::Leased { .. } => INFO,
+            EnvState::Maintenance { .. } | EnvState::Offline { .. } => WARN,
         };
         let text = status_text(&status.state);
         view.status = Some(status.state);
-        self.set_times(step, None, wall);
-        self.rec.log(
-            env_path(env, paths::EVENTS),
-            &TextLog::new(text).with_level(level),
-        )?;
+        self.row(env, paths::EVENTS, stamp, Row::Text(text, level));
         Ok(())
     }
 
-    pub(super) fn estop_log(&self, path: String, stop: &EStop) -> Result<(), Skip> {
-        let (text, level) = if stop.engaged {
-            (
-                format!("e-stop engaged: {}", stop.reason),
-                rerun::TextLogLevel::ERROR,
-            )
+    /// An e-stop's press or release, as a line of the event log at `path`.
+    pub(super) fn estop_log(&mut self, path: String, stamp: Stamp, stop: &EStop) {
+        let row = if stop.engaged {
+            Row::Text(format!("e-stop engaged: {}", stop.reason), ERROR)
         } else {
-            (
-                format!("e-stop released: {}", stop.reason),
-                rerun::TextLogLevel::INFO,
-            )
+            Row::Text(format!("e-stop released: {}", stop.reason), INFO)
         };
-        self.rec.log(path, &TextLog::new(text).with_level(level))?;
-        Ok(())
+        self.columns.push(path, stamp, row);
     }
 
     pub(super) fn on_env_estop(
@@ -245,8 +209,9 @@ impl Worker {
             return Ok(());
         }
         view.estop = Some(stop.engaged);
-        self.set_times(step, None, wall);
-        self.estop_log(env_path(env, paths::EVENTS), &stop)
+        let stamp = Self::stamp(step, None, wall);
+        self.estop_log(env_path(env, paths::EVENTS), stamp, &stop);
+        Ok(())
     }
 
     pub(super) fn on_site_estop(&mut self, sample: &Sample, wall: SystemTime) -> Result<(), Skip> {
@@ -257,8 +222,9 @@ impl Worker {
             return Ok(());
         }
         self.site_estop = Some(stop.engaged);
-        self.set_times(None, None, wall);
-        self.estop_log(paths::SITE_EVENTS.to_owned(), &stop)
+        let stamp = Self::stamp(None, None, wall);
+        self.estop_log(paths::SITE_EVENTS.to_owned(), stamp, &stop);
+        Ok(())
     }
 
     pub(super) fn on_alive(
@@ -275,42 +241,25 @@ impl Worker {
             self.maybe_retry_world(&env);
         }
         let step = self.view(&env).seq;
-        self.set_times(step, None, wall);
         let text = format!("{component} {}", if online { "online" } else { "offline" });
-        let level = if online {
-            rerun::TextLogLevel::DEBUG
-        } else {
-            rerun::TextLogLevel::WARN
-        };
-        self.rec.log(
-            env_path(&env, paths::EVENTS),
-            &TextLog::new(text).with_level(level),
-        )?;
+        let level = if online { DEBUG } else { WARN };
+        let stamp = Self::stamp(step, None, wall);
+        self.row(&env, paths::EVENTS, stamp, Row::Text(text, level));
         Ok(())
     }
 
+    /// The monitor's own counters, as rows (flushed with the others).
     pub(super) fn log_health(&mut self) {
         self.last_health = Some(Instant::now());
         let stats = self.shared.stats();
-        self.set_times(None, None, SystemTime::now());
-        let result = (|| -> Result<(), rerun::RecordingStreamError> {
-            self.rec.log(
-                paths::MONITOR_DROPPED_FRAMES,
-                &Scalars::single(stats.dropped_frames as f64),
-            )?;
-            self.rec.log(
-                paths::MONITOR_DROPPED_MESSAGES,
-                &Scalars::single(stats.dropped_messages as f64),
-            )?;
-            self.rec.log(
-                paths::MONITOR_DECODE_ERRORS,
-                &Scalars::single(stats.decode_errors as f64),
-            )?;
-            Ok(())
-        })();
-        if let Err(e) = result {
-            self.count(&self.shared.counters.log_errors);
-            tracing::debug!("monitor could not log its health: {e}");
+        let stamp = Self::stamp(None, None, SystemTime::now());
+        for (path, value) in [
+            (paths::MONITOR_DROPPED_FRAMES, stats.dropped_frames),
+            (paths::MONITOR_DROPPED_MESSAGES, stats.dropped_messages),
+            (paths::MONITOR_DECODE_ERRORS, stats.decode_errors),
+        ] {
+            self.columns
+                .push(path.to_owned(), stamp, Row::Scalar(value as f64));
         }
     }
 }

@@ -24,7 +24,7 @@ use offworld_runtime::world::WorldSpec;
 use offworld_runtime::{codec, wire, EnvId};
 use rerun::components::ImageFormat;
 use rerun::datatypes::{ChannelDatatype, ColorModel};
-use rerun::{Color, LineStrips3D, RecordingStream, Scalars, TextLog, Transform3D, ViewCoordinates};
+use rerun::{RecordingStream, TextLog, ViewCoordinates};
 use zenoh::sample::{Sample, SampleKind};
 use zenoh::Session;
 
@@ -345,8 +345,9 @@ impl Worker {
                 self.log_health();
             }
         }
-        self.finish();
+        // Health first: `finish` sends every pending row.
         self.log_health();
+        self.finish();
     }
 
     /// Sends the layout (if configured): before the first data.
@@ -394,6 +395,11 @@ impl Worker {
                 .fetch_add(rows as u64, Ordering::Relaxed);
             tracing::debug!("monitor could not log {rows} rows: {e}");
         }
+    }
+
+    /// Queues one row of `env`'s entity at `relative` (see [`paths`]).
+    fn row(&mut self, env: &EnvId, relative: &str, stamp: Stamp, row: Row) {
+        self.columns.push(env_path(env, relative), stamp, row);
     }
 
     fn count(&self, counter: &AtomicU64) {

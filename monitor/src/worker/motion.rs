@@ -101,15 +101,10 @@ impl Worker {
             view.trajectory_logged = Some(wall);
             view.trajectory.clone()
         });
-        self.columns.push(
-            env_path(env, paths::ROBOT),
-            Self::stamp(step, Some(&pose.header.stamp), wall),
-            Row::Transform(here, unit_quat(q)),
-        );
+        let stamp = Self::stamp(step, Some(&pose.header.stamp), wall);
+        self.row(env, paths::ROBOT, stamp, Row::Transform(here, unit_quat(q)));
         if let Some(strip) = strip {
-            self.set_times(step, Some(&pose.header.stamp), wall);
-            self.rec
-                .log(env_path(env, paths::TRAJECTORY), &trajectory(strip))?;
+            self.row(env, paths::TRAJECTORY, stamp, Row::Trajectory(strip));
         }
         self.count(&self.shared.counters.poses);
         Ok(())
@@ -147,23 +142,26 @@ impl Worker {
             z: p.z,
             yaw: yaw_of(q),
         });
-        self.set_times(step, Some(&odom.header.stamp), wall);
+        let stamp = Self::stamp(step, Some(&odom.header.stamp), wall);
         if first {
             // Until the first reset anchors it, draw odom as if it were the world.
-            self.anchor_odom(env)?;
+            self.anchor_odom(env, stamp);
         }
-        self.columns.push(
-            env_path(env, paths::ODOM_ROBOT),
-            Self::stamp(step, Some(&odom.header.stamp), wall),
-            Row::Transform([p.x as f32, p.y as f32, p.z as f32], unit_quat(q)),
+        let here = [p.x as f32, p.y as f32, p.z as f32];
+        self.row(
+            env,
+            paths::ODOM_ROBOT,
+            stamp,
+            Row::Transform(here, unit_quat(q)),
         );
         self.count(&self.shared.counters.odometry);
         Ok(())
     }
 
     /// Places the odom frame in the world so that the odometry pose
-    /// coincides with the tracker pose now (planar). Identity without both.
-    pub(super) fn anchor_odom(&mut self, env: &EnvId) -> Result<(), Skip> {
+    /// coincides with the tracker pose now (planar), from `stamp` on.
+    /// Identity without both.
+    pub(super) fn anchor_odom(&mut self, env: &EnvId, stamp: Stamp) {
         let view = self.view(env);
         let (translation, yaw) = match (view.last_pose, view.last_odom) {
             (Some(w), Some(o)) => {
@@ -181,22 +179,14 @@ impl Worker {
             _ => ([0.0; 3], 0.0),
         };
         let half = (yaw * 0.5) as f32;
-        self.rec.log(
-            env_path(env, paths::ODOM),
-            &Transform3D::from_translation_rotation(
-                translation,
-                rerun::Quaternion::from_xyzw([0.0, 0.0, half.sin(), half.cos()]),
-            ),
-        )?;
-        Ok(())
+        let rotation = [0.0, 0.0, half.sin(), half.cos()];
+        self.row(
+            env,
+            paths::ODOM,
+            stamp,
+            Row::Transform(translation, rotation),
+        );
     }
-}
-
-/// This episode's path: a thick orange line just above the ground.
-pub(super) fn trajectory(strip: Vec<[f32; 3]>) -> LineStrips3D {
-    LineStrips3D::new([strip])
-        .with_colors([Color::from_rgb(235, 120, 30)])
-        .with_radii([rerun::Radius::new_scene_units(0.008)])
 }
 
 pub(super) fn yaw_of(q: &offworld_runtime::msg::Quaternion) -> f64 {
