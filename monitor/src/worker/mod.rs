@@ -241,6 +241,8 @@ pub(crate) struct Worker {
     order: Vec<EnvId>,
     last_health: Option<Instant>,
     site_estop: Option<bool>,
+    /// The site-wide e-stop's key (compared with every sample's).
+    site_estop_key: String,
     site_latch: Obeyed,
     columns: Columns,
 }
@@ -315,6 +317,7 @@ impl Worker {
             order: Vec::new(),
             last_health: None,
             site_estop: None,
+            site_estop_key: global_estop_key(),
             site_latch: Obeyed::default(),
             columns: Columns::new(COLUMN_PERIOD, COLUMN_MAX_BYTES),
         }
@@ -493,15 +496,14 @@ impl Worker {
             return Ok(());
         }
         let key = sample.key_expr().as_str();
-        if key == global_estop_key() {
+        if key == self.site_estop_key {
             return self.on_site_estop(sample, wall);
         }
         let Ok(env) = EnvId::from_key(key) else {
             return Err(Skip::Decode(format!("`{key}` is not an env key")));
         };
-        let topic = topic_of(key).unwrap_or_default().to_owned();
         // Each message (a file) or the viewers' copy (a live view).
-        match topic.as_str() {
+        match topic_of(key).unwrap_or_default() {
             "cmd" | "preview_cmd" => self.on_cmd(&env, sample, wall),
             "obs" | "preview" => self.on_obs(&env, sample, wall),
             "pose" | "preview_pose" => self.on_pose(&env, sample, wall),
