@@ -7,9 +7,9 @@
 //! subscriber to every key of the env (`obs` too) on the third shows what
 //! Zenoh's delivery of every frame costs. Rounds alternate the modes and
 //! the medians are compared, with the process CPU per step (every thread)
-//! and the monitor's own threads' CPU per step (the scheduler's count of the
-//! threads it started: its worker and rerun's; steady on a shared machine,
-//! and its start is in it, so longer rounds weigh it less). Run:
+//! and the monitor's own threads' CPU per step while the steps run (the
+//! scheduler's count of the threads it started: its worker and rerun's;
+//! steady on a shared machine). Run:
 //! `cargo bench --bench step_rate` (`STEP_RATE_ROUNDS`, `STEP_RATE_STEPS`,
 //! `STEP_RATE_MODES`: a comma list of `off,embedded,remote,bare`).
 
@@ -88,11 +88,14 @@ fn process_cpu() -> f64 {
         .map_or(f64::NAN, |p| p.accumulated_cpu_time() as f64 * 1e-3)
 }
 
+/// Each thread's name and CPU time, ns, by thread id.
+type ThreadCpu = std::collections::HashMap<u32, (String, u64)>;
+
 /// CPU time of each of this process's living threads, by thread id: its
 /// name and ns on a CPU (`/proc/self/task/*/schedstat`, the scheduler's own
 /// count, not ticks). Empty where the kernel keeps no such file.
-fn thread_cpu() -> std::collections::HashMap<u32, (String, u64)> {
-    let mut threads = std::collections::HashMap::new();
+fn thread_cpu() -> ThreadCpu {
+    let mut threads = ThreadCpu::new();
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
         return threads;
     };
@@ -110,19 +113,20 @@ fn thread_cpu() -> std::collections::HashMap<u32, (String, u64)> {
     threads
 }
 
-/// CPU the threads that are not in `before` have used, ns: the worker's
-/// (`offworld-monitor`) and the other new ones (rerun's batcher, encoder
-/// and gRPC server).
-fn new_threads_cpu(before: &std::collections::HashMap<u32, (String, u64)>) -> (u64, u64) {
+/// CPU the threads that are not in `before` have used since `since`, ns:
+/// the worker's (`offworld-monitor`) and the other new ones (rerun's
+/// batcher, encoder and gRPC server).
+fn new_threads_cpu(before: &ThreadCpu, since: &ThreadCpu) -> (u64, u64) {
     let (mut worker, mut others) = (0, 0);
     for (tid, (name, ns)) in thread_cpu() {
         if before.contains_key(&tid) {
             continue;
         }
+        let used = ns.saturating_sub(since.get(&tid).map_or(0, |(_, ns)| *ns));
         if name.starts_with("offworld-monito") {
-            worker += ns;
+            worker += used;
         } else {
-            others += ns;
+            others += used;
         }
     }
     (worker, others)
@@ -156,7 +160,7 @@ struct MonitorRound {
     /// CPU the process used from the first step to the monitor's last row
     /// written, s.
     process_cpu: f64,
-    /// CPU of the monitor's own threads until its shutdown began, ns: its
+    /// CPU of the monitor's own threads while the steps ran, ns: its
     /// worker's, and the rest (rerun's).
     worker_ns: u64,
     rerun_ns: u64,
@@ -186,8 +190,9 @@ async fn with_monitor(
         .newest_frames(),
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
+    let started = thread_cpu();
     let (times, steps_cpu) = run_steps(gym).await?;
-    let (worker_ns, rerun_ns) = new_threads_cpu(&before);
+    let (worker_ns, rerun_ns) = new_threads_cpu(&before, &started);
     let flush_cpu = process_cpu();
     let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
     Ok(MonitorRound {
@@ -358,7 +363,9 @@ async fn bench() -> anyhow::Result<()> {
     );
     // The part of a monitor's cost it spends on its own threads (the rest
     // is its callbacks in the publishers' threads and Zenoh's delivery).
-    println!("the monitor's own threads' CPU per step (scheduler's count, until its shutdown):");
+    println!(
+        "the monitor's own threads' CPU per step (the scheduler's count, while the steps ran):"
+    );
     for (name, [worker, rerun], mode) in [
         ("monitor embedded (same session) ", own[0], 1),
         ("monitor remote (own session)    ", own[1], 2),
