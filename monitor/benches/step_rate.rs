@@ -7,9 +7,10 @@
 //! subscriber to every key of the env (`obs` too) on the third shows what
 //! Zenoh's delivery of every frame costs. Rounds alternate the modes and
 //! the medians are compared, with the process CPU per step (every thread)
-//! and the monitor's own threads' CPU per step while the steps run (the
-//! scheduler's count of the threads it started: its worker and rerun's;
-//! steady on a shared machine). Run:
+//! and each group of threads' CPU per step while the steps run (the
+//! scheduler's count: the twin, its render helpers, the client and the
+//! controller, Zenoh, the monitor's worker, rerun), whose monitor and rerun
+//! columns, the monitor's own threads, are steady on a shared machine. Run:
 //! `cargo bench --bench step_rate` (`STEP_RATE_ROUNDS`, `STEP_RATE_STEPS`,
 //! `STEP_RATE_MODES`: a comma list of `off,embedded,remote,bare`).
 
@@ -34,11 +35,11 @@ fn env_usize(name: &str, default: usize) -> usize {
 }
 
 fn steps() -> usize {
-    env_usize("STEP_RATE_STEPS", 200)
+    env_usize("STEP_RATE_STEPS", 2000)
 }
 
 fn rounds() -> usize {
-    env_usize("STEP_RATE_ROUNDS", 8)
+    env_usize("STEP_RATE_ROUNDS", 4)
 }
 
 /// The modes to run (`STEP_RATE_MODES`, e.g. `off,embedded` to profile
@@ -113,28 +114,54 @@ fn thread_cpu() -> ThreadCpu {
     threads
 }
 
-/// CPU the threads that are not in `before` have used since `since`, ns:
-/// the worker's (`offworld-monitor`) and the other new ones (rerun's
-/// batcher, encoder and gRPC server).
-fn new_threads_cpu(before: &ThreadCpu, since: &ThreadCpu) -> (u64, u64) {
-    let (mut worker, mut others) = (0, 0);
-    for (tid, (name, ns)) in thread_cpu() {
-        if before.contains_key(&tid) {
-            continue;
-        }
-        let used = ns.saturating_sub(since.get(&tid).map_or(0, |(_, ns)| *ns));
-        if name.starts_with("offworld-monito") {
-            worker += used;
-        } else {
-            others += used;
-        }
+/// The groups a thread's CPU is counted in, by the thread's name.
+const GROUPS: [&str; 6] = ["twin", "render", "client+ctl", "zenoh", "monitor", "rerun"];
+
+/// Which of [`GROUPS`] thread `tid` named `name` belongs to: the twin's
+/// thread, its render helpers, the bench's runtime and main thread (the
+/// client and the controller), Zenoh's runtimes, the monitor's worker, and
+/// the rest (rerun's threads, the monitor's world lookup).
+fn group_of(tid: u32, name: &str) -> usize {
+    const ZENOH: [&str; 5] = ["rx-", "tx-", "net-", "acc-", "app-"];
+    if name.starts_with("sim_twin") {
+        0
+    } else if name.starts_with("render-") {
+        1
+    } else if name.starts_with("step-rate") || tid == std::process::id() {
+        2
+    } else if ZENOH.iter().any(|prefix| name.starts_with(prefix)) {
+        3
+    } else if name.starts_with("offworld-monito") {
+        4
+    } else {
+        5
     }
-    (worker, others)
 }
 
-/// Step durations of `steps()` steps (resets excluded), s, and the
-/// process CPU they took, s.
-async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
+/// CPU each group of threads used since `since`, ns (a thread started
+/// since counts whole; one that ended is lost: none does while steps run).
+fn cpu_by_group(since: &ThreadCpu) -> [f64; GROUPS.len()] {
+    let mut groups = [0.0; GROUPS.len()];
+    for (tid, (name, ns)) in thread_cpu() {
+        let before = since.get(&tid).map_or(0, |(_, ns)| *ns);
+        groups[group_of(tid, &name)] += ns.saturating_sub(before) as f64;
+    }
+    groups
+}
+
+/// What a block of steps measured.
+struct Steps {
+    /// Step durations (resets excluded), s.
+    times: Vec<f64>,
+    /// Process CPU, s.
+    cpu: f64,
+    /// CPU per group of threads ([`GROUPS`]), ns.
+    groups: [f64; GROUPS.len()],
+}
+
+/// Runs `steps()` steps.
+async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<Steps> {
+    let threads = thread_cpu();
     let cpu = process_cpu();
     let mut times = Vec::with_capacity(steps());
     for i in 0..steps() {
@@ -150,30 +177,21 @@ async fn run_steps(gym: &mut EnvClient) -> anyhow::Result<(Vec<f64>, f64)> {
                 .map_err(|e| anyhow::anyhow!(e))?;
         }
     }
-    Ok((times, process_cpu() - cpu))
+    let cpu = process_cpu() - cpu;
+    Ok(Steps {
+        times,
+        cpu,
+        groups: cpu_by_group(&threads),
+    })
 }
 
-/// What one round with a monitor measured.
-struct MonitorRound {
-    /// Step durations, s.
-    times: Vec<f64>,
-    /// CPU the process used from the first step to the monitor's last row
-    /// written, s.
-    process_cpu: f64,
-    /// CPU of the monitor's own threads while the steps ran, ns: its
-    /// worker's, and the rest (rerun's).
-    worker_ns: u64,
-    rerun_ns: u64,
-    stats: MonitorStats,
-}
-
-/// One round of steps with a live monitor on `session`.
+/// One round of steps with a live monitor on `session`, the process CPU
+/// including the monitor's flush at its shutdown, and its stats.
 async fn with_monitor(
     session: &zenoh::Session,
     env: &EnvId,
     gym: &mut EnvClient,
-) -> anyhow::Result<MonitorRound> {
-    let before = thread_cpu();
+) -> anyhow::Result<(Steps, MonitorStats)> {
     let monitor = Monitor::spawn(
         session,
         // A live view as `offworld monitor --serve` runs one (the viewers'
@@ -190,18 +208,11 @@ async fn with_monitor(
         .newest_frames(),
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await; // subscription routed
-    let started = thread_cpu();
-    let (times, steps_cpu) = run_steps(gym).await?;
-    let (worker_ns, rerun_ns) = new_threads_cpu(&before, &started);
+    let mut steps = run_steps(gym).await?;
     let flush_cpu = process_cpu();
     let stats = tokio::task::spawn_blocking(move || monitor.shutdown()).await??;
-    Ok(MonitorRound {
-        times,
-        process_cpu: steps_cpu + process_cpu() - flush_cpu,
-        worker_ns,
-        rerun_ns,
-        stats,
-    })
+    steps.cpu += process_cpu() - flush_cpu;
+    Ok((steps, stats))
 }
 
 fn main() -> anyhow::Result<()> {
@@ -273,9 +284,8 @@ async fn bench() -> anyhow::Result<()> {
         cpu[mode] = 0.0;
     }
     let (mut dropped, mut superseded) = (0, 0);
-    // The monitor's own threads' CPU per mode (embedded, remote), ns:
-    // worker, rerun.
-    let mut own = [[0u64; 2]; 2];
+    // CPU per group of threads per mode, ns.
+    let mut groups = [[0.0; GROUPS.len()]; 4];
     // Modes run in ABCD DCBA order so a slow drift of the machine (other
     // load, clocks) weighs on every mode alike.
     for round in 0..rounds() {
@@ -285,17 +295,15 @@ async fn bench() -> anyhow::Result<()> {
         }
         let mut rates = [0.0; 4];
         for mode in order {
-            let (block, used) = match mode {
+            let steps = match mode {
                 0 => run_steps(&mut gym).await?,
                 // The monitor embedded next to the env (its session: local delivery).
                 1 | 2 => {
                     let session = if mode == 1 { &server } else { &watcher };
-                    let round = with_monitor(session, &env, &mut gym).await?;
-                    dropped += round.stats.dropped_frames;
-                    superseded += round.stats.superseded_frames;
-                    own[mode - 1][0] += round.worker_ns;
-                    own[mode - 1][1] += round.rerun_ns;
-                    (round.times, round.process_cpu)
+                    let (steps, stats) = with_monitor(session, &env, &mut gym).await?;
+                    dropped += stats.dropped_frames;
+                    superseded += stats.superseded_frames;
+                    steps
                 }
                 // Every key of the env (`obs` too) to a subscriber that drops
                 // everything: what Zenoh's delivery of every frame costs.
@@ -311,9 +319,12 @@ async fn bench() -> anyhow::Result<()> {
                     measured
                 }
             };
-            cpu[mode] += used;
-            rates[mode] = 1.0 / median(block.clone());
-            times[mode].extend(block);
+            cpu[mode] += steps.cpu;
+            for (total, used) in groups[mode].iter_mut().zip(steps.groups) {
+                *total += used;
+            }
+            rates[mode] = 1.0 / median(steps.times.clone());
+            times[mode].extend(steps.times);
         }
         println!(
             "round {round}: off {:6.0}, embedded {:6.0}, remote {:6.0}, bare remote subscriber to every frame {:6.0} steps/s",
@@ -347,7 +358,7 @@ async fn bench() -> anyhow::Result<()> {
         "  bare remote subscriber, obs too : {bare:6.0} steps/s  ({:+.1} %: Zenoh delivering every frame)",
         -cost(bare)
     );
-    println!("process CPU per step (every thread; the steadier figure on a shared machine):");
+    println!("process CPU per step (every thread, ended ones too):");
     println!("  without monitor                 : {cpu_off:6.0} µs");
     println!(
         "  monitor embedded (same session) : {cpu_embedded:6.0} µs  ({:+.1} %)",
@@ -361,25 +372,38 @@ async fn bench() -> anyhow::Result<()> {
         "  bare remote subscriber, obs too : {cpu_bare:6.0} µs  ({:+.1} %)",
         extra(cpu_bare)
     );
-    // The part of a monitor's cost it spends on its own threads (the rest
-    // is its callbacks in the publishers' threads and Zenoh's delivery).
+    // Where each mode's CPU went, by thread: the monitor's own threads
+    // (monitor, rerun) and what it costs the others (the twin's and the
+    // controller's threads put the viewers' copies to its callbacks).
+    println!("CPU per step by thread (the scheduler's count while the steps ran), µs:");
     println!(
-        "the monitor's own threads' CPU per step (the scheduler's count, while the steps ran):"
+        "  {:32}  {}",
+        "",
+        GROUPS.map(|g| format!("{g:>11}")).join("")
     );
-    for (name, [worker, rerun], mode) in [
-        ("monitor embedded (same session) ", own[0], 1),
-        ("monitor remote (own session)    ", own[1], 2),
-    ] {
+    let names = [
+        "without monitor                 ",
+        "monitor embedded (same session) ",
+        "monitor remote (own session)    ",
+        "bare remote subscriber, obs too ",
+    ];
+    for &mode in &modes {
+        let per_step = groups[mode].map(|ns| ns / steps_per_mode / 1e3);
+        println!(
+            "  {}: {}",
+            names[mode],
+            per_step.map(|us| format!("{us:11.1}")).join("")
+        );
+    }
+    for mode in [1, 2] {
         if !modes.contains(&mode) {
             continue;
         }
-        let per_step = |ns: u64| ns as f64 / steps_per_mode / 1e3;
+        let own = (groups[mode][4] + groups[mode][5]) / steps_per_mode / 1e3;
         println!(
-            "  {name}: {:6.1} µs  ({:.1} % of a step without monitor; worker {:.1} µs, rerun {:.1} µs)",
-            per_step(worker + rerun),
-            per_step(worker + rerun) / cpu_off * 100.0,
-            per_step(worker),
-            per_step(rerun),
+            "  {}: its own threads (monitor, rerun) {own:.1} µs a step, {:.1} % of a step without monitor",
+            names[mode],
+            own / cpu_off * 100.0
         );
     }
     Ok(())

@@ -22,8 +22,8 @@
 //! [`MonitorStats`] and the publisher — the robot, the twin, the controller
 //! — never waits for the viewer. One named thread (`offworld-monitor`)
 //! wakes at most every [`MonitorConfig::batch_interval`], decodes what
-//! gathered and logs it (high-rate data as columns, one chunk per entity per
-//! 100 ms); malformed messages are counted and skipped.
+//! gathered and logs it (every row with a time as columns: one chunk per
+//! entity per 100 ms); malformed messages are counted and skipped.
 //!
 //! # Embedding
 //!
