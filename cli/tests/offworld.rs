@@ -319,10 +319,28 @@ fn a_farm_stopped_while_starting_leaves_nothing_behind() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("offworld runs");
-    // Stopped once the gym server, the last process it starts, is running:
-    // the farm is then waiting for everything to come up.
+    // The router is frozen once the twins are spawned (it listens by then):
+    // nothing comes up through it, so the farm is still starting when it is
+    // stopped however fast it starts (over the router's socket, a farm
+    // became ready before a stop sent on seeing its gym server).
     let deadline = Instant::now() + Duration::from_secs(60);
-    while !processes_naming(scratch.path()).contains(" serve") {
+    let mut router_frozen = false;
+    // Stopped once the gym server, the last process it starts, is running.
+    loop {
+        let running = processes_naming(scratch.path());
+        if !router_frozen && running.contains(" twin ") {
+            let router = running
+                .lines()
+                .find(|line| line.contains("zenohd "))
+                .and_then(|line| line.split_whitespace().next())
+                .expect("the router runs before the twins");
+            let sent = Command::new("kill").args(["-STOP", router]).status();
+            assert!(sent.expect("kill").success());
+            router_frozen = true;
+        }
+        if router_frozen && running.contains(" serve ") {
+            break;
+        }
         assert!(farm.try_wait().expect("wait").is_none(), "the farm exited");
         assert!(Instant::now() < deadline, "the gym server never started");
         std::thread::sleep(Duration::from_millis(20));
