@@ -1,5 +1,5 @@
-//! Column batching for the high-rate data (images, poses, scalars, and the
-//! per-episode rows: events, trajectories): rows gather per entity and go to
+//! Column batching for every row with a time the monitor logs (images,
+//! poses, scalars, event lines, trajectories): rows gather per entity and go to
 //! rerun as one chunk per entity every flush period (`send_columns`),
 //! instead of one `log` call, one serialisation and one channel message per
 //! row. At a thousand steps a second this is most of the monitor's CPU

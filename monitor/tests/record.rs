@@ -389,9 +389,21 @@ async fn a_recorded_episode_reads_back_with_every_frame_pose_and_reward() -> any
     );
     // The trajectory (at most 10 Hz, and at the episode's start and end) and
     // the episode events.
-    assert!(component(entity(&summary, &env, "trajectory")?, "LineStrips3D:strips") >= 2);
-    let events = component(entity(&summary, &env, "events")?, "TextLog:text");
-    assert!(events >= 3, "status, tracking, episode start/end: {events}");
+    let trajectory = entity(&summary, &env, "trajectory")?;
+    let strips = component(trajectory, "LineStrips3D:strips");
+    assert!(strips >= 2, "{trajectory}");
+    for drawn_as in ["LineStrips3D:colors", "LineStrips3D:radii"] {
+        assert_eq!(component(trajectory, drawn_as), strips, "{trajectory}");
+    }
+    let events = entity(&summary, &env, "events")?;
+    let lines = component(events, "TextLog:text");
+    assert!(lines >= 3, "status, tracking, episode start/end: {events}");
+    assert_eq!(component(events, "TextLog:level"), lines, "{events}");
+    // The odometry frame, anchored to the tracker at the reset.
+    let odom = entity(&summary, &env, "odom")?;
+    for part in ["Transform3D:translation", "Transform3D:quaternion"] {
+        assert!(component(odom, part) >= 1, "{odom}");
+    }
 
     // The static world, body and camera.
     for (relative, component_name) in [

@@ -186,7 +186,9 @@ impl Worker {
         Ok(())
     }
 
-    /// An e-stop's press or release, as a line of the event log at `path`.
+    /// An e-stop's press or release, as a line of the event log at `path`,
+    /// sent at once with every row pending (an operator watches for it; it
+    /// is rare).
     pub(super) fn estop_log(&mut self, path: String, stamp: Stamp, stop: &EStop) {
         let row = if stop.engaged {
             Row::Text(format!("e-stop engaged: {}", stop.reason), ERROR)
@@ -194,6 +196,7 @@ impl Worker {
             Row::Text(format!("e-stop released: {}", stop.reason), INFO)
         };
         self.columns.push(path, stamp, row);
+        self.flush_columns();
     }
 
     pub(super) fn on_env_estop(

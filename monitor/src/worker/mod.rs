@@ -24,7 +24,7 @@ use offworld_runtime::world::WorldSpec;
 use offworld_runtime::{codec, wire, EnvId};
 use rerun::components::ImageFormat;
 use rerun::datatypes::{ChannelDatatype, ColorModel};
-use rerun::{RecordingStream, TextLog, ViewCoordinates};
+use rerun::{RecordingStream, ViewCoordinates};
 use zenoh::sample::{Sample, SampleKind};
 use zenoh::Session;
 
@@ -52,9 +52,9 @@ const MAX_TRAJECTORY: usize = 4096;
 const TRAJECTORY_STEP_M: f32 = 0.01;
 /// The trajectory is re-logged at most this often (it grows all episode).
 const TRAJECTORY_PERIOD: Duration = Duration::from_millis(100);
-/// High-rate rows go to rerun at least this often (as one chunk per entity).
+/// Rows go to rerun at least this often (as one chunk per entity) …
 const COLUMN_PERIOD: Duration = Duration::from_millis(100);
-/// … or once this many image bytes are pending.
+/// … or once this many bytes (images, text, trajectories) are pending.
 const COLUMN_MAX_BYTES: usize = 8 << 20;
 /// How often the monitor logs its own health.
 const HEALTH_PERIOD: Duration = Duration::from_secs(1);
@@ -441,17 +441,6 @@ impl Worker {
     }
 
     // ---- time ----------------------------------------------------------
-
-    fn set_times(&self, step: Option<u64>, stamp: Option<&Time>, wall: SystemTime) {
-        self.rec.reset_time();
-        if let Some(step) = step.and_then(|s| i64::try_from(s).ok()) {
-            self.rec.set_time_sequence(paths::TIMELINE_STEP, step);
-        }
-        if let Some(d) = stamp.and_then(stamp_duration) {
-            self.rec.set_time(paths::TIMELINE_SIM_TIME, d);
-        }
-        self.rec.set_time(paths::TIMELINE_WALL_TIME, wall);
-    }
 
     /// A row's place on the timelines (for [`Columns`]).
     fn stamp(step: Option<u64>, stamp: Option<&Time>, wall: SystemTime) -> Stamp {

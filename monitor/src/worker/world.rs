@@ -94,25 +94,25 @@ impl Worker {
                 if let Some((w, h)) = camera_res {
                     scene::log_camera(&self.rec, env, &world.camera, w, h)?;
                 }
-                let text = match &source {
-                    WorldSource::Configured => format!("world: {} (configured)", world.name),
-                    WorldSource::Spec => format!("world: {} (from the env's spec)", world.name),
-                    WorldSource::Recording => format!("world: {} (recorded)", world.name),
-                    WorldSource::Fallback(why) => {
-                        format!("world: {} (default; {why})", world.name)
-                    }
-                };
-                self.set_times(None, None, wall);
-                self.rec.log(
-                    env_path(env, paths::EVENTS),
-                    &TextLog::new(text).with_level(rerun::TextLogLevel::DEBUG),
-                )?;
             }
             Ok(())
         })();
         if let Err(e) = result {
             self.count(&self.shared.counters.log_errors);
             tracing::debug!("monitor could not log the world: {e}");
+        }
+        if changed {
+            let text = match &source {
+                WorldSource::Configured => format!("world: {} (configured)", world.name),
+                WorldSource::Spec => format!("world: {} (from the env's spec)", world.name),
+                WorldSource::Recording => format!("world: {} (recorded)", world.name),
+                WorldSource::Fallback(why) => {
+                    format!("world: {} (default; {why})", world.name)
+                }
+            };
+            let stamp = Self::stamp(None, None, wall);
+            let level = rerun::TextLogLevel::DEBUG;
+            self.row(env, paths::EVENTS, stamp, Row::Text(text, level));
         }
         let view = self.view(env);
         if let Some((w, h)) = camera_res {
