@@ -264,16 +264,13 @@ async fn agent_publishes_world_poses_skips_bad_lines_and_reports_tracking_loss()
             }
         }
         server.send(&text);
+        let mut published = Vec::new();
         for (i, want) in truth.iter().enumerate() {
             let got: PoseStamped = next(&poses, Duration::from_secs(3))
                 .await
                 .unwrap_or_else(|| panic!("pose {i}"));
             assert_pose_eq(&got, want);
-            // Viewers read the same poses from their copy.
-            let copy: PoseStamped = next(&copies, Duration::from_secs(3))
-                .await
-                .unwrap_or_else(|| panic!("copy of pose {i}"));
-            assert_eq!(copy, got);
+            published.push(got);
         }
         let status = status_where(&tracking, Duration::from_secs(2), |s| s.tracking).await;
         assert_eq!(status.reason, "tracking");
@@ -287,6 +284,24 @@ async fn agent_publishes_world_poses_skips_bad_lines_and_reports_tracking_loss()
         assert!(next::<PoseStamped>(&poses, Duration::from_millis(50))
             .await
             .is_none());
+
+        // Viewers read the same poses from their copy (queued meanwhile), in
+        // order; a copy may be dropped (`Latest`: a congested link drops it
+        // rather than wait, as a loaded CI host's once did), never altered.
+        let mut copied = Vec::new();
+        let mut wait = Duration::from_secs(3);
+        while let Some(copy) = next::<PoseStamped>(&copies, wait).await {
+            copied.push(copy);
+            wait = Duration::from_millis(300);
+        }
+        assert!(!copied.is_empty(), "no copy of the poses");
+        let mut rest = published.iter();
+        for copy in &copied {
+            assert!(
+                rest.any(|pose| pose == copy),
+                "{copy:?} is not among the poses published, in order"
+            );
+        }
 
         // Poses resume (the robot moved 0.2 m during the 1 s gap).
         let resumed: Vec<Isometry3<f64>> = (0..5)
