@@ -42,20 +42,18 @@ pub fn env_root(env: &EnvId) -> String {
     format!("envs/{}/{}", env.realm().as_str(), env.name())
 }
 
-/// `envs/<realm>/<name>/<relative>` (joined by hand: the monitor builds a
-/// few of these per step).
+/// `envs/<realm>/<name>/<relative>` (joined without `format!`: the monitor
+/// builds a few of these per step).
 pub fn env_path(env: &EnvId, relative: &str) -> String {
-    let parts = [
+    [
         "envs/",
         env.realm().as_str(),
         "/",
         env.name(),
         "/",
         relative,
-    ];
-    let mut path = String::with_capacity(parts.iter().map(|p| p.len()).sum());
-    parts.iter().for_each(|p| path.push_str(p));
-    path
+    ]
+    .concat()
 }
 
 /// Static world geometry.
