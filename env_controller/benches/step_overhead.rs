@@ -6,7 +6,8 @@
 //! measured in a tight loop and interleaved with the steps (raw, step, raw,
 //! …), so slow spells of a shared machine hit both alike; the ratio and the
 //! µs above the floor are also taken per step against the floor run just
-//! before it. Run: `cargo bench --bench step_overhead`
+//! before it. Run: `cargo bench --bench step_overhead` (one resolution:
+//! `STEP_OVERHEAD_ONLY=84x84`).
 
 use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
@@ -30,8 +31,12 @@ fn quantile(v: &[f64], q: f64) -> f64 {
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
+    // `STEP_OVERHEAD_ONLY=84x84` runs one resolution (for profiling one).
+    let only = std::env::var("STEP_OVERHEAD_ONLY").ok();
     for (w, h) in [(320, 240), (84, 84)] {
-        run(w, h).await?;
+        if only.as_deref().is_none_or(|o| o == format!("{w}x{h}")) {
+            run(w, h).await?;
+        }
     }
     Ok(())
 }

@@ -18,6 +18,7 @@
 //! - [`admission`]: request limits (size, per-client rate and queue, per-env
 //!   queue), decided without waiting.
 //! - [`server`]: many envs served over Zenoh.
+//! - `start`: a step's work begun on the thread that received it.
 //! - `cli`: `env_controller serve | users | experiments | leaderboard | estop`
 //!   (the `programs` feature: the `offworld` command enables it, an
 //!   embedding such as the Python package need not).
@@ -35,6 +36,7 @@ pub mod estops;
 pub mod link;
 pub mod observation;
 pub mod server;
+mod start;
 pub mod step;
 pub mod store;
 pub mod task;

@@ -7,7 +7,8 @@
 //! bounded queue) or refused at once (`BadRequest`, `Busy`); `status` and
 //! `spec` are answered there and then from a snapshot. An admitted request
 //! runs on its own task (requests to an env are serialised by its state
-//! lock); a handler that panics (a bug) answers `Internal` and serving goes
+//! lock); a step starts in the callback and goes to a task at its first
+//! wait, for its frame (`start`); a handler that panics (a bug) answers `Internal` and serving goes
 //! on ([`answer_supervised`]).
 
 use std::any::Any;
@@ -36,6 +37,7 @@ use crate::admission::{self, ClientRates, Gate, RequestLimits};
 use crate::env::{EnvOptions, EnvServer};
 use crate::error::ControllerError;
 use crate::link::LinkSeals;
+use crate::start::start_here;
 use crate::store::Store;
 use crate::task::Task;
 
@@ -146,14 +148,21 @@ impl Admission {
             Err(refused) => return refuse(&query, refused),
         };
         let (server, mut serving) = (self.server.clone(), self.serving.clone());
-        self.runtime.spawn(async move {
+        let work = async move {
             let _place = ticket;
             tokio::select! {
                 () = answer_supervised(&query, handle(&server, topic, &query)) => {}
                 // The env stopped serving (the controller was dropped).
                 _ = serving.changed() => {}
             }
-        });
+        };
+        if topic == Topic::Step {
+            // Up to the command it puts on `cmd`, a step needs no worker:
+            // it starts here, sparing a hand-off (`crate::start`).
+            start_here(&self.runtime, work);
+        } else {
+            self.runtime.spawn(work);
+        }
     }
 }
 
