@@ -2,14 +2,15 @@
 //! session. Per env: its queryables, a watcher of client liveliness tokens,
 //! a heartbeat for the robot's watchdog, and status publication.
 //!
-//! A query is taken in Zenoh's callback, which never waits: there it is
-//! admitted ([`crate::admission`]: size, client rate, a place in the env's
-//! bounded queue) or refused at once (`BadRequest`, `Busy`); `status` and
-//! `spec` are answered there and then from a snapshot. An admitted request
-//! runs on its own task (requests to an env are serialised by its state
-//! lock); a step starts in the callback and goes to a task at its first
-//! wait, for its frame (`start`); a handler that panics (a bug) answers `Internal` and serving goes
-//! on ([`answer_supervised`]).
+//! A query is taken in Zenoh's callback, which never waits for a worker:
+//! there it is admitted ([`crate::admission`]: size, client rate, a place
+//! in the env's bounded queue) or refused at once (`BadRequest`, `Busy`);
+//! `status` and `spec` are answered there and then from a snapshot. An
+//! admitted request runs on its own task (requests to an env are
+//! serialised by its state lock), except that a sim env's step starts in
+//! the callback and goes to a task when woken after its first wait,
+//! usually for its frame (`start`). A handler that panics (a bug) answers
+//! `Internal` and serving goes on ([`answer_supervised`]).
 
 use std::any::Any;
 use std::future::Future;
@@ -20,7 +21,7 @@ use std::task::Poll;
 use std::time::Duration;
 
 use offworld_runtime::codec::Encoded;
-use offworld_runtime::keys::{Component, EnvId, Topic};
+use offworld_runtime::keys::{Component, EnvId, Realm, Topic};
 use offworld_runtime::msg::{
     AdminRequest, BookingRequest, CloseRequest, ExperimentsRequest, Heartbeat, OpenRequest,
     ResetRequest, StepRequest, Time,
@@ -100,7 +101,8 @@ struct Admission {
     rates: Arc<ClientRates>,
     state: Arc<Gate>,
     store: Arc<Gate>,
-    /// Where admitted requests run (the callback runs on Zenoh's threads).
+    /// Where admitted requests run (the callback runs on Zenoh's threads;
+    /// a sim step's first stretch too).
     runtime: tokio::runtime::Handle,
     serving: watch::Receiver<()>,
 }
@@ -126,8 +128,9 @@ impl Admission {
         }
     }
 
-    /// Takes `query` on `topic` without waiting: refused, answered, or
-    /// handed to a task with its place in the queue.
+    /// Takes `query` on `topic` without waiting for a worker: refused,
+    /// answered, started here (a sim step), or handed to a task with its
+    /// place in the queue.
     fn take(self: &Arc<Self>, topic: Topic, query: Query) {
         let admitted = self
             .limits
@@ -156,9 +159,11 @@ impl Admission {
                 _ = serving.changed() => {}
             }
         };
-        if topic == Topic::Step {
-            // Up to the command it puts on `cmd`, a step needs no worker:
-            // it starts here, sparing a hand-off (`crate::start`).
+        if topic == Topic::Step && self.server.env().realm() == Realm::Sim {
+            // Up to the command it puts on `cmd`, a sim step needs no
+            // worker: it starts here, sparing a hand-off (`crate::start`).
+            // A real robot's steps last a second; its link's receive thread
+            // is never held by a command put to a congested robot link.
             start_here(&self.runtime, work);
         } else {
             self.runtime.spawn(work);

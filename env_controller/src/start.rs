@@ -1,12 +1,14 @@
-//! Starting a request's work on the thread that received it.
+//! Starting a step's work on the thread that received it.
 //!
 //! A step's first stretch (decode, lease and episode checks, the command
-//! put on `cmd`) never waits. Handed to a task, it would first wait for a
-//! worker to wake: on a 2-core host tens of µs, a sixth of an 84×84 step's
-//! overhead (`docs/performance.md`, "A step starts where it arrives").
-//! [`start_here`] polls the work once on the calling thread (Zenoh's receive
-//! thread for a remote client) and gives it to the runtime only when it is
-//! woken after its first wait: no worker is woken just to find it waiting.
+//! put on `cmd`) needs no worker of the controller's runtime. Handed to a
+//! task, it would first wait for one to wake: on a 2-core host tens of µs,
+//! a sixth of an 84×84 step's overhead (`docs/performance.md`, "A step
+//! starts where it arrives"). [`start_here`] polls the work once on the
+//! calling thread (Zenoh's receive thread for a remote client) and gives it
+//! to the runtime only when it is woken after that poll: no worker is woken
+//! just to find it waiting. What may block that thread for long (SQLite, a
+//! stop command) first awaits [`hand_off`].
 
 use std::future::Future;
 use std::pin::Pin;
@@ -15,17 +17,20 @@ use std::sync::atomic::{
     Ordering::{AcqRel, Acquire, Release},
 };
 use std::sync::{Arc, Mutex, PoisonError};
-use std::task::{Context, Wake, Waker};
+use std::task::{Context, Poll, Wake, Waker};
 
 use tokio::runtime::Handle;
 
 type Work = Pin<Box<dyn Future<Output = ()> + Send>>;
 
-/// Runs `work` on this thread until it first waits, then on `runtime` once
-/// it is woken. Timers and other resources it creates belong to `runtime`.
+/// Runs `work` on this thread until it first returns `Pending`, then on
+/// `runtime` once it is woken.
 ///
-/// `work` must not block this thread for long: it runs inside the caller
-/// (a Zenoh callback) until its first `.await` that waits.
+/// During that first poll `runtime` is entered, so timers and tasks made
+/// there belong to it; the poll is free of tokio's cooperative budget (the
+/// caller's task, Zenoh's receive loop, may have spent it). `work` must not
+/// block this thread for long: the caller is a Zenoh callback, and the
+/// link it reads waits meanwhile.
 pub fn start_here(runtime: &Handle, work: impl Future<Output = ()> + Send + 'static) {
     let mut work: Work = Box::pin(work);
     let _entered = runtime.enter();
@@ -35,11 +40,9 @@ pub fn start_here(runtime: &Handle, work: impl Future<Output = ()> + Send + 'sta
         work: Mutex::new(None),
     });
     let waker = Waker::from(parked.clone());
-    if work
-        .as_mut()
-        .poll(&mut Context::from_waker(&waker))
-        .is_ready()
-    {
+    let first = std::pin::pin!(tokio::task::unconstrained(work.as_mut()))
+        .poll(&mut Context::from_waker(&waker));
+    if first.is_ready() {
         return;
     }
     *parked.slot() = Some(work);
@@ -77,7 +80,8 @@ impl Parked {
 
     fn spawn(&self) {
         self.state.store(SPAWNED, Release);
-        if let Some(work) = self.slot().take() {
+        let work = self.slot().take();
+        if let Some(work) = work {
             // Polled again on a worker: whatever woke it is seen there, and
             // from then on it registers the task's waker.
             self.runtime.spawn(work);
@@ -108,6 +112,24 @@ impl Wake for Parked {
             self.spawn();
         }
     }
+}
+
+/// Leaves the thread [`start_here`] runs a step's first stretch on before
+/// work that may block it (a SQLite write, a stop command): the work goes
+/// on on a runtime worker. On a worker already, one yield.
+pub async fn hand_off() {
+    let mut yielded = false;
+    std::future::poll_fn(|cx| {
+        if yielded {
+            return Poll::Ready(());
+        }
+        yielded = true;
+        // Our own waker, not tokio's deferred yield: on the caller's thread
+        // (a worker of Zenoh's runtime) that would wait until it parks.
+        cx.waker().wake_by_ref();
+        Poll::Pending
+    })
+    .await
 }
 
 #[cfg(test)]
@@ -164,24 +186,72 @@ mod tests {
     }
 
     #[test]
-    fn a_timer_made_in_the_first_stretch_belongs_to_the_runtime() {
-        let rt = runtime();
+    fn from_a_worker_of_another_runtime_timers_and_hand_offs_belong_to_ours() {
+        // The caller is a worker of a runtime not ours, as Zenoh's are.
+        let ours = runtime();
+        let theirs = runtime();
         let (done_tx, done_rx) = std::sync::mpsc::channel();
-        // The caller is no runtime thread (as Zenoh's are not ours).
-        std::thread::spawn({
-            let handle = rt.handle().clone();
-            move || {
+        let handle = ours.handle().clone();
+        theirs.block_on(async move {
+            tokio::spawn(async move {
+                let caller = std::thread::current().id();
                 start_here(&handle, async move {
                     tokio::time::sleep(Duration::from_millis(5)).await;
-                    done_tx.send(()).expect("send");
-                })
-            }
-        })
-        .join()
-        .expect("caller thread");
-        done_rx
+                    let after_sleep = std::thread::current().id();
+                    hand_off().await;
+                    done_tx
+                        .send((caller, after_sleep, tokio::runtime::Handle::current().id()))
+                        .expect("send");
+                });
+            })
+            .await
+            .expect("caller task");
+        });
+        let (caller, after_sleep, runtime_id) = done_rx
             .recv_timeout(Duration::from_secs(30))
             .expect("the timer fired and the work finished");
+        assert_ne!(after_sleep, caller);
+        assert_eq!(runtime_id, ours.handle().id(), "went on on our runtime");
+    }
+
+    #[test]
+    fn a_hand_off_moves_the_rest_off_the_calling_thread_at_once() {
+        let rt = runtime();
+        let (done_tx, done_rx) = std::sync::mpsc::channel();
+        let caller = std::thread::current().id();
+        start_here(rt.handle(), async move {
+            hand_off().await;
+            done_tx.send(std::thread::current().id()).expect("send");
+        });
+        let then = done_rx
+            .recv_timeout(Duration::from_secs(30))
+            .expect("handed off and finished");
+        assert_ne!(then, caller);
+    }
+
+    #[test]
+    fn work_woken_from_another_thread_during_its_first_poll_is_spawned() {
+        let rt = runtime();
+        let (done_tx, done_rx) = std::sync::mpsc::channel();
+        let mut polls = 0;
+        start_here(
+            rt.handle(),
+            std::future::poll_fn(move |cx| {
+                polls += 1;
+                if polls == 1 {
+                    // Woken, and the waker's thread gone, before this poll
+                    // returns: the state is WOKEN_WHILE_POLLING.
+                    let waker = cx.waker().clone();
+                    std::thread::spawn(move || waker.wake())
+                        .join()
+                        .expect("waker thread");
+                    return Poll::Pending;
+                }
+                done_tx.send(polls).expect("send");
+                Poll::Ready(())
+            }),
+        );
+        assert_eq!(done_rx.recv_timeout(Duration::from_secs(30)), Ok(2));
     }
 
     #[test]

@@ -20,6 +20,12 @@ impl EnvServer {
         }
     }
 
+    /// Whether [`EnvServer::slot_at`] answers `now` from its cache.
+    fn slots_known_at(&self, now: i64) -> bool {
+        let cache = self.slots.lock().unwrap_or_else(PoisonError::into_inner);
+        cache.as_ref().is_some_and(|known| now < known.until_ms)
+    }
+
     pub(super) fn forget_slots(&self) {
         *self.slots.lock().unwrap_or_else(PoisonError::into_inner) = None;
     }
@@ -32,10 +38,14 @@ impl EnvServer {
         state: &mut State,
         session_id: &str,
     ) -> Result<(), WireError> {
+        let now = now_ms();
+        if !self.slots_known_at(now) {
+            // Reads the database: not on the thread a step started on.
+            crate::start::hand_off().await;
+        }
         let Some(lease) = state.lease.as_ref().filter(|l| l.session_id == session_id) else {
             return Ok(());
         };
-        let now = now_ms();
         let reason = match lease.booked_until_unix_ms {
             Some(end) if now >= end => Some(format!(
                 "your booked slot on {} ended at {}; the lease ended with it",
@@ -57,6 +67,7 @@ impl EnvServer {
             return Ok(());
         };
         tracing::info!(env = %self.env, %reason, "lease ended by a booking");
+        crate::start::hand_off().await;
         self.link.stop().await;
         self.abort_episode(state, "booked slot ended").await;
         state.lease = None;

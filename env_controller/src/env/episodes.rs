@@ -224,6 +224,8 @@ impl EnvServer {
     pub(super) async fn abort_episode(&self, state: &mut State, reason: &str) {
         let running = state.episode.as_ref().is_some_and(|e| !e.over);
         if running {
+            // Writes to SQLite: not on the thread a step started on.
+            crate::start::hand_off().await;
             let end = EndReason::Aborted(reason.to_owned());
             if let Err(e) = self.finish_episode(state, &end).await {
                 tracing::error!(env = %self.env, "could not record the aborted episode: {}", e.message);
