@@ -135,7 +135,13 @@ fn prints_records_and_ends(command: &Command) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::path::Path;
+    use std::path::PathBuf;
+
+    /// The workspace's root directory.
+    fn workspace() -> PathBuf {
+        let package = offworld_test_support::package_dir();
+        package.parent().expect("workspace").to_owned()
+    }
 
     #[test]
     fn the_command_line_is_consistent() {
@@ -147,9 +153,7 @@ mod tests {
     /// from the command line. Lines with placeholders (`…`) are prose.
     #[test]
     fn the_documented_commands_parse() {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .parent()
-            .expect("workspace");
+        let root = workspace();
         let mut files = vec![root.join("README.md"), root.join("deploy/README.md")];
         for entry in std::fs::read_dir(root.join("docs")).expect("docs/") {
             let path = entry.expect("entry").path();
@@ -178,10 +182,7 @@ mod tests {
     /// parse: `bash .ci/emulate` cannot drift from the command line either.
     #[test]
     fn the_scripts_start_commands_that_parse() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .parent()
-            .expect("workspace")
-            .join(".ci");
+        let dir = workspace().join(".ci");
         let mut checked = 0;
         for entry in std::fs::read_dir(&dir).expect(".ci/") {
             let path = entry.expect("entry").path();
@@ -218,10 +219,7 @@ mod tests {
     /// word, `$VAR` split into words, as systemd does).
     #[test]
     fn the_systemd_units_start_commands_that_parse() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .parent()
-            .expect("workspace")
-            .join("deploy/systemd");
+        let dir = workspace().join("deploy/systemd");
         let env_file = std::fs::read_to_string(dir.join("offworld.env")).expect("offworld.env");
         let vars: Vec<(String, String)> = env_file
             .lines()

@@ -452,7 +452,7 @@ fn failures_exit_non_zero_with_the_programs_message() {
 #[test]
 fn the_systemd_units_verify() {
     let scratch = ScratchDir::new("cli-units");
-    let units = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/systemd");
+    let units = offworld_test_support::package_dir().join("../deploy/systemd");
     // The router unit starts zenohd (installed by .ci/setup); any
     // executable stands in for it where it is not on PATH.
     let zenohd = Command::new("sh")

@@ -11,7 +11,6 @@
 //! `UPDATE_GOLDEN=1 cargo test --release --test golden_observations`.
 
 use std::fmt::Write as _;
-use std::path::PathBuf;
 use std::time::Duration;
 
 use offworld_client::{ClientTimeouts, EnvClient};
@@ -157,7 +156,7 @@ async fn observations_for_a_seed_match_the_golden_digests() {
         .collect();
     assert_eq!(again, first_84, "a second env with the same seed differs");
 
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden/observations.txt");
+    let path = offworld_test_support::package_dir().join("tests/golden/observations.txt");
     if std::env::var_os("UPDATE_GOLDEN").is_some() {
         std::fs::create_dir_all(path.with_file_name("")).expect("golden directory");
         std::fs::write(&path, &got).expect("write golden");

@@ -7,12 +7,9 @@ mod checks;
 #[path = "../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
-const HERE: &str = env!("CARGO_MANIFEST_DIR");
-
 #[test]
 fn observation_corpus() {
     corpus::replay(
-        HERE,
         "observation",
         &checks::observation_seeds(),
         checks::observation,
@@ -24,5 +21,5 @@ fn observation_corpus() {
 #[test]
 #[ignore]
 fn write_seed_corpus() {
-    corpus::write_seeds(HERE, "observation", &checks::observation_seeds());
+    corpus::write_seeds("observation", &checks::observation_seeds());
 }

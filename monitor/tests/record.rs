@@ -228,7 +228,7 @@ async fn publish_step(pubs: &Session, env: &EnvId, step: u32, last: bool) -> any
 
 /// Runs `tests/check_rrd.py` on `path` and returns its JSON summary.
 fn check_rrd(path: &Path) -> anyhow::Result<Value> {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/check_rrd.py");
+    let script = offworld_test_support::package_dir().join("tests/check_rrd.py");
     let out = Command::new("python3")
         .arg(&script)
         .arg(path)

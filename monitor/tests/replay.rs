@@ -62,7 +62,7 @@ struct Rrd(Value);
 
 impl Rrd {
     fn read(path: &Path) -> anyhow::Result<Self> {
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/check_rrd.py");
+        let script = offworld_test_support::package_dir().join("tests/check_rrd.py");
         let out = Command::new("python3")
             .arg(&script)
             .arg(path)

@@ -5,7 +5,6 @@
 mod common;
 
 use offworld_runtime::Resolution;
-use std::path::Path;
 
 use common::{episodes, record, Recording, Scratch};
 use offworld_parity::identify::{identify, IdentifyOptions};
@@ -163,7 +162,7 @@ async fn the_parity_command_replays_identifies_and_explains_what_is_wrong() {
     );
     // The side-by-side recording, read back by the rerun SDK itself.
     let checked = std::process::Command::new("python3")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../monitor/tests/check_rrd.py"))
+        .arg(offworld_test_support::package_dir().join("../monitor/tests/check_rrd.py"))
         .arg(&rrd)
         .output()
         .expect("python3 (needs rerun-sdk==0.36.3)");

@@ -235,7 +235,7 @@ mod tests {
 
     #[test]
     fn the_example_file_is_the_default_configuration() -> Result<(), AgentError> {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("robot.example.toml");
+        let path = offworld_test_support::package_dir().join("robot.example.toml");
         assert_eq!(AgentConfig::load(&path)?, AgentConfig::default());
         Ok(())
     }

@@ -8,12 +8,9 @@ mod checks;
 #[path = "../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
-const HERE: &str = env!("CARGO_MANIFEST_DIR");
-
 #[test]
 fn robot_config_corpus() {
     corpus::replay(
-        HERE,
         "robot_config",
         &checks::robot_config_seeds(),
         checks::robot_config,
@@ -23,7 +20,6 @@ fn robot_config_corpus() {
 #[test]
 fn world_toml_corpus() {
     corpus::replay(
-        HERE,
         "world_toml",
         &checks::world_toml_seeds(),
         checks::world_toml,
@@ -35,6 +31,6 @@ fn world_toml_corpus() {
 #[test]
 #[ignore]
 fn write_seed_corpus() {
-    corpus::write_seeds(HERE, "robot_config", &checks::robot_config_seeds());
-    corpus::write_seeds(HERE, "world_toml", &checks::world_toml_seeds());
+    corpus::write_seeds("robot_config", &checks::robot_config_seeds());
+    corpus::write_seeds("world_toml", &checks::world_toml_seeds());
 }

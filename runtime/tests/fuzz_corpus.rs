@@ -8,32 +8,24 @@ mod checks;
 #[path = "../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
-const HERE: &str = env!("CARGO_MANIFEST_DIR");
-
 #[test]
 fn cdr_gym_corpus() {
-    corpus::replay(HERE, "cdr_gym", &checks::cdr_gym_seeds(), checks::cdr_gym);
+    corpus::replay("cdr_gym", &checks::cdr_gym_seeds(), checks::cdr_gym);
 }
 
 #[test]
 fn cdr_robot_corpus() {
-    corpus::replay(
-        HERE,
-        "cdr_robot",
-        &checks::cdr_robot_seeds(),
-        checks::cdr_robot,
-    );
+    corpus::replay("cdr_robot", &checks::cdr_robot_seeds(), checks::cdr_robot);
 }
 
 #[test]
 fn cdr_ros_corpus() {
-    corpus::replay(HERE, "cdr_ros", &checks::cdr_ros_seeds(), checks::cdr_ros);
+    corpus::replay("cdr_ros", &checks::cdr_ros_seeds(), checks::cdr_ros);
 }
 
 #[test]
 fn camera_frame_corpus() {
     corpus::replay(
-        HERE,
         "camera_frame",
         &checks::camera_frame_seeds(),
         checks::camera_frame,
@@ -42,7 +34,7 @@ fn camera_frame_corpus() {
 
 #[test]
 fn keys_corpus() {
-    corpus::replay(HERE, "keys", &checks::keys_seeds(), checks::keys);
+    corpus::replay("keys", &checks::keys_seeds(), checks::keys);
 }
 
 /// The seeds cover every message type of each family.
@@ -65,9 +57,9 @@ fn seeds_cover_every_kind() {
 #[test]
 #[ignore]
 fn write_seed_corpus() {
-    corpus::write_seeds(HERE, "cdr_gym", &checks::cdr_gym_seeds());
-    corpus::write_seeds(HERE, "cdr_robot", &checks::cdr_robot_seeds());
-    corpus::write_seeds(HERE, "cdr_ros", &checks::cdr_ros_seeds());
-    corpus::write_seeds(HERE, "camera_frame", &checks::camera_frame_seeds());
-    corpus::write_seeds(HERE, "keys", &checks::keys_seeds());
+    corpus::write_seeds("cdr_gym", &checks::cdr_gym_seeds());
+    corpus::write_seeds("cdr_robot", &checks::cdr_robot_seeds());
+    corpus::write_seeds("cdr_ros", &checks::cdr_ros_seeds());
+    corpus::write_seeds("camera_frame", &checks::camera_frame_seeds());
+    corpus::write_seeds("keys", &checks::keys_seeds());
 }

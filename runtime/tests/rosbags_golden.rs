@@ -14,7 +14,7 @@ use serde::{de::DeserializeOwned, Serialize};
 
 fn rosbags_encode(requests: &[(String, serde_json::Value)]) -> Vec<Vec<u8>> {
     let python = std::env::var("OFFWORLD_PYTHON").unwrap_or_else(|_| "python3".into());
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/python/ros_golden.py");
+    let script = offworld_test_support::package_dir().join("../tests/python/ros_golden.py");
     let mut child = Command::new(&python)
         .arg(script)
         .stdin(Stdio::piped())

@@ -2,7 +2,6 @@
 //! geometry, golden low-resolution frames, determinism and noise knobs.
 
 use offworld_runtime::Resolution;
-use std::path::PathBuf;
 
 use offworld_sim_twin::camera::{CameraPose, ColumnRenderer, ExactRenderer, Intrinsics, RgbdFrame};
 use offworld_sim_twin::scene::Scene;
@@ -282,7 +281,7 @@ fn golden_low_resolution_frames() {
             },
         ),
     ];
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden");
+    let dir = offworld_test_support::package_dir().join("tests/golden");
     for (name, world, pose) in poses {
         let mut config = TwinConfig::builtin(world).expect("world");
         config.resolution = Some(Resolution::new(32, 24));

@@ -7,6 +7,17 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{SystemTime, UNIX_EPOCH};
 
+/// The running test's package directory, as cargo gives it to the test
+/// when it runs. A compile-time `env!("CARGO_MANIFEST_DIR")` names the
+/// checkout that built the binary, and cargo reuses a binary built in
+/// another checkout sharing the target directory (CI's, say): the test
+/// would read that checkout's files, or none.
+pub fn package_dir() -> PathBuf {
+    std::env::var_os("CARGO_MANIFEST_DIR")
+        .map(PathBuf::from)
+        .expect("CARGO_MANIFEST_DIR is unset: run the tests with cargo test")
+}
+
 /// A new empty directory of its own under the system's temporary directory
 /// (`offworld-<purpose>-<unique>`), removed with everything in it when
 /// dropped. Unique across the threads of a test binary and across

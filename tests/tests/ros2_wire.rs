@@ -38,9 +38,10 @@ async fn robot_agent_speaks_ros2_to_an_independent_rmw_zenoh_robot() {
         .open()
         .await
         .expect("session");
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/python/ros2_robot.py");
+    let script = offworld_test_support::package_dir().join("python/ros2_robot.py");
     let mut robot_py = Command::new("python3")
-        .args([script, "--connect", &endpoint])
+        .arg(&script)
+        .args(["--connect", &endpoint])
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

@@ -753,7 +753,7 @@ fn run_adapter(extra: &[&str]) -> Vec<TrackerSample> {
     let dir = temp_path("fake_pysurvive");
     std::fs::create_dir_all(&dir).expect("temp dir");
     std::fs::write(dir.join("pysurvive.py"), FAKE_PYSURVIVE).expect("fake module");
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/pysurvive_source.py");
+    let script = offworld_test_support::package_dir().join("scripts/pysurvive_source.py");
     let out = Command::new("python3")
         .arg(script)
         .args(extra)

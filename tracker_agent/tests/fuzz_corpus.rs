@@ -7,12 +7,9 @@ mod checks;
 #[path = "../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
-const HERE: &str = env!("CARGO_MANIFEST_DIR");
-
 #[test]
 fn tracker_line_corpus() {
     corpus::replay(
-        HERE,
         "tracker_line",
         &checks::tracker_line_seeds(),
         checks::tracker_line,
@@ -22,7 +19,6 @@ fn tracker_line_corpus() {
 #[test]
 fn tracker_calibration_corpus() {
     corpus::replay(
-        HERE,
         "tracker_calibration",
         &checks::tracker_calibration_seeds(),
         checks::tracker_calibration,
@@ -34,10 +30,6 @@ fn tracker_calibration_corpus() {
 #[test]
 #[ignore]
 fn write_seed_corpus() {
-    corpus::write_seeds(HERE, "tracker_line", &checks::tracker_line_seeds());
-    corpus::write_seeds(
-        HERE,
-        "tracker_calibration",
-        &checks::tracker_calibration_seeds(),
-    );
+    corpus::write_seeds("tracker_line", &checks::tracker_line_seeds());
+    corpus::write_seeds("tracker_calibration", &checks::tracker_calibration_seeds());
 }

@@ -2,11 +2,10 @@
 //! without libsurvive installed, and running it without libsurvive's
 //! bindings says what to install, with a non-zero exit code.
 
-use std::path::Path;
 use std::process::Command;
 
 fn script() -> std::path::PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/pysurvive_source.py")
+    offworld_test_support::package_dir().join("scripts/pysurvive_source.py")
 }
 
 #[test]

@@ -7,18 +7,23 @@
 
 use std::path::{Path, PathBuf};
 
-/// `fuzz/corpus/<target>` seen from a workspace crate's manifest directory.
-pub fn dir(manifest_dir: &str, target: &str) -> PathBuf {
-    Path::new(manifest_dir).join("../fuzz/corpus").join(target)
+/// `fuzz/corpus/<target>` seen from the running test's package directory,
+/// as cargo gives it to the test when it runs (a compile-time `env!` would
+/// name the checkout that built the binary, which a shared target
+/// directory may reuse from another checkout).
+pub fn dir(target: &str) -> PathBuf {
+    let package = std::env::var_os("CARGO_MANIFEST_DIR")
+        .expect("CARGO_MANIFEST_DIR: run the corpus tests with cargo test");
+    Path::new(&package).join("../fuzz/corpus").join(target)
 }
 
 /// Runs `check` on every seed and every corpus file of `target` (sorted by
 /// name), naming the file that fails; returns the number of files.
-pub fn replay(manifest_dir: &str, target: &str, seeds: &[Vec<u8>], check: fn(&[u8])) -> usize {
+pub fn replay(target: &str, seeds: &[Vec<u8>], check: fn(&[u8])) -> usize {
     for seed in seeds {
         check(seed);
     }
-    let dir = dir(manifest_dir, target);
+    let dir = dir(target);
     let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
         .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
         .map(|entry| entry.expect("corpus entry").path())
@@ -41,8 +46,8 @@ pub fn replay(manifest_dir: &str, target: &str, seeds: &[Vec<u8>], check: fn(&[u
 
 /// Writes `seeds` into `target`'s corpus as `seed-<n>` (to start a fresh
 /// corpus; `cargo fuzz cmin` renames what it keeps).
-pub fn write_seeds(manifest_dir: &str, target: &str, seeds: &[Vec<u8>]) {
-    let dir = dir(manifest_dir, target);
+pub fn write_seeds(target: &str, seeds: &[Vec<u8>]) {
+    let dir = dir(target);
     std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
     for (n, seed) in seeds.iter().enumerate() {
         let path = dir.join(format!("seed-{n:03}"));
