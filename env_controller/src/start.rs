@@ -48,11 +48,7 @@ pub fn start_here(runtime: &Handle, work: impl Future<Output = ()> + Send + 'sta
     *parked.slot() = Some(work);
     // Woken while it was being polled (from another thread, or by itself):
     // it goes to the runtime now.
-    if parked
-        .state
-        .compare_exchange(POLLING, PARKED, AcqRel, Acquire)
-        .is_err()
-    {
+    if !parked.advance(POLLING, PARKED) {
         parked.spawn();
     }
 }
@@ -78,6 +74,13 @@ impl Parked {
         self.work.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
+    /// Moves the state from `from` to `to`; false if it was not `from`.
+    fn advance(&self, from: u8, to: u8) -> bool {
+        self.state
+            .compare_exchange(from, to, AcqRel, Acquire)
+            .is_ok()
+    }
+
     fn spawn(&self) {
         self.state.store(SPAWNED, Release);
         let work = self.slot().take();
@@ -95,20 +98,12 @@ impl Wake for Parked {
     }
 
     fn wake_by_ref(self: &Arc<Self>) {
-        let woken_while_polling = self
-            .state
-            .compare_exchange(POLLING, WOKEN_WHILE_POLLING, AcqRel, Acquire)
-            .is_ok();
-        if woken_while_polling {
+        if self.advance(POLLING, WOKEN_WHILE_POLLING) {
             return;
         }
         // Only the first wake-up after the poll spawns it; later ones (a
         // stale waker kept by a resource) find it spawned.
-        if self
-            .state
-            .compare_exchange(PARKED, SPAWNED, AcqRel, Acquire)
-            .is_ok()
-        {
+        if self.advance(PARKED, SPAWNED) {
             self.spawn();
         }
     }
