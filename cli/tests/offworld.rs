@@ -319,26 +319,45 @@ fn a_farm_stopped_while_starting_leaves_nothing_behind() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("offworld runs");
-    // The router is frozen once the twins are spawned (it listens by then):
-    // nothing comes up through it, so the farm is still starting when it is
-    // stopped however fast it starts (over the router's socket, a farm
-    // became ready before a stop sent on seeing its gym server).
+    // The router is frozen as soon as it runs. The farm's check that it
+    // listens is a bare connect, which the kernel answers for a frozen
+    // listener, so the farm goes on to spawn its twins and gym server, but
+    // nothing can come up through the router: the farm is still starting
+    // when it is stopped however fast it starts (over the router's socket,
+    // a farm became ready before a stop sent on seeing its twins). Frozen
+    // before it listened, the router is let run 5 ms every 200 ms until
+    // the twins are spawned.
     let deadline = Instant::now() + Duration::from_secs(60);
-    let mut router_frozen = false;
+    let mut frozen_at: Option<Instant> = None;
+    let signal = |signal: &str, pid: &str| {
+        let sent = Command::new("kill").args([signal, pid]).status();
+        assert!(sent.expect("kill").success());
+    };
     // Stopped once the gym server, the last process it starts, is running.
     loop {
         let running = processes_naming(scratch.path());
-        if !router_frozen && running.contains(" twin ") {
-            let router = running
-                .lines()
-                .find(|line| line.contains("zenohd "))
-                .and_then(|line| line.split_whitespace().next())
-                .expect("the router runs before the twins");
-            let sent = Command::new("kill").args(["-STOP", router]).status();
-            assert!(sent.expect("kill").success());
-            router_frozen = true;
+        let router = running
+            .lines()
+            .find(|line| line.contains("zenohd "))
+            .and_then(|line| line.split_whitespace().next());
+        if let Some(router) = router {
+            match frozen_at {
+                None => {
+                    signal("-STOP", router);
+                    frozen_at = Some(Instant::now());
+                }
+                Some(at)
+                    if at.elapsed() > Duration::from_millis(200) && !running.contains(" twin ") =>
+                {
+                    signal("-CONT", router);
+                    std::thread::sleep(Duration::from_millis(5));
+                    signal("-STOP", router);
+                    frozen_at = Some(Instant::now());
+                }
+                Some(_) => {}
+            }
         }
-        if router_frozen && running.contains(" serve ") {
+        if frozen_at.is_some() && running.contains(" serve ") {
             break;
         }
         assert!(farm.try_wait().expect("wait").is_none(), "the farm exited");
