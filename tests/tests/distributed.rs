@@ -1302,7 +1302,7 @@ async fn a_frozen_live_monitor_holds_up_no_step() -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!(e))?;
     let freeze = Duration::from_secs(8);
 
-    // Control. About one run in ten under load (session 41: 1 of 9, the
+    // Control. Now and then under load (session 41: 1 of 17 runs, the
     // monitor alive and stopped, its token seen), the frozen reader of
     // every message held up no step at all: 684 steps in 8 s, none over
     // 30 ms, as if the router had no route to its fresh subscription (in
