@@ -4,10 +4,11 @@
 //! put on `cmd`) needs no worker of the controller's runtime. Handed to a
 //! task, it would first wait for one to wake: on a 2-core host ~25 µs of
 //! the ~90 µs an 84×84 step took above a raw Zenoh get
-//! (`docs/performance.md`, "A step starts where it arrives"). [`start_here`] polls the work once on the
-//! calling thread (Zenoh's receive thread for a remote client) and gives it
-//! to the runtime only when it is woken after that poll: no worker is woken
-//! just to find it waiting. What may block that thread for long (SQLite, a
+//! (`docs/performance.md`, "A step starts where it arrives").
+//! [`start_here`] polls the work once on the calling thread (Zenoh's
+//! receive thread for a remote client) and gives it to the runtime only
+//! when it is woken after that poll: no worker is woken just to find it
+//! waiting. What may block that thread for long (SQLite, a
 //! stop command) first awaits [`hand_off`].
 
 use std::future::Future;
