@@ -39,7 +39,12 @@ struct SimSite {
 
 impl SimSite {
     fn start(name: &str) -> anyhow::Result<Self> {
-        let farm = SimFarm::start(name, 1, "MonolithDiscrete")?;
+        Self::on(RouterSite::start(name)?, name)
+    }
+
+    /// The twin and controller behind an already started router.
+    fn on(router: RouterSite, name: &str) -> anyhow::Result<Self> {
+        let farm = SimFarm::start_on(router, name, 1, "MonolithDiscrete", Link::LocalSocket)?;
         let env = farm.envs[0].clone();
         Ok(Self { farm, env })
     }
@@ -1358,4 +1363,73 @@ async fn a_frozen_live_monitor_holds_up_no_step() -> anyhow::Result<()> {
         )]
     );
     Ok(())
+}
+
+/// A client that sends a burst of questions and stops reading before the
+/// answers arrive (a laptop asleep mid-burst, or a flood on purpose) holds
+/// up nobody else's steps: the router forwards the gym's questions "drop"
+/// (`deploy/router/zenohd.json5`, `gym_answers_never_wait`), so it never
+/// waits on that client's full link with the controller's messages to
+/// everyone else behind them. Control: the same burst through a router
+/// without that rule holds the other trainer's next step past its timeout.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_stops_reading_holds_up_no_one_else() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let mut router = RouterSite::start("unread-control")?;
+    router.restart_router_with(&["qos/network:[]"])?;
+    let control = SimSite::on(router, "unread-control")?;
+    let held_up = burst_then_sleep(&control).await?;
+    let error = held_up.expect_err("control: a stopped reader of answers holds the others up");
+    assert_eq!(error.code, ErrorCode::Timeout, "{error}");
+    drop(control);
+
+    let site = SimSite::start("unread")?;
+    let steps = burst_then_sleep(&site).await?;
+    let steps = steps.map_err(|e| anyhow::anyhow!("a step while the reader slept: {e}"))?;
+    assert!(steps > 0);
+    Ok(())
+}
+
+/// A trainer steps `site`'s env; then a client of its own process
+/// (`stops_reading`) asks the controller 20,000 times and stops before
+/// reading the answers: the trainer's steps for the next 3 s (each within
+/// 2 s, else a `Timeout`).
+async fn burst_then_sleep(site: &SimSite) -> anyhow::Result<Result<u32, WireError>> {
+    let trainer = site.session(Role::Trainer).await;
+    let timeouts = ClientTimeouts {
+        step: Duration::from_secs(2),
+        ..ClientTimeouts::default()
+    };
+    let mut gym = EnvClient::open_when_ready(
+        &trainer,
+        &site.env,
+        request("unread", false),
+        timeouts,
+        Duration::from_secs(30),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!(e))?;
+    gym.reset(Seed::Fixed(1))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    step_for(&mut gym, Duration::from_secs(1)).await?;
+
+    let helper = offworld_deploy::process::binary_dir().join("stops_reading");
+    let mut args = site.farm.site.role_args(Role::Trainer);
+    args.extend(["--key".into(), site.env.key(Topic::Spec)]);
+    args.extend(["--count".into(), "20000".into()]);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut asker = Process::start(None, &helper, &args, "warn", std::process::Stdio::piped())?;
+    let stdout = asker.0.stdout.take().expect("piped");
+    let said = tokio::task::spawn_blocking(move || {
+        use std::io::BufRead;
+        let mut line = String::new();
+        let _ = std::io::BufReader::new(stdout).read_line(&mut line);
+        line
+    });
+    let said = tokio::time::timeout(Duration::from_secs(60), said).await??;
+    assert_eq!(said.trim(), "sent 20000", "stops_reading");
+    let steps = step_for(&mut gym, Duration::from_secs(3)).await;
+    drop(asker); // killed
+    Ok(steps)
 }
