@@ -1238,6 +1238,32 @@ async fn step_for(gym: &mut EnvClient, span: Duration) -> Result<u32, WireError>
     Ok(steps)
 }
 
+/// `env` opened (once the site is up) and reset, each step given 2 s: a
+/// step of a twin answers within milliseconds, so one held up fails.
+async fn impatient_gym(
+    session: &Session,
+    env: &EnvId,
+    experiment: &str,
+) -> anyhow::Result<EnvClient> {
+    let timeouts = ClientTimeouts {
+        step: Duration::from_secs(2),
+        ..ClientTimeouts::default()
+    };
+    let mut gym = EnvClient::open_when_ready(
+        session,
+        env,
+        request(experiment, false),
+        timeouts,
+        Duration::from_secs(30),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!(e))?;
+    gym.reset(Seed::Fixed(1))
+        .await
+        .map_err(|e| anyhow::anyhow!(e))?;
+    Ok(gym)
+}
+
 /// An operator's monitor on the env, a process of its own, subscribed.
 async fn watching(site: &SimSite, env: &EnvId, extra: &[&str]) -> anyhow::Result<Process> {
     // Nobody connects to its viewer port: the kernel picks one.
@@ -1287,24 +1313,7 @@ async fn a_frozen_live_monitor_holds_up_no_step() -> anyhow::Result<()> {
     let _one = ONE_SITE.lock().await;
     let site = SimSite::start("frozen")?;
     let trainer = site.session(Role::Trainer).await;
-    // A step of this twin answers within milliseconds: one held up for
-    // 2 s fails.
-    let timeouts = ClientTimeouts {
-        step: Duration::from_secs(2),
-        ..ClientTimeouts::default()
-    };
-    let mut gym = EnvClient::open_when_ready(
-        &trainer,
-        &site.env,
-        request("frozen", false),
-        timeouts,
-        Duration::from_secs(30),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!(e))?;
-    gym.reset(Seed::Fixed(1))
-        .await
-        .map_err(|e| anyhow::anyhow!(e))?;
+    let mut gym = impatient_gym(&trainer, &site.env, "frozen").await?;
     let freeze = Duration::from_secs(8);
 
     // Control. Now and then under load (session 41: 1 of 17 runs, the
@@ -1396,22 +1405,7 @@ async fn a_client_that_stops_reading_holds_up_no_one_else() -> anyhow::Result<()
 /// 2 s, else a `Timeout`).
 async fn burst_then_sleep(site: &SimSite) -> anyhow::Result<Result<u32, WireError>> {
     let trainer = site.session(Role::Trainer).await;
-    let timeouts = ClientTimeouts {
-        step: Duration::from_secs(2),
-        ..ClientTimeouts::default()
-    };
-    let mut gym = EnvClient::open_when_ready(
-        &trainer,
-        &site.env,
-        request("unread", false),
-        timeouts,
-        Duration::from_secs(30),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!(e))?;
-    gym.reset(Seed::Fixed(1))
-        .await
-        .map_err(|e| anyhow::anyhow!(e))?;
+    let mut gym = impatient_gym(&trainer, &site.env, "unread").await?;
     step_for(&mut gym, Duration::from_secs(1)).await?;
 
     let helper = offworld_deploy::process::binary_dir().join("stops_reading");
