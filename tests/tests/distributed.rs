@@ -1238,15 +1238,19 @@ async fn step_for(gym: &mut EnvClient, span: Duration) -> Result<u32, WireError>
     Ok(steps)
 }
 
-/// `env` opened (once the site is up) and reset, each step given 2 s: a
-/// step of a twin answers within milliseconds, so one held up fails.
+/// `env` opened (once the site is up) and reset, each step given 2 s and
+/// each reset 4 s: a twin answers within milliseconds, so one held up
+/// fails.
 async fn impatient_gym(
     session: &Session,
     env: &EnvId,
     experiment: &str,
 ) -> anyhow::Result<EnvClient> {
+    // A reset between steps (an episode's end) may be the request a stall
+    // catches: it must time out before the router's 5 s wait ends too.
     let timeouts = ClientTimeouts {
         step: Duration::from_secs(2),
+        reset: Duration::from_secs(4),
         ..ClientTimeouts::default()
     };
     let mut gym = EnvClient::open_when_ready(

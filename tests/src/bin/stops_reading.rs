@@ -31,7 +31,8 @@ struct Args {
     /// How many queries.
     #[arg(long, default_value_t = 20_000)]
     count: u32,
-    /// How long to go on (sending, reading) after the burst, ms.
+    /// How long to go on after the burst before stopping, ms (the last
+    /// queries leave the process).
     #[arg(long, default_value_t = 5)]
     linger_ms: u64,
 }
@@ -45,7 +46,7 @@ async fn main() -> anyhow::Result<()> {
         .open()
         .await
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    // Learn the queryable first, as a client that means it would.
+    // Settle first: the router has its declarations by then.
     tokio::time::sleep(Duration::from_secs(1)).await;
     let reading = Arc::new(AtomicBool::new(true));
     for _ in 0..args.count {
@@ -69,7 +70,7 @@ async fn main() -> anyhow::Result<()> {
     std::process::Command::new("kill")
         .args(["-STOP", &std::process::id().to_string()])
         .status()?;
-    // Continued: the answers are read now, until the test kills this.
+    // Continued (nobody does): the reader stays held; the test kills this.
     tokio::time::sleep(Duration::from_secs(3600)).await;
     Ok(())
 }
