@@ -613,3 +613,80 @@ pub fn zenohd() -> PathBuf {
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from("zenohd"))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::ROUTER_CONFIG;
+    use serde_json::Value;
+    use zenoh::key_expr::keyexpr;
+
+    /// `key`'s value in the router's configuration, as JSON.
+    fn setting(key: &str) -> Value {
+        let config = zenoh::Config::from_json5(ROUTER_CONFIG).expect("the router's config parses");
+        let json = config.get_json(key).expect(key);
+        serde_json::from_str(&json).expect("JSON")
+    }
+
+    /// The strings of `list`.
+    fn strings(list: &Value) -> Vec<&str> {
+        list.as_array()
+            .map(|a| a.iter().filter_map(Value::as_str).collect())
+            .unwrap_or_default()
+    }
+
+    /// Every question access control lets a trainer, an operator or the
+    /// lab's web page ask is forwarded "drop" (`gym_answers_never_wait`):
+    /// a key added to their rules and not to that one would let a client
+    /// that stops reading hold the controller's link again.
+    #[test]
+    fn every_question_a_client_may_ask_is_forwarded_drop() {
+        let [drop_rule] = <[Value; 1]>::try_from(
+            setting("qos/network")
+                .as_array()
+                .expect("qos/network")
+                .clone(),
+        )
+        .expect("one qos rule");
+        assert_eq!(drop_rule["id"], "gym_answers_never_wait");
+        assert_eq!(strings(&drop_rule["messages"]), ["query"]);
+        assert_eq!(strings(&drop_rule["flows"]), ["ingress"]);
+        assert_eq!(drop_rule["overwrite"]["congestion_control"], "drop");
+        let dropped: Vec<&keyexpr> = strings(&drop_rule["key_exprs"])
+            .into_iter()
+            .map(|k| keyexpr::new(k).expect("key expression"))
+            .collect();
+
+        let acl = setting("access_control");
+        let clients = ["trainers", "operators", "lab_web"];
+        let mut checked = 0;
+        for policy in acl["policies"].as_array().expect("policies") {
+            let subjects = strings(&policy["subjects"]);
+            if !subjects.iter().any(|s| clients.contains(s)) {
+                continue;
+            }
+            for id in strings(&policy["rules"]) {
+                let rule = acl["rules"]
+                    .as_array()
+                    .expect("rules")
+                    .iter()
+                    .find(|r| r["id"] == id)
+                    .unwrap_or_else(|| panic!("rule {id}"));
+                let asks = strings(&rule["messages"]).contains(&"query")
+                    && rule["permission"] == "allow"
+                    && (rule["flows"].is_null() || strings(&rule["flows"]).contains(&"ingress"));
+                if !asks {
+                    continue;
+                }
+                for key in strings(&rule["key_exprs"]) {
+                    let key = keyexpr::new(key).expect("key expression");
+                    assert!(
+                        dropped.iter().any(|d| d.includes(key)),
+                        "`{key}` (rule {id}, {subjects:?}) is not forwarded drop"
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked >= 10, "only {checked} keys checked");
+    }
+}
