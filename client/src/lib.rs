@@ -538,7 +538,7 @@ pub struct EnvListing {
 pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvListing>, WireError> {
     let replies = session
         .liveliness()
-        .get(offworld_runtime::keys::all_alive_selector())
+        .get(offworld_runtime::keys::components_alive_selector())
         .timeout(timeout)
         .await
         .map_err(|e| WireError::new(ErrorCode::Unavailable, format!("liveliness query: {e}")))?;
@@ -551,10 +551,10 @@ pub async fn discover(session: &Session, timeout: Duration) -> Result<Vec<EnvLis
         else {
             continue;
         };
-        // Clients' tokens (`alive/client/<id>`) and monitors' are watchers,
-        // not components: an env only watched (an operator's typo in
-        // `monitor --env`) is not listed.
-        if !component.starts_with("client/") && component != Component::Monitor.as_str() {
+        // Monitors are watchers, not components: an env only watched (an
+        // operator's typo in `monitor --env`) is not listed. (Clients'
+        // tokens, `alive/client/<id>`, are not asked for.)
+        if component != Component::Monitor.as_str() {
             components
                 .entry(env)
                 .or_default()

@@ -22,7 +22,7 @@ use zenoh::Session;
 use offworld_runtime::codec;
 use offworld_runtime::estop::{self, Latch};
 use offworld_runtime::keys::{
-    all_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
+    components_alive_selector, global_estop_key, topic_on_all_envs, Component, EnvId, Topic,
 };
 use offworld_runtime::msg::{EStop, EStopAck, EStopState};
 use offworld_runtime::wire::{self, Delivery};
@@ -91,7 +91,7 @@ impl EStopScope {
     fn obeyed_by(&self) -> String {
         match self {
             Self::Env(env) => format!("{}/alive/*", env.prefix()),
-            Self::Site => all_alive_selector(),
+            Self::Site => components_alive_selector(),
         }
     }
 

@@ -302,36 +302,10 @@ impl Controller {
                     .await?,
             );
         }
-        // Client liveliness: a vanished lease holder stops the robot; one
-        // back within the grace period gets its lease back.
-        let clients = self
-            .session
-            .liveliness()
-            .declare_subscriber(format!("{}/alive/client/*", env.prefix()))
-            .await?;
-        let watcher = server.clone();
-        tasks.push(tokio::spawn(async move {
-            while let Ok(sample) = clients.recv_async().await {
-                let Some(client_id) = sample.key_expr().as_str().rsplit('/').next() else {
-                    continue;
-                };
-                let handled = supervised(async {
-                    match sample.kind() {
-                        SampleKind::Delete => watcher.client_disconnected(client_id).await,
-                        SampleKind::Put => watcher.client_reconnected(client_id).await,
-                    }
-                })
-                .await;
-                if let Err(panic) = handled {
-                    tracing::error!(
-                        env = %watcher.env(),
-                        client_id,
-                        "client liveliness handler panicked (a bug): {}",
-                        panic_message(panic.as_ref())
-                    );
-                }
-            }
-        }));
+        tasks.push(tokio::spawn(watch_lease_holder(
+            self.session.clone(),
+            server.clone(),
+        )));
         // Heartbeat for the robot's watchdog, and status on change.
         let session = self.session.clone();
         let beat_server = server.clone();
@@ -384,6 +358,73 @@ impl Controller {
     pub async fn shutdown(self, reason: &str) {
         for env in &self.envs {
             env.server.stop_and_record(reason).await;
+        }
+    }
+}
+
+/// Follows the lease holder's presence: a vanished holder stops the robot;
+/// one back within the grace period gets its lease back. Only the holder's
+/// own token is heard (a subscriber on its exact key, declared again when
+/// the lease changes hands), not `alive/client/*`: a trainer may declare
+/// tokens there by the ten thousand, and Zenoh matches each new key
+/// against every key a subscriber's session knows (ARCHITECTURE.md,
+/// "Backpressure and fairness"). A holder gone before its subscriber is
+/// declared (a router's round trip after `open`) is not heard: its lease
+/// lapses idle, as a client that opened and never stepped.
+async fn watch_lease_holder(session: Session, server: Arc<EnvServer>) {
+    let mut holder = server.lease_holder();
+    loop {
+        let client_id = holder.borrow_and_update().clone();
+        let presence = match &client_id {
+            Some(id) => match server.env().client_alive_key(id) {
+                Ok(key) => {
+                    let declared = session.liveliness().declare_subscriber(key).await;
+                    declared
+                        .inspect_err(|e| {
+                            tracing::warn!(env = %server.env(), "cannot watch the lease holder: {e}")
+                        })
+                        .ok()
+                }
+                // Ids are checked when the lease is granted.
+                Err(_) => None,
+            },
+            None => None,
+        };
+        loop {
+            let sample = tokio::select! {
+                changed = holder.changed() => match changed {
+                    Ok(()) => break,
+                    Err(_) => return, // the env is gone
+                },
+                sample = async {
+                    match &presence {
+                        Some(presence) => presence.recv_async().await.ok(),
+                        None => None,
+                    }
+                } => sample,
+            };
+            let (Some(sample), Some(client_id)) = (sample, client_id.as_deref()) else {
+                // No holder, or the session closed: wait for a change.
+                if holder.changed().await.is_err() {
+                    return;
+                }
+                break;
+            };
+            let handled = supervised(async {
+                match sample.kind() {
+                    SampleKind::Delete => server.client_disconnected(client_id).await,
+                    SampleKind::Put => server.client_reconnected(client_id).await,
+                }
+            })
+            .await;
+            if let Err(panic) = handled {
+                tracing::error!(
+                    env = %server.env(),
+                    client_id,
+                    "client liveliness handler panicked (a bug): {}",
+                    panic_message(panic.as_ref())
+                );
+            }
         }
     }
 }

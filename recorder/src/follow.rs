@@ -35,7 +35,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use offworld_runtime::codec;
-use offworld_runtime::keys::{all_alive_selector, Component, EnvId, Topic};
+use offworld_runtime::keys::{components_alive_selector, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     CameraFrameView, EnvSpec, EnvState, EnvStatus, EpisodeEvent, Header, MotionCommand,
     PoseStamped, SeqTag, Time, Twist,
@@ -220,7 +220,7 @@ impl Follower {
                 let controller = Component::Controller.as_str();
                 let subscriber = session
                     .liveliness()
-                    .declare_subscriber(all_alive_selector())
+                    .declare_subscriber(components_alive_selector())
                     .history(true)
                     .callback(move |sample: Sample| {
                         let key = sample.key_expr().as_str();

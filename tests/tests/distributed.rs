@@ -1403,6 +1403,89 @@ async fn a_client_that_stops_reading_holds_up_no_one_else() -> anyhow::Result<()
     Ok(())
 }
 
+/// A trainer may declare its presence (liveliness tokens under
+/// `alive/client/*`); one that declares and drops them by the ten
+/// thousand, distinct ones, must not hold up another trainer's steps:
+/// the controller hears only its lease holder's token, and discovery only
+/// components'.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trainer_flooding_presence_tokens_holds_up_no_one_else() -> anyhow::Result<()> {
+    let _one = ONE_SITE.lock().await;
+    let site = SimSite::start("flood")?;
+    let trainer = site.session(Role::Trainer).await;
+    let mut gym = impatient_gym(&trainer, &site.env, "flood").await?;
+    step_for(&mut gym, Duration::from_secs(1)).await?;
+
+    let helper = offworld_deploy::process::binary_dir().join("floods_tokens");
+    let mut args = site.farm.site.role_args(Role::Trainer);
+    args.extend(["--env".into(), site.env.to_string()]);
+    args.extend([
+        "--count".into(),
+        "30000".into(),
+        "--seconds".into(),
+        "60".into(),
+    ]);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut flooder = Process::start(None, &helper, &args, "warn", std::process::Stdio::piped())?;
+    let said = first_line(&mut flooder).await?;
+    assert_eq!(said.trim(), "flooding", "floods_tokens");
+    let steps = step_for(&mut gym, Duration::from_secs(5))
+        .await
+        .map_err(|e| anyhow::anyhow!("a step during the flood: {e}"))?;
+    eprintln!("{steps} steps in 5 s during the flood");
+    assert!(steps > 0);
+
+    // The flood is real (an operator sees it), and a trainer sees none of
+    // it: clients' tokens are not discovery's.
+    let clients = format!("{}/alive/client/*", site.env.prefix());
+    let operator = site.session(Role::Operator).await;
+    let flooded = |keys: &[String]| keys.iter().filter(|k| k.contains("/client/flood")).count();
+    let seen = flooded(&client_tokens(&operator, &clients).await?);
+    assert!(
+        seen > 1_000,
+        "the operator saw {seen} of the flood's tokens"
+    );
+    // Its own token (a session lists its own without asking the router).
+    let seen = client_tokens(&trainer, &clients).await?;
+    assert_eq!(
+        flooded(&seen),
+        0,
+        "a trainer listed others' tokens: {seen:?}"
+    );
+    assert_eq!(seen.len(), 1, "{seen:?}");
+    drop(flooder); // killed
+    Ok(())
+}
+
+/// The liveliness tokens `session` may list under `selector` (2 s).
+async fn client_tokens(session: &Session, selector: &str) -> anyhow::Result<Vec<String>> {
+    let replies = session
+        .liveliness()
+        .get(selector)
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut seen = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            seen.push(sample.key_expr().as_str().to_owned());
+        }
+    }
+    Ok(seen)
+}
+
+/// The first line `process` prints (within 60 s).
+async fn first_line(process: &mut Process) -> anyhow::Result<String> {
+    let stdout = process.0.stdout.take().expect("piped");
+    let said = tokio::task::spawn_blocking(move || {
+        use std::io::BufRead;
+        let mut line = String::new();
+        let _ = std::io::BufReader::new(stdout).read_line(&mut line);
+        line
+    });
+    Ok(tokio::time::timeout(Duration::from_secs(60), said).await??)
+}
+
 /// A trainer steps `site`'s env; then a client of its own process
 /// (`stops_reading`) asks the controller 20,000 times and stops before
 /// reading the answers: the trainer's steps for the next 3 s (each within
@@ -1418,14 +1501,7 @@ async fn burst_then_sleep(site: &SimSite) -> anyhow::Result<Result<u32, WireErro
     args.extend(["--count".into(), "20000".into()]);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let mut asker = Process::start(None, &helper, &args, "warn", std::process::Stdio::piped())?;
-    let stdout = asker.0.stdout.take().expect("piped");
-    let said = tokio::task::spawn_blocking(move || {
-        use std::io::BufRead;
-        let mut line = String::new();
-        let _ = std::io::BufReader::new(stdout).read_line(&mut line);
-        line
-    });
-    let said = tokio::time::timeout(Duration::from_secs(60), said).await??;
+    let said = first_line(&mut asker).await?;
     assert_eq!(said.trim(), "sent 20000", "stops_reading");
     let steps = step_for(&mut gym, Duration::from_secs(3)).await;
     drop(asker); // killed

@@ -145,7 +145,7 @@ impl Discovery {
         let weak = Arc::downgrade(&inner);
         let alive = session
             .liveliness()
-            .declare_subscriber(keys::all_alive_selector())
+            .declare_subscriber(keys::components_alive_selector())
             .callback(move |_| {
                 // A component came or went: sweep now rather than at the
                 // next tick, so an env vanishing shows offline at once.

@@ -257,6 +257,8 @@ pub struct EnvServer {
     state: AsyncMutex<State>,
     /// The state as `status` shows it (see [`Posted`]).
     posted: watch::Sender<Posted>,
+    /// The lease holder's client id, whose presence token is watched.
+    holder: watch::Sender<Option<String>>,
     /// The status last put on `status`; held while putting, so puts go out
     /// in order.
     published: AsyncMutex<Option<EnvStatus>>,
@@ -344,6 +346,7 @@ impl EnvServer {
                 last_reset: ResetAccuracy::default(),
             }),
             posted: watch::Sender::new(Posted::default()),
+            holder: watch::Sender::new(None),
             published: AsyncMutex::new(None),
         })
     }
@@ -361,6 +364,12 @@ impl EnvServer {
     /// The robot link (tests wait on it).
     pub fn link(&self) -> &RobotLink {
         &self.link
+    }
+
+    /// The client id of the lease holder, as it changes: its presence
+    /// token is the one the controller watches (`alive/client/<id>`).
+    pub fn lease_holder(&self) -> watch::Receiver<Option<String>> {
+        self.holder.subscribe()
     }
 
     /// The env's spec.
@@ -428,6 +437,14 @@ impl EnvServer {
     /// Posts the state for `status` and publishes the status if it changed.
     async fn publish_status(&self, state: &mut State) {
         self.posted.send_replace(Posted::of(state));
+        let holder = state.lease.as_ref().map(|l| &l.client_id);
+        self.holder.send_if_modified(|watched| {
+            let changed = watched.as_ref() != holder;
+            if changed {
+                *watched = holder.cloned();
+            }
+            changed
+        });
         self.refresh_status().await;
     }
 
