@@ -29,9 +29,11 @@ use offworld_runtime::msg::{
 use offworld_runtime::{wire, WireError};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
+use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
 use zenoh::query::{Query, Queryable};
-use zenoh::sample::SampleKind;
+use zenoh::sample::{Sample, SampleKind};
 use zenoh::Session;
 
 use crate::admission::{self, ClientRates, Gate, RequestLimits};
@@ -368,33 +370,22 @@ impl Controller {
 /// the lease changes hands), not `alive/client/*`: a trainer may declare
 /// tokens there by the ten thousand, and Zenoh matches each new key
 /// against every key a subscriber's session knows (ARCHITECTURE.md,
-/// "Backpressure and fairness"). A holder gone before its subscriber is
-/// declared (a router's round trip after `open`) is not heard: its lease
-/// lapses idle, as a client that opened and never stepped.
+/// "Backpressure and fairness").
 async fn watch_lease_holder(session: Session, server: Arc<EnvServer>) {
     let mut holder = server.lease_holder();
     loop {
         let client_id = holder.borrow_and_update().clone();
         let presence = match &client_id {
-            Some(id) => match server.env().client_alive_key(id) {
-                Ok(key) => {
-                    let declared = session.liveliness().declare_subscriber(key).await;
-                    declared
-                        .inspect_err(|e| {
-                            tracing::warn!(env = %server.env(), "cannot watch the lease holder: {e}")
-                        })
-                        .ok()
-                }
-                // Ids are checked when the lease is granted.
-                Err(_) => None,
-            },
+            Some(id) => watch_presence(&session, &server, id).await,
             None => None,
         };
+        // Until the lease changes hands, its holder's token comes and goes.
         loop {
             let sample = tokio::select! {
                 changed = holder.changed() => match changed {
                     Ok(()) => break,
-                    Err(_) => return, // the env is gone
+                    // Never while `server`, which holds the sender, lives.
+                    Err(_) => return,
                 },
                 sample = async {
                     match &presence {
@@ -410,22 +401,50 @@ async fn watch_lease_holder(session: Session, server: Arc<EnvServer>) {
                 }
                 break;
             };
-            let handled = supervised(async {
-                match sample.kind() {
-                    SampleKind::Delete => server.client_disconnected(client_id).await,
-                    SampleKind::Put => server.client_reconnected(client_id).await,
-                }
-            })
-            .await;
-            if let Err(panic) = handled {
-                tracing::error!(
-                    env = %server.env(),
-                    client_id,
-                    "client liveliness handler panicked (a bug): {}",
-                    panic_message(panic.as_ref())
-                );
-            }
+            on_presence(&server, client_id, sample.kind()).await;
         }
+    }
+}
+
+/// A subscriber to `client_id`'s token, its current state included: the
+/// token was declared before `open`, and this session must know it to
+/// hear it go when its own link to the router drops. A holder gone before
+/// this is declared (a router's round trip after `open`) is not heard: its
+/// lease lapses idle, as a client's that opened and never stepped (a
+/// client may also send an id and declare no token). `None` for an empty
+/// id (a client without a token) or a closed session.
+async fn watch_presence(
+    session: &Session,
+    server: &EnvServer,
+    client_id: &str,
+) -> Option<Subscriber<FifoChannelHandler<Sample>>> {
+    let key = server.env().client_alive_key(client_id).ok()?;
+    let presence = session
+        .liveliness()
+        .declare_subscriber(&key)
+        .history(true)
+        .await
+        .inspect_err(|e| tracing::warn!(env = %server.env(), "cannot watch the lease holder: {e}"))
+        .ok()?;
+    Some(presence)
+}
+
+/// The holder's token came (`Put`) or went (`Delete`).
+async fn on_presence(server: &EnvServer, client_id: &str, kind: SampleKind) {
+    let handled = supervised(async {
+        match kind {
+            SampleKind::Delete => server.client_disconnected(client_id).await,
+            SampleKind::Put => server.client_reconnected(client_id).await,
+        }
+    })
+    .await;
+    if let Err(panic) = handled {
+        tracing::error!(
+            env = %server.env(),
+            client_id,
+            "client liveliness handler panicked (a bug): {}",
+            panic_message(panic.as_ref())
+        );
     }
 }
 

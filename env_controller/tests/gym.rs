@@ -1517,3 +1517,84 @@ async fn an_open_repeated_by_the_leases_own_client_gets_that_lease_never_another
     );
     assert_ne!(held.session_id, "");
 }
+
+/// The controller hears its lease holder's presence token: gone, the lease
+/// waits only the reconnect grace (120 s, where an idle lease has 300 s)
+/// and its requests are refused; back with the same client id, the lease
+/// is the holder's again without a new `open`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_lease_follows_its_holders_presence_token() {
+    let dir = ScratchDir::new("gym-presence");
+    let d = deploy(&dir.path().join("gym.db"), "MonolithDiscrete", &users()).await;
+    let session = client_session(&d).await;
+    let watcher = client_session(&d).await;
+    let key = d.env.client_alive_key("alice-present").expect("id");
+    let token = session
+        .liveliness()
+        .declare_token(&key)
+        .await
+        .expect("token");
+    let opened = open_as(&session, &d.env, ALICE, "alice-present")
+        .await
+        .expect("open");
+    let reset = || async {
+        wire::request::<_, ResetReply>(
+            &session,
+            &d.env.key(Topic::Reset),
+            &ResetRequest {
+                session_id: opened.session_id.clone(),
+                seed: Seed::Fixed(1),
+            },
+            Duration::from_secs(10),
+        )
+        .await
+        .map_err(|e| e.into_wire())
+    };
+    reset().await.expect("reset");
+    let lease_left_ms = || async {
+        let status = client::status(&watcher, &d.env, Duration::from_secs(5))
+            .await
+            .expect("status");
+        let EnvState::Leased { until_unix_ms, .. } = status.state else {
+            panic!("not leased: {status:?}");
+        };
+        until_unix_ms - now_ms()
+    };
+    assert!(lease_left_ms().await > 250_000);
+
+    drop(token);
+    let mut left = lease_left_ms().await;
+    for _ in 0..50 {
+        if left <= 120_000 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        left = lease_left_ms().await;
+    }
+    assert!((100_000..=120_000).contains(&left), "{left} ms left");
+    let refused = reset().await.expect_err("gone");
+    assert_eq!(refused.code, ErrorCode::Unauthorized, "{refused}");
+
+    let _token = session
+        .liveliness()
+        .declare_token(&key)
+        .await
+        .expect("token");
+    for _ in 0..50 {
+        if left > 250_000 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        left = lease_left_ms().await;
+    }
+    assert!(left > 250_000, "{left} ms left");
+    let back = reset().await.expect("the lease is the holder's again");
+    assert_eq!(back.info.step, 0);
+}
+
+fn now_ms() -> i64 {
+    let since = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("after 1970");
+    i64::try_from(since.as_millis()).expect("ms")
+}

@@ -63,7 +63,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
 use offworld_runtime::keys::{
-    all_alive_selector, global_estop_key, overhead_on_all_envs, topic_on_all_envs,
+    clients_alive_selector, components_alive_selector, global_estop_key, overhead_on_all_envs,
+    topic_on_all_envs,
 };
 use offworld_runtime::{Component, EnvId, Topic};
 use zenoh::liveliness::LivelinessToken;
@@ -215,13 +216,22 @@ impl Scope {
         }
     }
 
-    /// The key expressions of the liveliness subscriptions.
+    /// The key expressions of the liveliness subscriptions: components'
+    /// tokens, and apart clients' (through a site's router only an
+    /// operator may hear those; a trainer's monitor, denied them, still
+    /// hears the components).
     fn alive_keys(&self) -> Vec<String> {
         match self {
-            Scope::All => vec![all_alive_selector()],
+            Scope::All => vec![components_alive_selector(), clients_alive_selector()],
             Scope::Envs(envs) => envs
                 .iter()
-                .map(|env| format!("{}/alive/**", env.prefix()))
+                .flat_map(|env| {
+                    let prefix = env.prefix();
+                    [
+                        format!("{prefix}/alive/*"),
+                        format!("{prefix}/alive/client/*"),
+                    ]
+                })
                 .collect(),
             Scope::KeyExpr(_) => Vec::new(),
         }
@@ -785,7 +795,10 @@ mod tests {
         );
         assert_eq!(
             Scope::env(env).alive_keys(),
-            ["offworld/@v1/real/enclosure-a/alive/**"]
+            [
+                "offworld/@v1/real/enclosure-a/alive/*",
+                "offworld/@v1/real/enclosure-a/alive/client/*"
+            ]
         );
         assert!(names_an_original("offworld/@v1/sim/**"));
         assert!(names_an_original("offworld/@v1/*/farm-0/obs"));

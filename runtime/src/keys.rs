@@ -327,17 +327,18 @@ pub fn overhead_on_all_envs() -> String {
     format!("{ROOT}/{VERSION}/*/*/overhead/*")
 }
 
-/// Selector matching every liveliness token of every env, clients'
-/// (`alive/client/<id>`) included: an operator's view.
-pub fn all_alive_selector() -> String {
-    format!("{ROOT}/{VERSION}/*/*/alive/**")
-}
-
 /// Selector matching the components' liveliness tokens of every env
 /// (`alive/controller`, `alive/sim_twin`, …), not clients': discovery
 /// needs no more, and a trainer may declare client tokens by the thousand.
 pub fn components_alive_selector() -> String {
     format!("{ROOT}/{VERSION}/*/*/alive/*")
+}
+
+/// Selector matching the clients' liveliness tokens of every env
+/// (`alive/client/<id>`): through a site's router only operators (and
+/// controllers) may hear them.
+pub fn clients_alive_selector() -> String {
+    format!("{ROOT}/{VERSION}/*/*/alive/client/*")
 }
 
 #[cfg(test)]

@@ -14,7 +14,8 @@
 //! Liveliness is not trusted to remove a waiter: anyone may declare and
 //! drop a token under another client's id. Anonymous users share one user,
 //! so among them a place is only as private as a client id (which names a
-//! liveliness token others can list): best effort, on sim envs only.
+//! liveliness token operators can list, and anyone on a peer-to-peer
+//! network): best effort, on sim envs only.
 
 use std::time::{Duration, Instant};
 
