@@ -90,7 +90,7 @@ impl EStopScope {
     /// The liveliness tokens of whatever obeys this e-stop.
     fn obeyed_by(&self) -> String {
         match self {
-            Self::Env(env) => format!("{}/alive/*", env.prefix()),
+            Self::Env(env) => env.components_alive_selector(),
             Self::Site => components_alive_selector(),
         }
     }

@@ -286,7 +286,7 @@ impl RobotLink {
         let present = std::sync::Mutex::new(std::collections::BTreeSet::<String>::new());
         let liveliness = session
             .liveliness()
-            .declare_subscriber(format!("{}/alive/*", env.prefix()))
+            .declare_subscriber(env.components_alive_selector())
             .history(true)
             .callback(move |sample: Sample| {
                 let key = sample.key_expr().as_str().to_owned();

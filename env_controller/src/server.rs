@@ -419,14 +419,13 @@ async fn watch_presence(
     client_id: &str,
 ) -> Option<Subscriber<FifoChannelHandler<Sample>>> {
     let key = server.env().client_alive_key(client_id).ok()?;
-    let presence = session
+    session
         .liveliness()
         .declare_subscriber(&key)
         .history(true)
         .await
         .inspect_err(|e| tracing::warn!(env = %server.env(), "cannot watch the lease holder: {e}"))
-        .ok()?;
-    Some(presence)
+        .ok()
 }
 
 /// The holder's token came (`Put`) or went (`Delete`).

@@ -226,10 +226,9 @@ impl Scope {
             Scope::Envs(envs) => envs
                 .iter()
                 .flat_map(|env| {
-                    let prefix = env.prefix();
                     [
-                        format!("{prefix}/alive/*"),
-                        format!("{prefix}/alive/client/*"),
+                        env.components_alive_selector(),
+                        env.clients_alive_selector(),
                     ]
                 })
                 .collect(),

@@ -114,6 +114,16 @@ impl EnvId {
         format!("{}/alive/{}", self.prefix(), component.as_str())
     }
 
+    /// Selector of this env's components' liveliness tokens (not clients').
+    pub fn components_alive_selector(&self) -> String {
+        format!("{}/alive/*", self.prefix())
+    }
+
+    /// Selector of this env's clients' liveliness tokens.
+    pub fn clients_alive_selector(&self) -> String {
+        format!("{}/alive/client/*", self.prefix())
+    }
+
     /// Liveliness token key of one client session (lease holder) on this env.
     pub fn client_alive_key(&self, session_id: &str) -> Result<String, ContractError> {
         // Reuse the env-name rule: one safe chunk.

@@ -1437,7 +1437,7 @@ async fn a_trainer_flooding_presence_tokens_holds_up_no_one_else() -> anyhow::Re
 
     // The flood is real (an operator sees it), and a trainer sees none of
     // it: clients' tokens are not discovery's.
-    let clients = format!("{}/alive/client/*", site.env.prefix());
+    let clients = site.env.clients_alive_selector();
     let operator = site.session(Role::Operator).await;
     let flooded = |keys: &[String]| keys.iter().filter(|k| k.contains("/client/flood")).count();
     let seen = flooded(&client_tokens(&operator, &clients).await?);

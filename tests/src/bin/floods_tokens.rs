@@ -41,13 +41,12 @@ struct Args {
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 1)]
 async fn main() -> anyhow::Result<()> {
-    let args = Args::parse();
     let Args {
         common,
         env,
         count,
         seconds,
-    } = args;
+    } = Args::parse();
     let session = common
         .client_config()
         .open()
