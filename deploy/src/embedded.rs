@@ -6,10 +6,12 @@ use std::time::Duration;
 
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::Resolution;
+/// Where an embedded twin simulates a command (re-exported likewise).
+pub use offworld_sim_twin::Stepping;
 /// The twin profile an embedded env's twin is built with (re-exported so
 /// front ends need not depend on the twin crate).
 pub use offworld_sim_twin::TwinProfile;
-use offworld_sim_twin::{Clock, SimTwin, TwinConfig, TwinNode, RENDER_THREADS_LIMIT};
+use offworld_sim_twin::{NodeOptions, SimTwin, TwinConfig, TwinNode, RENDER_THREADS_LIMIT};
 use zenoh::Session;
 
 use offworld_env_controller::{
@@ -33,6 +35,11 @@ pub struct SimEnv {
     /// Threads each frame is rendered on ([`render_threads_for`] shares the
     /// machine's cores among a process's twins).
     pub render_threads: usize,
+    /// Where its twin simulates a command: [`Stepping::OnArrival`] for the
+    /// one env of a trainer's own process (its steps then run on the
+    /// trainer's thread), [`Stepping::OwnThread`] where several envs or
+    /// remote clients share the deployment.
+    pub stepping: Stepping,
 }
 
 /// The most threads [`render_threads_for`] gives one twin by default: a
@@ -126,13 +133,19 @@ impl Embedded {
             config.profile = sim.profile;
             config.render_threads = sim.render_threads;
             let twin = SimTwin::new(config).map_err(|e| ControllerError::Config(e.to_string()))?;
+            let node_options = NodeOptions {
+                stepping: sim.stepping,
+                ..NodeOptions::default()
+            };
             twins.push(
-                TwinNode::spawn(session, sim.env.clone(), twin, Clock::Lockstep).map_err(|e| {
-                    ControllerError::Offline(format!(
-                        "the twin of {} could not start: {e}",
-                        sim.env
-                    ))
-                })?,
+                TwinNode::spawn_with(session, sim.env.clone(), twin, node_options).map_err(
+                    |e| {
+                        ControllerError::Offline(format!(
+                            "the twin of {} could not start: {e}",
+                            sim.env
+                        ))
+                    },
+                )?,
             );
             let options = EnvOptions {
                 allow_anonymous: true,

@@ -48,5 +48,5 @@ pub mod process;
 pub mod site;
 pub mod target;
 
-pub use embedded::{Embedded, SimEnv, TwinProfile};
+pub use embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 pub use target::{connect, Connection, Target};

@@ -14,7 +14,7 @@ use std::fmt::Write as _;
 use std::time::Duration;
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::msg::{
     Action, Channels, DepthFormat, ObsArray, ObsOptions, OpenRequest, Seed, StepInfo,
@@ -55,6 +55,7 @@ async fn walk(task: &str, world_env: &str, options: ObsOptions) -> String {
         seed: 0,
         profile: TwinProfile::default(),
         render_threads: 2,
+        stepping: Stepping::OwnThread,
     };
     let embedded = Embedded::start(&session, &[sim], Store::in_memory().expect("store"))
         .await

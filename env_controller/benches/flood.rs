@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::{loopback_endpoint, Mode};
@@ -143,6 +143,7 @@ async fn main() -> anyhow::Result<()> {
         seed: 0,
         profile: TwinProfile::default(),
         render_threads: 1,
+        stepping: Stepping::OwnThread,
     };
     let mut embedded = Embedded::start_with(
         &controller,

@@ -6,14 +6,18 @@
 //! measured in a tight loop and interleaved with the steps (raw, step, raw,
 //! …), so slow spells of a shared machine hit both alike; the ratio and the
 //! µs above the floor are also taken per step against the floor run just
-//! before it. Run: `cargo bench --bench step_overhead` (one resolution:
-//! `STEP_OVERHEAD_ONLY=84x84`).
+//! before it. Each resolution runs twice: the twin simulating on its own
+//! thread (`offworld serve`, a farm, `make_vec`) and where its command
+//! arrives (`gymnasium.make`'s one embedded env; here Zenoh's receive
+//! thread). Run: `cargo bench --bench step_overhead` (one resolution:
+//! `STEP_OVERHEAD_ONLY=84x84`; one stepping: `STEP_OVERHEAD_STEPPING=own-thread`
+//! or `on-arrival`).
 
 use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
@@ -33,20 +37,29 @@ fn quantile(v: &[f64], q: f64) -> f64 {
 async fn main() -> anyhow::Result<()> {
     // `STEP_OVERHEAD_ONLY=84x84` runs one resolution (for profiling one).
     let only = std::env::var("STEP_OVERHEAD_ONLY").ok();
+    let only_stepping = std::env::var("STEP_OVERHEAD_STEPPING").ok();
     for (w, h) in [(320, 240), (84, 84)] {
-        if only.as_deref().is_none_or(|o| o == format!("{w}x{h}")) {
-            run(w, h).await?;
+        if only.as_deref().is_some_and(|o| o != format!("{w}x{h}")) {
+            continue;
+        }
+        for (name, stepping) in [
+            ("own-thread", Stepping::OwnThread),
+            ("on-arrival", Stepping::OnArrival),
+        ] {
+            if only_stepping.as_deref().is_none_or(|o| o == name) {
+                run(w, h, name, stepping).await?;
+            }
         }
     }
     Ok(())
 }
 
-async fn run(w: u32, h: u32) -> anyhow::Result<()> {
+async fn run(w: u32, h: u32, stepping_name: &str, stepping: Stepping) -> anyhow::Result<()> {
     let obs_bytes = (w * h * 4) as usize; // RGBD uint8
     let (server, client) = loopback_pair().await?;
 
     // Floor: raw get/reply with a payload the size of the observation.
-    let raw_key = format!("bench/raw/{w}x{h}");
+    let raw_key = format!("bench/raw/{w}x{h}/{stepping_name}");
     let raw_key = raw_key.as_str();
     let queryable = server
         .declare_queryable(raw_key)
@@ -76,7 +89,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     };
 
     // The controller and the twin node, embedded on the server session.
-    let env = EnvId::sim(&format!("bench-{w}x{h}"))?;
+    let env = EnvId::sim(&format!("bench-{w}x{h}-{stepping_name}"))?;
     let sim = SimEnv {
         env: env.clone(),
         task: "MonolithDiscrete".into(),
@@ -84,6 +97,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
         seed: 0,
         profile: TwinProfile::default(),
         render_threads: 1,
+        stepping,
     };
     let embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     let request = OpenRequest::anonymous(ObsOptions {
@@ -143,7 +157,7 @@ async fn run(w: u32, h: u32) -> anyhow::Result<()> {
     let median = |v: &[f64]| quantile(v, 0.5);
     let overhead: Vec<f64> = (0..STEPS).map(|i| full[i] - compute[i]).collect();
     let (hot, raw_m, overhead_m) = (median(&raw_hot), median(&raw), median(&overhead));
-    println!("step overhead at {w}x{h} RGBD uint8 ({obs_bytes} B observations), loopback TCP, medians of {STEPS}:");
+    println!("step overhead at {w}x{h} RGBD uint8 ({obs_bytes} B observations), loopback TCP, the twin stepping {stepping_name}, medians of {STEPS}:");
     println!("  floor: raw zenoh get/reply, tight loop      : {hot:8.0} µs");
     println!("  floor: raw zenoh get/reply, between steps   : {raw_m:8.0} µs");
     println!(

@@ -14,7 +14,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store, Task};
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
@@ -74,6 +74,7 @@ async fn site(tag: &str, limits: RequestLimits) -> Site {
         seed: 0,
         profile: TwinProfile::default(),
         render_threads: 1,
+        stepping: Stepping::OwnThread,
     };
     let mut embedded = Embedded::start_with(
         &server,

@@ -8,7 +8,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use offworld_client::{self as client, ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_endpoint;
@@ -42,6 +42,7 @@ async fn deploy(db: &Path, task: &str, token_users: &[(&str, &str, bool)]) -> De
         seed: 0,
         profile: TwinProfile::default(),
         render_threads: 1,
+        stepping: Stepping::OnArrival,
     };
     let embedded = Embedded::start(&server, &[sim], store)
         .await

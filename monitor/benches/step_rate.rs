@@ -19,7 +19,7 @@ use offworld_runtime::Resolution;
 use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{render_threads_for, Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{render_threads_for, Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::{EnvOptions, RequestLimits, Store};
 use offworld_monitor::{Monitor, MonitorConfig, MonitorStats, Scope, Sink};
 use offworld_runtime::msg::*;
@@ -251,6 +251,9 @@ async fn bench() -> anyhow::Result<()> {
         // What one embedded env renders on (`gymnasium.make` with its
         // live monitor): the monitor competes with the render's helpers.
         render_threads: render_threads_for(1)?,
+        // And steps where its commands arrive, as that env does: the
+        // monitor's callbacks then run on the step's thread.
+        stepping: Stepping::OnArrival,
     };
     // As `gymnasium.make` serves itself: no request rate a client can reach
     // (a site's 2,000 a second would cap long rounds of this bench).

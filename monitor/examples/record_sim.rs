@@ -6,7 +6,7 @@
 use std::time::Duration;
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_monitor::{Monitor, MonitorConfig, Scope, Sink};
 use offworld_runtime::msg::*;
@@ -31,6 +31,7 @@ async fn main() -> anyhow::Result<()> {
         seed: 7,
         profile: TwinProfile::default(),
         render_threads: 1,
+        stepping: Stepping::OwnThread,
     };
     let _embedded = Embedded::start(&server, &[sim], Store::in_memory()?).await?;
     // The monitor rides on the env's own session, as an embedded one would.

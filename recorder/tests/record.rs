@@ -12,7 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_recorder::msg::{EpisodeEnd, Step};
 use offworld_recorder::read;
@@ -246,6 +246,7 @@ async fn a_subscriber_records_every_step_the_client_was_answered() {
         seed: 0,
         profile: TwinProfile::default(),
         render_threads: 1,
+        stepping: Stepping::OwnThread,
     };
     let embedded = Embedded::start(&server, &[sim], Store::in_memory().expect("store"))
         .await

@@ -35,7 +35,7 @@ pub mod tracker;
 pub mod twin;
 
 pub use error::SimError;
-pub use node::{Clock, TwinNode, TwinStats};
+pub use node::{Clock, NodeOptions, Stepping, TwinNode, TwinStats};
 /// World definitions live in the contract (shared with the controller and agents).
 pub use offworld_runtime::world;
 pub use offworld_runtime::WorldSpec;

@@ -17,11 +17,14 @@
 //! Two clocks: [`Clock::Lockstep`] simulates a command's duration as fast as
 //! possible (training); [`Clock::RealTime`] paces physics by the wall clock
 //! and publishes tracker poses at the tracker rate (behaves like hardware).
-//! The simulation runs on its own named thread; Zenoh callbacks only enqueue.
+//! The simulation runs on its own named thread, and Zenoh callbacks only
+//! enqueue — unless a lockstep twin is told to simulate each command where
+//! it arrives ([`Stepping::OnArrival`]).
+
+mod inbox;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError, TryLockError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -46,6 +49,7 @@ use crate::overhead::OverheadStream;
 use crate::physics::{PlanarPose, DT};
 use crate::ros_out;
 use crate::twin::SimTwin;
+use inbox::{Inbox, Refused, Waited};
 
 /// How simulated time relates to wall time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -57,7 +61,48 @@ pub enum Clock {
     RealTime,
 }
 
-/// Queued work for the simulation thread.
+/// Where a lockstep twin simulates a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Stepping {
+    /// On the node's simulation thread: Zenoh's callback queues the command
+    /// and wakes it. Twins of one process progress in parallel, and the
+    /// thread delivering commands is never held by a step.
+    #[default]
+    OwnThread,
+    /// On the thread that delivers the command (the Zenoh callback's), the
+    /// events queued before it first, unless the simulation is busy on
+    /// another thread, which then takes it. A step then costs no thread
+    /// wake-up: with the controller and a client in the same process
+    /// (`gymnasium.make`'s embedded env), a whole step runs on the caller's
+    /// thread. For one twin per deployment only: twins whose commands come
+    /// from one thread would take turns on it. The real-time clock always
+    /// runs on the node's thread.
+    OnArrival,
+}
+
+/// How a [`TwinNode`] runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct NodeOptions {
+    /// How simulated time relates to wall time.
+    pub clock: Clock,
+    /// Where lockstep commands are simulated.
+    pub stepping: Stepping,
+    /// Busy this long on one event, the simulation is stuck (see
+    /// [`TwinNode::stuck`]).
+    pub stuck_after: Duration,
+}
+
+impl Default for NodeOptions {
+    fn default() -> Self {
+        Self {
+            clock: Clock::default(),
+            stepping: Stepping::default(),
+            stuck_after: STUCK_AFTER,
+        }
+    }
+}
+
+/// Queued work for the simulation.
 enum Event {
     Command(Sample),
     Goto(Query),
@@ -65,7 +110,6 @@ enum Event {
     /// What the network remembers of the latches, asked again after the
     /// start ([`estop::RECALL_AGAIN`]).
     Recalled(EStopState),
-    Shutdown,
 }
 
 /// Name of the simulated overhead camera (`overhead/top`).
@@ -73,6 +117,9 @@ pub const OVERHEAD_CAMERA: &str = "top";
 
 /// Bound of the event queue (commands arrive one per step).
 const QUEUE: usize = 256;
+/// How often a lockstep thread looks for a held preview frame while the
+/// preview is watched (frames may be offered on other threads).
+const PREVIEW_LOOK: Duration = offworld_runtime::preview::PREVIEW_PERIOD;
 /// How long a starting twin asks the network for the e-stop latches.
 const RECALL: Duration = Duration::from_millis(300);
 /// A simulation thread busy with one event longer than this is stuck (a
@@ -160,10 +207,73 @@ impl StatCounters {
     }
 }
 
+/// The simulation's state and its queue, shared by the node's thread and
+/// (with [`Stepping::OnArrival`]) the callback delivering commands.
+struct Simulation {
+    inbox: Inbox<Event>,
+    worker: Mutex<Worker>,
+    busy: Arc<Busy>,
+}
+
+impl Simulation {
+    fn worker(&self) -> MutexGuard<'_, Worker> {
+        self.worker.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Works through the queued events in order, on this thread: whoever
+    /// holds the simulation is the only one taking events.
+    fn drain(&self, worker: &mut Worker) {
+        while let Some(event) = self.inbox.pop() {
+            self.busy.begin();
+            worker.handle_lockstep(event);
+            self.busy.end();
+        }
+    }
+
+    /// Queues a command and, unless the simulation is busy elsewhere (whoever
+    /// holds it takes this too), simulates it and whatever was queued before
+    /// it here ([`Stepping::OnArrival`]).
+    fn command_on_arrival(&self, sample: Sample) {
+        if let Err(refused) = self.inbox.push(Event::Command(sample), false) {
+            return dropped(&refused);
+        }
+        let mut worker = match self.worker.try_lock() {
+            Ok(worker) => worker,
+            Err(TryLockError::Poisoned(e)) => e.into_inner(),
+            Err(TryLockError::WouldBlock) => return self.inbox.wake(),
+        };
+        self.drain(&mut worker);
+        // A preview frame held for being early goes out at the end of its
+        // period: the thread puts it, once it knows to look.
+        if worker.publishers.preview.held_for().is_some() && !self.inbox.polled() {
+            self.inbox.wake();
+        }
+    }
+}
+
+/// Logs a command the queue had no room for (one refused because the node
+/// is stopping goes unsaid).
+fn dropped<E>(refused: &Refused<E>) {
+    if let Refused::Full(_) = refused {
+        tracing::warn!("sim twin queue full: dropped a command");
+    }
+}
+
+/// Ends the node: its thread stops at its next wait, and nothing more is
+/// queued. Also run if the thread ends by a panic, so that no sender waits
+/// forever for room in the queue.
+struct CloseOnExit<'a>(&'a Inbox<Event>);
+
+impl Drop for CloseOnExit<'_> {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
 /// A running twin node; stops when dropped.
 pub struct TwinNode {
     env: EnvId,
-    events: SyncSender<Event>,
+    simulation: Arc<Simulation>,
     stats: Arc<StatCounters>,
     busy: Arc<Busy>,
     thread: Option<JoinHandle<()>>,
@@ -191,32 +301,51 @@ impl TwinNode {
         twin: SimTwin,
         clock: Clock,
     ) -> Result<Self, SimError> {
-        Self::spawn_watched(session, env, twin, clock, STUCK_AFTER)
+        let options = NodeOptions {
+            clock,
+            ..NodeOptions::default()
+        };
+        Self::spawn_with(session, env, twin, options)
     }
 
-    /// [`TwinNode::spawn`], calling the simulation thread stuck after
-    /// `stuck_after` on one event.
-    pub fn spawn_watched(
+    /// [`TwinNode::spawn`] with every option.
+    pub fn spawn_with(
         session: &Session,
         env: EnvId,
         twin: SimTwin,
-        clock: Clock,
-        stuck_after: Duration,
+        options: NodeOptions,
     ) -> Result<Self, SimError> {
-        let (tx, rx) = sync_channel::<Event>(QUEUE);
+        let NodeOptions {
+            clock,
+            stepping,
+            stuck_after,
+        } = options;
         let busy = Arc::new(Busy::new());
         let zerr = |e: zenoh::Error| SimError::Zenoh(e.to_string());
-        let forward = |tx: &SyncSender<Event>, make: fn(Sample) -> Event| {
-            let tx = tx.clone();
-            move |sample: Sample| {
-                if tx.try_send(make(sample)).is_err() {
-                    tracing::warn!("sim twin queue full: dropped a message");
-                }
-            }
-        };
+        let stats = Arc::new(StatCounters::default());
+        let mut worker = Worker::new(session.clone(), env.clone(), twin, stats.clone())?;
+        worker.estops = estop::recall_wait(session, &env, RECALL);
+        if let Some(reason) = worker.estops.refusal() {
+            tracing::warn!(%env, %reason, "e-stop engaged before this start (from the network)");
+        }
+        let (shared_estops, answered) = tokio::sync::watch::channel(worker.estops.clone());
+        worker.shared_estops = shared_estops;
+        let simulation = Arc::new(Simulation {
+            inbox: Inbox::new(QUEUE),
+            worker: Mutex::new(worker),
+            busy: busy.clone(),
+        });
+        let on_arrival = stepping == Stepping::OnArrival && clock == Clock::Lockstep;
+        let commands = simulation.clone();
         let cmd = session
             .declare_subscriber(env.key(Topic::Cmd))
-            .callback(forward(&tx, Event::Command))
+            .callback(move |sample: Sample| {
+                if on_arrival {
+                    commands.command_on_arrival(sample);
+                } else if let Err(refused) = commands.inbox.push(Event::Command(sample), true) {
+                    dropped(&refused);
+                }
+            })
             .wait()
             .map_err(zerr)?;
         // The controller's heartbeats, echoed as received: how it knows it
@@ -235,43 +364,36 @@ impl TwinNode {
             .wait()
             .map_err(zerr)?;
         let estop_subscriber = |key: String, latch: Latch| {
-            let (tx, busy) = (tx.clone(), busy.clone());
+            let simulation = simulation.clone();
             session
                 .declare_subscriber(key)
                 .callback(move |sample: Sample| {
-                    // Never dropped while the thread works: an e-stop waits
-                    // for room in the queue. A stuck thread would never make
-                    // room (nor act on it: its twin is withdrawn), and this
-                    // callback must not hold Zenoh's thread forever.
-                    send_unless_stuck(&tx, &busy, Event::EStop(latch, sample));
+                    // Never dropped while the simulation works: an e-stop
+                    // waits for room in the queue. A stuck simulation would
+                    // never make room (nor act on it: its twin is
+                    // withdrawn), and this callback must not hold Zenoh's
+                    // thread forever.
+                    send_unless_stuck(&simulation, Event::EStop(latch, sample));
                 })
                 .wait()
                 .map_err(zerr)
         };
         let estop = estop_subscriber(env.key(Topic::EStop), Latch::Env)?;
         let global_estop = estop_subscriber(global_estop_key(), Latch::Site)?;
-        let estops = estop::recall_wait(session, &env, RECALL);
-        if let Some(reason) = estops.refusal() {
-            tracing::warn!(%env, %reason, "e-stop engaged before this start (from the network)");
-        }
-        let (shared_estops, answered) = tokio::sync::watch::channel(estops.clone());
         let estop_state = session
             .declare_queryable(env.key(Topic::EStopState))
             .callback(estop::state_replier(&env, answered))
             .wait()
             .map_err(zerr)?;
-        let goto_tx = tx.clone();
+        let gotos = simulation.clone();
         let goto = session
             .declare_queryable(env.key(Topic::Goto))
             .callback(move |query: Query| {
-                if let Err(e) = goto_tx.try_send(Event::Goto(query)) {
-                    tracing::warn!("sim twin queue full: dropped a goto");
-                    if let std::sync::mpsc::TrySendError::Full(Event::Goto(q)) = e {
-                        reply_blocking::<GotoReply>(
-                            &q,
-                            Err(WireError::busy("sim twin overloaded")),
-                        );
-                    }
+                if let Err(Refused::Full(Event::Goto(q))) =
+                    gotos.inbox.push(Event::Goto(query), true)
+                {
+                    tracing::warn!("sim twin queue full: refused a goto");
+                    reply_blocking::<GotoReply>(&q, Err(WireError::busy("sim twin overloaded")));
                 }
             })
             .wait()
@@ -282,28 +404,26 @@ impl TwinNode {
             .wait()
             .map_err(zerr)?;
         // A fresh session may not reach every `estop_state` yet: ask again.
-        let (again_session, again_env, again_tx) = (session.clone(), env.clone(), tx.clone());
+        let (again_session, again_env, again) = (session.clone(), env.clone(), simulation.clone());
         std::thread::Builder::new()
             .name(format!("sim_twin/{env}/estop"))
             .spawn(move || {
                 for delay in estop::RECALL_AGAIN {
                     std::thread::sleep(delay);
                     let network = estop::recall_wait(&again_session, &again_env, RECALL);
-                    if again_tx.send(Event::Recalled(network)).is_err() {
+                    if !send_unless_stuck(&again, Event::Recalled(network)) {
                         return;
                     }
                 }
             })
             .map_err(|e| SimError::Io(e.to_string()))?;
-        let stats = Arc::new(StatCounters::default());
-        let mut worker = Worker::new(session.clone(), env.clone(), twin, clock, stats.clone())?;
-        worker.estops = estops;
-        worker.shared_estops = shared_estops;
-        worker.busy = busy.clone();
-        let thread = std::thread::Builder::new()
-            .name(format!("sim_twin/{env}"))
-            .spawn(move || worker.run(rx))
-            .map_err(|e| SimError::Io(e.to_string()))?;
+        let thread = {
+            let simulation = simulation.clone();
+            std::thread::Builder::new()
+                .name(format!("sim_twin/{env}"))
+                .spawn(move || run(&simulation, clock))
+                .map_err(|e| SimError::Io(e.to_string()))?
+        };
         let token = Arc::new(Mutex::new(Some(token)));
         let watching = Arc::new(AtomicBool::new(true));
         {
@@ -316,7 +436,7 @@ impl TwinNode {
         }
         Ok(Self {
             env,
-            events: tx,
+            simulation,
             stats,
             busy,
             watching,
@@ -359,7 +479,7 @@ impl Drop for TwinNode {
     fn drop(&mut self) {
         // The watchdog keeps watching until the thread has ended: a thread
         // stuck but not yet called so must not hang the drop forever.
-        send_unless_stuck(&self.events, &self.busy, Event::Shutdown);
+        self.simulation.inbox.close();
         if let Some(thread) = self.thread.take() {
             while !thread.is_finished() && !self.stuck() {
                 std::thread::sleep(Duration::from_millis(5));
@@ -373,18 +493,57 @@ impl Drop for TwinNode {
     }
 }
 
-/// Queues `event`, waiting for room while the simulation thread drains
-/// (it does, fast) — but not once it is stuck; false if not queued.
-fn send_unless_stuck(events: &SyncSender<Event>, busy: &Busy, event: Event) -> bool {
+/// Queues `event`, waiting for room while the simulation drains (it does,
+/// fast) — but not once it is stuck; false if not queued.
+fn send_unless_stuck(simulation: &Simulation, event: Event) -> bool {
     let mut event = event;
     loop {
-        match events.try_send(event) {
+        match simulation.inbox.push(event, true) {
             Ok(()) => return true,
-            Err(TrySendError::Disconnected(_)) => return false,
-            Err(TrySendError::Full(_)) if busy.stuck.load(Ordering::Acquire) => return false,
-            Err(TrySendError::Full(back)) => {
+            Err(Refused::Closed(_)) => return false,
+            Err(Refused::Full(_)) if simulation.busy.stuck.load(Ordering::Acquire) => return false,
+            Err(Refused::Full(back)) => {
                 event = back;
                 std::thread::sleep(Duration::from_millis(1));
+            }
+        }
+    }
+}
+
+/// The node's simulation thread.
+fn run(simulation: &Simulation, clock: Clock) {
+    let _close = CloseOnExit(&simulation.inbox);
+    let env = simulation.worker().env.clone();
+    tracing::info!(%env, ?clock, "sim twin serving");
+    match clock {
+        Clock::Lockstep => run_lockstep(simulation),
+        Clock::RealTime => simulation.worker().run_real_time(simulation),
+    }
+    tracing::info!(%env, rejected = simulation.worker().rejected, "sim twin stopped");
+}
+
+/// Lockstep: each command simulated as fast as possible, then answered.
+fn run_lockstep(simulation: &Simulation) {
+    loop {
+        // A preview frame held for being early goes out when its period
+        // ends, unless the next step's frame replaces it first. While
+        // watched, the thread also looks every period: with
+        // `Stepping::OnArrival` frames are offered on other threads.
+        let wait = {
+            let worker = simulation.worker();
+            let preview = &worker.publishers.preview;
+            preview
+                .held_for()
+                .or_else(|| preview.watched().then_some(PREVIEW_LOOK))
+        };
+        match simulation.inbox.wait(wait) {
+            Waited::Closed => return,
+            Waited::TimedOut => {
+                simulation.worker().publishers.preview.flush();
+            }
+            Waited::Ready => {
+                let mut worker = simulation.worker();
+                simulation.drain(&mut worker);
             }
         }
     }
@@ -439,7 +598,6 @@ struct Worker {
     session: Session,
     env: EnvId,
     twin: SimTwin,
-    clock: Clock,
     /// The site and env e-stop latches in force.
     estops: EStopState,
     /// Presses applied lately (`estop::RecentPresses`).
@@ -452,8 +610,6 @@ struct Worker {
     rejected: u64,
     overhead: Option<OverheadStream>,
     stats: Arc<StatCounters>,
-    /// What the watchdog sees.
-    busy: Arc<Busy>,
 }
 
 /// Declared once: a declared publisher skips the per-put key resolution.
@@ -476,7 +632,6 @@ impl Worker {
         session: Session,
         env: EnvId,
         twin: SimTwin,
-        clock: Clock,
         stats: Arc<StatCounters>,
     ) -> Result<Self, SimError> {
         let declare = |topic: Topic, delivery: Delivery| {
@@ -512,7 +667,6 @@ impl Worker {
             session,
             env,
             twin,
-            clock,
             estops: EStopState::default(),
             presses: estop::RecentPresses::default(),
             shared_estops: tokio::sync::watch::channel(EStopState::default()).0,
@@ -520,42 +674,19 @@ impl Worker {
             frames: FramePayloads::new(),
             rejected: 0,
             stats,
-            busy: Arc::new(Busy::new()),
         })
     }
 
-    fn run(mut self, events: Receiver<Event>) {
-        tracing::info!(env = %self.env, clock = ?self.clock, "sim twin serving");
-        match self.clock {
-            Clock::Lockstep => self.run_lockstep(events),
-            Clock::RealTime => self.run_real_time(events),
-        }
-        tracing::info!(env = %self.env, rejected = self.rejected, "sim twin stopped");
-    }
-
-    fn run_lockstep(&mut self, events: Receiver<Event>) {
-        // A preview frame held for being early goes out when its period
-        // ends, unless the next step's frame replaces it first.
-        while let Ok(event) = self.publishers.preview.recv_flushing(&events) {
-            self.busy.begin();
-            let go_on = self.handle_lockstep(event);
-            self.busy.end();
-            if !go_on {
-                return;
-            }
-        }
-    }
-
-    /// One event in lockstep; false at the shutdown.
-    fn handle_lockstep(&mut self, event: Event) -> bool {
+    /// One event in lockstep.
+    fn handle_lockstep(&mut self, event: Event) {
         match event {
             Event::Command(sample) => {
                 let Some(cmd) = self.decode_command(&sample) else {
-                    return true;
+                    return;
                 };
                 let started = Instant::now();
                 let Some((v, w)) = self.allowed(&cmd) else {
-                    return true;
+                    return;
                 };
                 match self.twin.execute(v, w, cmd.duration_s) {
                     Ok(_) => self.answer(cmd.seq, started),
@@ -565,12 +696,12 @@ impl Worker {
             Event::Goto(query) => self.goto(&query),
             Event::EStop(latch, sample) => self.estop(latch, &sample),
             Event::Recalled(network) => self.recalled(&network),
-            Event::Shutdown => return false,
         }
-        true
     }
 
-    fn run_real_time(&mut self, events: Receiver<Event>) {
+    /// Real time, holding the simulation for good (commands are only queued).
+    fn run_real_time(&mut self, simulation: &Simulation) {
+        let (inbox, busy) = (&simulation.inbox, &simulation.busy);
         let start = Instant::now();
         let sim_start = self.twin.physics().time();
         let tracker_period = 1.0 / f64::from(self.twin.tracker_config().rate_hz.max(1.0));
@@ -581,10 +712,14 @@ impl Worker {
             let sim_now = self.twin.physics().time() - sim_start;
             let next_step = sim_now + f64::from(DT);
             let wait = (next_step.min(next_pose) - now).max(0.0);
-            let event = events.recv_timeout(Duration::from_secs_f64(wait));
-            self.busy.begin();
+            let event = match inbox.wait(Some(Duration::from_secs_f64(wait))) {
+                Waited::Closed => return,
+                Waited::TimedOut => None,
+                Waited::Ready => inbox.pop(),
+            };
+            busy.begin();
             match event {
-                Ok(Event::Command(sample)) => {
+                Some(Event::Command(sample)) => {
                     if let Some(cmd) = self.decode_command(&sample) {
                         if !(cmd.duration_s.is_finite() && (0.0..=10.0).contains(&cmd.duration_s)) {
                             self.reject(&SimError::BadCommand(format!(
@@ -607,21 +742,20 @@ impl Worker {
                         });
                     }
                 }
-                Ok(Event::Goto(query)) => self.goto(&query),
-                Ok(Event::EStop(latch, sample)) => {
+                Some(Event::Goto(query)) => self.goto(&query),
+                Some(Event::EStop(latch, sample)) => {
                     self.estop(latch, &sample);
                     if self.estops.engaged() {
                         self.twin.physics_mut().set_targets(0.0, 0.0);
                     }
                 }
-                Ok(Event::Recalled(network)) => {
+                Some(Event::Recalled(network)) => {
                     self.recalled(&network);
                     if self.estops.engaged() {
                         self.twin.physics_mut().set_targets(0.0, 0.0);
                     }
                 }
-                Ok(Event::Shutdown) | Err(RecvTimeoutError::Disconnected) => return,
-                Err(RecvTimeoutError::Timeout) => {}
+                None => {}
             }
             let now = start.elapsed().as_secs_f64();
             while self.twin.physics().time() - sim_start + f64::from(DT) <= now {
@@ -657,7 +791,7 @@ impl Worker {
             // This loop wakes every substep: a held preview frame goes out
             // on time.
             self.publishers.preview.flush();
-            self.busy.end();
+            busy.end();
         }
     }
 

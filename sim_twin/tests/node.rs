@@ -10,11 +10,11 @@ use offworld_runtime::msg::*;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
 use offworld_runtime::{Component, EnvId, ErrorCode, Topic};
-use offworld_sim_twin::{Clock, PlanarPose, SimTwin, TwinConfig, TwinNode};
+use offworld_sim_twin::{Clock, NodeOptions, PlanarPose, SimTwin, Stepping, TwinConfig, TwinNode};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::Sample;
-use zenoh::Session;
+use zenoh::{Session, Wait};
 
 struct Client {
     session: Session,
@@ -114,6 +114,18 @@ async fn setup_with_clock(
     res: Resolution,
     clock: Clock,
 ) -> (TwinNode, Client, Session) {
+    let options = NodeOptions {
+        clock,
+        ..NodeOptions::default()
+    };
+    setup_with(world, res, options).await
+}
+
+async fn setup_with(
+    world: &str,
+    res: Resolution,
+    options: NodeOptions,
+) -> (TwinNode, Client, Session) {
     let (server, client) = loopback_pair().await.expect("loopback sessions");
     let env = EnvId::sim("node-test").expect("env");
     let mut config = TwinConfig::builtin(world).expect("world");
@@ -123,11 +135,11 @@ async fn setup_with_clock(
         y: 0.5,
         yaw: 0.0,
     };
-    let node = TwinNode::spawn(
+    let node = TwinNode::spawn_with(
         &server,
         env.clone(),
         SimTwin::new(config).expect("twin"),
-        clock,
+        options,
     )
     .expect("node");
     (node, Client::new(client, env).await, server)
@@ -445,12 +457,15 @@ async fn a_stuck_simulation_thread_withdraws_its_twin() {
     let mut config = TwinConfig::builtin("monolith").expect("world");
     config.resolution = Some(Resolution::new(2048, 2048));
     config.profile.camera.pitch_deg = 2.0;
-    let node = TwinNode::spawn_watched(
+    let options = NodeOptions {
+        stuck_after: Duration::from_millis(300),
+        ..NodeOptions::default()
+    };
+    let node = TwinNode::spawn_with(
         &server,
         env.clone(),
         SimTwin::new(config).expect("twin"),
-        Clock::Lockstep,
-        Duration::from_millis(300),
+        options,
     )
     .expect("node");
     let client = Client::new(client, env.clone()).await;
@@ -483,9 +498,26 @@ async fn a_stuck_simulation_thread_withdraws_its_twin() {
     drop(server);
 }
 
+/// Every way a lockstep twin can step.
+const STEPPINGS: [Stepping; 2] = [Stepping::OwnThread, Stepping::OnArrival];
+
+fn stepping(stepping: Stepping) -> NodeOptions {
+    NodeOptions {
+        stepping,
+        ..NodeOptions::default()
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_watched_twins_preview_ends_on_its_newest_frame() {
-    let (_node, client, _server) = setup("monolith", Resolution::new(32, 24)).await;
+    for s in STEPPINGS {
+        let res = Resolution::new(32, 24);
+        let (_node, client, _server) = setup_with("monolith", res, stepping(s)).await;
+        preview_ends_on_the_newest_frame(&client).await;
+    }
+}
+
+async fn preview_ends_on_the_newest_frame(client: &Client) {
     client.connect().await;
     let preview = client
         .session
@@ -518,4 +550,109 @@ async fn a_watched_twins_preview_ends_on_its_newest_frame() {
         }
     }
     panic!("no preview while watched");
+}
+
+/// Where a command is simulated: on the node's thread, or on the thread
+/// that delivers it — there before the put that delivers it returns.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_twin_stepping_on_arrival_answers_on_the_delivering_thread() {
+    for s in STEPPINGS {
+        let res = Resolution::new(32, 24);
+        let (_node, client, server) = setup_with("monolith", res, stepping(s)).await;
+        client.connect().await;
+        // The frame's thread, as its subscriber on the twin's own session
+        // sees it (a local subscriber runs on the publisher's thread).
+        let (tx, rx) = std::sync::mpsc::channel();
+        let _frames = server
+            .declare_subscriber(client.env.key(Topic::Obs))
+            .callback(move |_| {
+                let _ = tx.send(std::thread::current().name().map(str::to_owned));
+            })
+            .await
+            .expect("subscriber");
+        let (session, key) = (server.clone(), client.env.key(Topic::Cmd));
+        let (answered_before_the_put_returned, frame_thread) = std::thread::Builder::new()
+            .name("delivers-commands".into())
+            .spawn(move || {
+                let cmd = MotionCommand {
+                    seq: 7,
+                    linear_x: 0.2,
+                    angular_z: 0.0,
+                    duration_s: 0.2,
+                };
+                session
+                    .put(key, codec::encode(&cmd).expect("encode"))
+                    .wait()
+                    .expect("put");
+                let before = rx.try_recv().ok();
+                let frame_thread = before
+                    .clone()
+                    .or_else(|| rx.recv_timeout(Duration::from_secs(5)).ok())
+                    .expect("answered");
+                (before.is_some(), frame_thread)
+            })
+            .expect("thread")
+            .join()
+            .expect("joined");
+        match s {
+            Stepping::OnArrival => {
+                assert!(answered_before_the_put_returned);
+                assert_eq!(frame_thread.as_deref(), Some("delivers-commands"));
+            }
+            Stepping::OwnThread => {
+                assert_eq!(frame_thread.as_deref(), Some("sim_twin/sim/node-test"));
+            }
+        }
+        client.answer(7).await.expect("answered remotely too");
+    }
+}
+
+/// An e-stop delivered just before a command is applied before it, however
+/// the twin steps: the command is refused, never simulated.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_estop_delivered_before_a_command_is_applied_first() {
+    for s in STEPPINGS {
+        let res = Resolution::new(32, 24);
+        let (_node, client, _server) = setup_with("monolith", res, stepping(s)).await;
+        client.connect().await;
+        let faults = client
+            .session
+            .declare_subscriber(client.env.key(Topic::Fault))
+            .await
+            .expect("fault subscriber");
+        // Both on one link, in this order, without waiting in between.
+        for round in 0..20u64 {
+            let press_id = offworld_runtime::estop::new_press_id();
+            let stop = |engaged| EStop {
+                engaged,
+                reason: "ordering".into(),
+                press_id,
+            };
+            let key = client.env.key(Topic::EStop);
+            wire::put(&client.session, &key, &stop(true))
+                .await
+                .expect("press");
+            let seq = 100 + round;
+            client.command(seq, 0.5, 0.0, 0.5).await;
+            let sample = tokio::time::timeout(Duration::from_secs(5), faults.recv_async())
+                .await
+                .expect("refused on fault")
+                .expect("subscriber");
+            let fault: MotionFault = codec::decode_payload(sample.payload()).expect("fault");
+            assert_eq!(fault.seq, seq, "{s:?}");
+            let release = EStop {
+                press_id: offworld_runtime::estop::new_press_id(),
+                ..stop(false)
+            };
+            wire::put(&client.session, &key, &release)
+                .await
+                .expect("release");
+        }
+        // Released: the next command moves and is answered.
+        client.command(1_000, 0.5, 0.0, 0.5).await;
+        client
+            .answer(1_000)
+            .await
+            .expect("answered after the release");
+    }
 }

@@ -18,7 +18,7 @@ use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
 use offworld_client::{ClientTimeouts, EnvClient};
-use offworld_deploy::embedded::{Embedded, SimEnv, TwinProfile};
+use offworld_deploy::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_env_controller::Store;
 use offworld_runtime::keys::EnvId;
 use offworld_runtime::msg::{AlgorithmMode, ObsOptions, OpenRequest, Seed};
@@ -65,6 +65,7 @@ impl Lab {
                 seed: 7,
                 profile: TwinProfile::default(),
                 render_threads: 1,
+                stepping: Stepping::OwnThread,
             })
             .collect();
         let embedded = Embedded::start(&deployment, &envs, Store::in_memory().expect("store"))

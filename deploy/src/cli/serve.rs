@@ -10,7 +10,7 @@ use std::process::ExitCode;
 
 use offworld_env_controller::cli::{until_signalled, ServeArgs, Site};
 
-use crate::embedded::{Embedded, SimEnv, TwinProfile};
+use crate::embedded::{Embedded, SimEnv, Stepping, TwinProfile};
 use offworld_sim_twin::RENDER_THREADS_LIMIT;
 
 /// `serve`'s flags: the server's, and its twins'.
@@ -69,6 +69,7 @@ async fn start_embedded(
             seed: 0,
             profile,
             render_threads,
+            stepping: Stepping::OwnThread,
         })
         .collect();
     Ok(Embedded::start_with(

@@ -206,7 +206,7 @@ impl EnvServer {
         self.publish_event(&event).await;
         match &outcome.end {
             Some(end) => self.finish_episode(&mut state, end).await?,
-            None => self.save_progress(&mut state),
+            None => self.save_progress(&mut state).await,
         }
         Ok(reply)
     }
@@ -224,8 +224,6 @@ impl EnvServer {
     pub(super) async fn abort_episode(&self, state: &mut State, reason: &str) {
         let running = state.episode.as_ref().is_some_and(|e| !e.over);
         if running {
-            // Writes to SQLite: not on the thread a step started on.
-            crate::start::hand_off().await;
             let end = EndReason::Aborted(reason.to_owned());
             if let Err(e) = self.finish_episode(state, &end).await {
                 tracing::error!(env = %self.env, "could not record the aborted episode: {}", e.message);
@@ -235,7 +233,7 @@ impl EnvServer {
 
     /// Saves the running episode's progress when [`PROGRESS_EVERY`] has
     /// passed since the last save (a failure is logged: the step stands).
-    pub(super) fn save_progress(&self, state: &mut State) {
+    pub(super) async fn save_progress(&self, state: &mut State) {
         let (Some(episode), Some(lease)) = (state.episode.as_mut(), state.lease.as_ref()) else {
             return;
         };
@@ -243,6 +241,9 @@ impl EnvServer {
             return;
         }
         episode.saved = Instant::now();
+        // Writes to SQLite: not on the thread a step started on (a twin
+        // stepping where its command arrives answers within that start).
+        crate::start::hand_off().await;
         let record = episode.record(lease.experiment.id, None, now_ms());
         if let Err(e) = lock_store(&self.store).progress_episode(&record) {
             tracing::error!(env = %self.env, "could not save the episode's progress: {e}");
@@ -257,6 +258,8 @@ impl EnvServer {
         let (Some(episode), Some(lease)) = (state.episode.as_mut(), state.lease.as_mut()) else {
             return Ok(());
         };
+        // Writes to SQLite: not on the thread a step started on.
+        crate::start::hand_off().await;
         episode.over = true;
         let record = episode.record(lease.experiment.id, Some(end), now_ms());
         // The recording ends whether or not the database takes the record.
