@@ -10,6 +10,13 @@
 //! when it is woken after that poll: no worker is woken just to find it
 //! waiting. What may block that thread for long (SQLite, a
 //! stop command) first awaits [`hand_off`].
+//!
+//! A twin that simulates a command where it arrives
+//! (`sim_twin::node::Stepping::OnArrival`: `gymnasium.make`'s one embedded
+//! env) runs within the command's put, and the controller's `obs` callback
+//! replies within it too: the whole step then finishes in this first
+//! poll, and only an episode's end or a progress save (SQLite) reaches the
+//! runtime.
 
 use std::future::Future;
 use std::pin::Pin;

@@ -254,9 +254,11 @@ impl WatchedPublisher {
 
 /// Publishes an env's preview: offered every frame, it puts one a
 /// [`PREVIEW_PERIOD`] while someone subscribes, none otherwise. Its owner's
-/// loop waits with [`PreviewPublisher::recv_flushing`], which puts a held
-/// frame when its period ends with no newer one offered (a sim paused
-/// between steps).
+/// loop puts a held frame when its period ends with no newer one offered (a
+/// sim paused between steps): waiting with
+/// [`PreviewPublisher::recv_flushing`] (the robot agent), or with
+/// [`PreviewPublisher::held_for`] and [`PreviewPublisher::flush`] (the sim
+/// twin, whose frames may be offered on other threads).
 pub struct PreviewPublisher {
     copy: ViewerCopy,
     pacer: Pacer,

@@ -210,18 +210,37 @@ impl StatCounters {
 /// The simulation's state and its queue, shared by the node's thread and
 /// (with [`Stepping::OnArrival`]) the callback delivering commands.
 struct Simulation {
+    env: EnvId,
     inbox: Inbox<Event>,
     worker: Mutex<Worker>,
     busy: Arc<Busy>,
+    /// Commands are simulated where they arrive ([`Stepping::OnArrival`]).
+    on_arrival: bool,
 }
 
 impl Simulation {
-    fn worker(&self) -> MutexGuard<'_, Worker> {
-        self.worker.lock().unwrap_or_else(PoisonError::into_inner)
+    /// The simulation, unless a panic broke it while it was held (a bug):
+    /// it then takes no more events, and stays busy with the one it
+    /// panicked on, so the watchdog withdraws the twin (see
+    /// [`TwinNode::stuck`]).
+    fn worker(&self) -> Option<MutexGuard<'_, Worker>> {
+        match self.worker.lock() {
+            Ok(worker) => Some(worker),
+            Err(_) => {
+                self.broken();
+                None
+            }
+        }
+    }
+
+    fn broken(&self) {
+        tracing::error!(env = %self.env, "the sim twin's simulation panicked: it takes no more commands (restart it)");
+        self.inbox.close();
     }
 
     /// Works through the queued events in order, on this thread: whoever
-    /// holds the simulation is the only one taking events.
+    /// holds the simulation is the only one taking events. A panic leaves
+    /// the simulation busy (no `end`): it is stuck from then on.
     fn drain(&self, worker: &mut Worker) {
         while let Some(event) = self.inbox.pop() {
             self.busy.begin();
@@ -239,12 +258,13 @@ impl Simulation {
         }
         let mut worker = match self.worker.try_lock() {
             Ok(worker) => worker,
-            Err(TryLockError::Poisoned(e)) => e.into_inner(),
+            Err(TryLockError::Poisoned(_)) => return self.broken(),
             Err(TryLockError::WouldBlock) => return self.inbox.wake(),
         };
         self.drain(&mut worker);
         // A preview frame held for being early goes out at the end of its
-        // period: the thread puts it, once it knows to look.
+        // period: the thread puts it, once it knows to look (it then looks
+        // every period while the preview is watched).
         if worker.publishers.preview.held_for().is_some() && !self.inbox.polled() {
             self.inbox.wake();
         }
@@ -323,24 +343,50 @@ impl TwinNode {
         let busy = Arc::new(Busy::new());
         let zerr = |e: zenoh::Error| SimError::Zenoh(e.to_string());
         let stats = Arc::new(StatCounters::default());
-        let mut worker = Worker::new(session.clone(), env.clone(), twin, stats.clone())?;
-        worker.estops = estop::recall_wait(session, &env, RECALL);
-        if let Some(reason) = worker.estops.refusal() {
+        let worker = Worker::new(session.clone(), env.clone(), twin, stats.clone())?;
+        let (shared_estops, answered) = tokio::sync::watch::channel(EStopState::default());
+        let simulation = Arc::new(Simulation {
+            env: env.clone(),
+            inbox: Inbox::new(QUEUE),
+            worker: Mutex::new(Worker {
+                shared_estops,
+                ..worker
+            }),
+            busy: busy.clone(),
+            on_arrival: stepping == Stepping::OnArrival && clock == Clock::Lockstep,
+        });
+        // E-stops first: one pressed while the latches are asked for below
+        // is queued, and applied before any command.
+        let estop_subscriber = |key: String, latch: Latch| {
+            let simulation = simulation.clone();
+            session
+                .declare_subscriber(key)
+                .callback(move |sample: Sample| {
+                    // Never dropped while the simulation works: an e-stop
+                    // waits for room in the queue. A stuck simulation would
+                    // never make room (nor act on it: its twin is
+                    // withdrawn), and this callback must not hold Zenoh's
+                    // thread forever.
+                    send_unless_stuck(&simulation, Event::EStop(latch, sample));
+                })
+                .wait()
+                .map_err(zerr)
+        };
+        let estop = estop_subscriber(env.key(Topic::EStop), Latch::Env)?;
+        let global_estop = estop_subscriber(global_estop_key(), Latch::Site)?;
+        let estops = estop::recall_wait(session, &env, RECALL);
+        if let Some(reason) = estops.refusal() {
             tracing::warn!(%env, %reason, "e-stop engaged before this start (from the network)");
         }
-        let (shared_estops, answered) = tokio::sync::watch::channel(worker.estops.clone());
-        worker.shared_estops = shared_estops;
-        let simulation = Arc::new(Simulation {
-            inbox: Inbox::new(QUEUE),
-            worker: Mutex::new(worker),
-            busy: busy.clone(),
-        });
-        let on_arrival = stepping == Stepping::OnArrival && clock == Clock::Lockstep;
+        if let Some(mut worker) = simulation.worker() {
+            worker.shared_estops.send_replace(estops.clone());
+            worker.estops = estops;
+        }
         let commands = simulation.clone();
         let cmd = session
             .declare_subscriber(env.key(Topic::Cmd))
             .callback(move |sample: Sample| {
-                if on_arrival {
+                if commands.on_arrival {
                     commands.command_on_arrival(sample);
                 } else if let Err(refused) = commands.inbox.push(Event::Command(sample), true) {
                     dropped(&refused);
@@ -363,23 +409,6 @@ impl TwinNode {
             })
             .wait()
             .map_err(zerr)?;
-        let estop_subscriber = |key: String, latch: Latch| {
-            let simulation = simulation.clone();
-            session
-                .declare_subscriber(key)
-                .callback(move |sample: Sample| {
-                    // Never dropped while the simulation works: an e-stop
-                    // waits for room in the queue. A stuck simulation would
-                    // never make room (nor act on it: its twin is
-                    // withdrawn), and this callback must not hold Zenoh's
-                    // thread forever.
-                    send_unless_stuck(&simulation, Event::EStop(latch, sample));
-                })
-                .wait()
-                .map_err(zerr)
-        };
-        let estop = estop_subscriber(env.key(Topic::EStop), Latch::Env)?;
-        let global_estop = estop_subscriber(global_estop_key(), Latch::Site)?;
         let estop_state = session
             .declare_queryable(env.key(Topic::EStopState))
             .callback(estop::state_replier(&env, answered))
@@ -403,15 +432,20 @@ impl TwinNode {
             .declare_token(env.alive_key(Component::SimTwin))
             .wait()
             .map_err(zerr)?;
-        // A fresh session may not reach every `estop_state` yet: ask again.
-        let (again_session, again_env, again) = (session.clone(), env.clone(), simulation.clone());
+        // A fresh session may not reach every `estop_state` yet: ask again
+        // (without keeping a dropped node's simulation alive meanwhile).
+        let (again_session, again_env) = (session.clone(), env.clone());
+        let again = Arc::downgrade(&simulation);
         std::thread::Builder::new()
             .name(format!("sim_twin/{env}/estop"))
             .spawn(move || {
                 for delay in estop::RECALL_AGAIN {
                     std::thread::sleep(delay);
                     let network = estop::recall_wait(&again_session, &again_env, RECALL);
-                    if !send_unless_stuck(&again, Event::Recalled(network)) {
+                    let Some(simulation) = again.upgrade() else {
+                        return;
+                    };
+                    if !send_unless_stuck(&simulation, Event::Recalled(network)) {
                         return;
                     }
                 }
@@ -513,36 +547,46 @@ fn send_unless_stuck(simulation: &Simulation, event: Event) -> bool {
 /// The node's simulation thread.
 fn run(simulation: &Simulation, clock: Clock) {
     let _close = CloseOnExit(&simulation.inbox);
-    let env = simulation.worker().env.clone();
+    let env = &simulation.env;
     tracing::info!(%env, ?clock, "sim twin serving");
-    match clock {
+    let Some(mut worker) = (match clock {
         Clock::Lockstep => run_lockstep(simulation),
-        Clock::RealTime => simulation.worker().run_real_time(simulation),
+        Clock::RealTime => simulation.worker().map(|mut worker| {
+            worker.run_real_time(simulation);
+            worker
+        }),
+    }) else {
+        return;
+    };
+    // What was queued before the stop is handled, as it would have been.
+    if clock == Clock::Lockstep {
+        simulation.drain(&mut worker);
     }
-    tracing::info!(%env, rejected = simulation.worker().rejected, "sim twin stopped");
+    tracing::info!(%env, rejected = worker.rejected, "sim twin stopped");
 }
 
 /// Lockstep: each command simulated as fast as possible, then answered.
-fn run_lockstep(simulation: &Simulation) {
+/// Returns the simulation once the node stops (`None`: a panic broke it).
+fn run_lockstep(simulation: &Simulation) -> Option<MutexGuard<'_, Worker>> {
     loop {
         // A preview frame held for being early goes out when its period
-        // ends, unless the next step's frame replaces it first. While
-        // watched, the thread also looks every period: with
-        // `Stepping::OnArrival` frames are offered on other threads.
+        // ends, unless the next step's frame replaces it first. With
+        // `Stepping::OnArrival` frames are offered on other threads: while
+        // the preview is watched, the thread also looks every period.
         let wait = {
-            let worker = simulation.worker();
+            let worker = simulation.worker()?;
             let preview = &worker.publishers.preview;
             preview
                 .held_for()
-                .or_else(|| preview.watched().then_some(PREVIEW_LOOK))
+                .or_else(|| (simulation.on_arrival && preview.watched()).then_some(PREVIEW_LOOK))
         };
         match simulation.inbox.wait(wait) {
-            Waited::Closed => return,
-            Waited::TimedOut => {
-                simulation.worker().publishers.preview.flush();
+            Waited::Closed => return simulation.worker(),
+            Waited::TimedOut | Waited::Woken => {
+                simulation.worker()?.publishers.preview.flush();
             }
             Waited::Ready => {
-                let mut worker = simulation.worker();
+                let mut worker = simulation.worker()?;
                 simulation.drain(&mut worker);
             }
         }
@@ -714,7 +758,7 @@ impl Worker {
             let wait = (next_step.min(next_pose) - now).max(0.0);
             let event = match inbox.wait(Some(Duration::from_secs_f64(wait))) {
                 Waited::Closed => return,
-                Waited::TimedOut => None,
+                Waited::TimedOut | Waited::Woken => None,
                 Waited::Ready => inbox.pop(),
             };
             busy.begin();

@@ -28,6 +28,8 @@ pub(super) enum Waited {
     Ready,
     /// The timeout passed first.
     TimedOut,
+    /// Woken to look at its timers again ([`Inbox::wake`]).
+    Woken,
     /// The node is stopping.
     Closed,
 }
@@ -37,6 +39,8 @@ struct Queue<E> {
     closed: bool,
     /// The thread waits with a timeout (it will look again by itself).
     polling: bool,
+    /// [`Inbox::wake`] was called since the last wait returned.
+    woken: bool,
 }
 
 /// A bounded FIFO of events with a condition the node's thread waits on.
@@ -53,6 +57,7 @@ impl<E> Inbox<E> {
                 events: VecDeque::with_capacity(bound),
                 closed: false,
                 polling: false,
+                woken: false,
             }),
             arrived: Condvar::new(),
             bound,
@@ -86,8 +91,10 @@ impl<E> Inbox<E> {
         self.queue().events.pop_front()
     }
 
-    /// Wakes the thread to look at the queue and its timers again.
+    /// Wakes the thread to look at its timers again: its wait returns
+    /// [`Waited::Woken`] (or what it saw first).
     pub(super) fn wake(&self) {
+        self.queue().woken = true;
         self.arrived.notify_one();
     }
 
@@ -96,18 +103,15 @@ impl<E> Inbox<E> {
         self.queue().polling
     }
 
-    /// Refuses every later event and wakes the thread to stop; events still
-    /// queued are dropped.
+    /// Refuses every later event and wakes the thread to stop; the events
+    /// already queued stay for it to take.
     pub(super) fn close(&self) {
-        let mut queue = self.queue();
-        queue.closed = true;
-        queue.events.clear();
-        drop(queue);
+        self.queue().closed = true;
         self.arrived.notify_all();
     }
 
-    /// Waits until an event is queued, `timeout` (if any) passes or the
-    /// inbox closes.
+    /// Waits until an event is queued, `timeout` (if any) passes, the
+    /// thread is woken or the inbox closes.
     pub(super) fn wait(&self, timeout: Option<Duration>) -> Waited {
         let deadline = timeout.map(|t| Instant::now() + t);
         let mut queue = self.queue();
@@ -117,7 +121,12 @@ impl<E> Inbox<E> {
             }
             if !queue.events.is_empty() {
                 queue.polling = false;
+                queue.woken = false;
                 return Waited::Ready;
+            }
+            if std::mem::take(&mut queue.woken) {
+                queue.polling = false;
+                return Waited::Woken;
             }
             queue.polling = deadline.is_some();
             queue = match deadline {
@@ -160,45 +169,53 @@ mod tests {
     }
 
     #[test]
-    fn a_closed_inbox_refuses_and_ends_the_wait() {
-        let inbox = Arc::new(Inbox::new(4));
-        inbox.push(1, true).expect("room");
-        let waiter = {
-            let inbox = inbox.clone();
-            std::thread::spawn(move || {
-                // Ready first (an event is in), then Closed once it is taken.
-                let first = inbox.wait(None);
-                inbox.pop();
-                (first, inbox.wait(None))
-            })
-        };
-        // Let the waiter take the event and block.
-        while inbox.queue().events.len() == 1 {
-            std::thread::yield_now();
-        }
+    fn a_closed_inbox_refuses_new_events_and_keeps_the_queued_ones() {
+        let inbox = Inbox::new(4);
+        inbox.push(1, false).expect("room");
         inbox.close();
-        assert_eq!(
-            waiter.join().expect("waiter"),
-            (Waited::Ready, Waited::Closed)
-        );
+        assert_eq!(inbox.wait(None), Waited::Closed);
         assert!(matches!(inbox.push(2, true), Err(Refused::Closed(2))));
-        assert_eq!(inbox.pop(), None);
+        assert_eq!((inbox.pop(), inbox.pop()), (Some(1), None));
     }
 
     #[test]
-    fn a_timed_wait_times_out_and_says_it_polls_meanwhile() {
+    fn closing_ends_a_wait() {
+        let inbox = Arc::new(Inbox::<u8>::new(1));
+        let waiter = {
+            let inbox = inbox.clone();
+            std::thread::spawn(move || inbox.wait(None))
+        };
+        inbox.close();
+        assert_eq!(waiter.join().expect("waiter"), Waited::Closed);
+    }
+
+    #[test]
+    fn a_wake_ends_a_wait_without_a_timeout_once() {
+        let inbox = Arc::new(Inbox::<u8>::new(1));
+        let waiter = {
+            let inbox = inbox.clone();
+            std::thread::spawn(move || inbox.wait(None))
+        };
+        inbox.wake();
+        assert_eq!(waiter.join().expect("waiter"), Waited::Woken);
+        assert_eq!(inbox.wait(Some(Duration::ZERO)), Waited::TimedOut);
+    }
+
+    #[test]
+    fn a_timed_wait_says_it_polls_meanwhile() {
         let inbox = Arc::new(Inbox::<u8>::new(1));
         assert!(!inbox.polled());
         let waiter = {
             let inbox = inbox.clone();
-            std::thread::spawn(move || inbox.wait(Some(Duration::from_millis(200))))
+            std::thread::spawn(move || inbox.wait(Some(Duration::from_secs(30))))
         };
-        let until = Instant::now() + Duration::from_secs(5);
+        let until = Instant::now() + Duration::from_secs(10);
         while !inbox.polled() && Instant::now() < until {
             std::thread::yield_now();
         }
         assert!(inbox.polled(), "a waiter with a timeout polls");
-        assert_eq!(waiter.join().expect("waiter"), Waited::TimedOut);
+        inbox.push(1, true).expect("room");
+        assert_eq!(waiter.join().expect("waiter"), Waited::Ready);
         assert!(!inbox.polled());
     }
 
