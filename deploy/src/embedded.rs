@@ -74,6 +74,34 @@ pub fn render_threads_for(twins: usize) -> Result<usize, ControllerError> {
     Ok((cores / twins.max(1)).clamp(1, DEFAULT_RENDER_THREADS_CAP))
 }
 
+/// Overrides [`stepping_for`]: `own-thread` gives even a lone embedded twin
+/// a thread of its own (its steps then cost a thread wake-up, and a hung
+/// simulation times out instead of holding the trainer's call), or
+/// `on-arrival`.
+pub const TWIN_STEPPING_VAR: &str = "OFFWORLD_TWIN_STEPPING";
+
+/// Where the twins of one embedded deployment of `twins` envs simulate:
+/// [`TWIN_STEPPING_VAR`] if set (empty = unset), else one env on the
+/// trainer's thread ([`Stepping::OnArrival`]: a vector env's requests go out
+/// from one thread, so several envs each keep a thread, to progress in
+/// parallel).
+pub fn stepping_for(twins: usize) -> Result<Stepping, ControllerError> {
+    if let Some(value) = std::env::var_os(TWIN_STEPPING_VAR).filter(|v| !v.is_empty()) {
+        return match value.to_string_lossy().trim() {
+            "own-thread" => Ok(Stepping::OwnThread),
+            "on-arrival" => Ok(Stepping::OnArrival),
+            other => Err(ControllerError::Config(format!(
+                "{TWIN_STEPPING_VAR}={other:?}: give `own-thread` or `on-arrival`"
+            ))),
+        };
+    }
+    Ok(if twins == 1 {
+        Stepping::OnArrival
+    } else {
+        Stepping::OwnThread
+    })
+}
+
 /// A running in-process deployment; stops when dropped.
 pub struct Embedded {
     /// The controller serving every env.

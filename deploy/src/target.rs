@@ -9,7 +9,7 @@ use zenoh::Session;
 
 use offworld_env_controller::{ControllerError, EnvOptions, RequestLimits, Store};
 
-use crate::embedded::{render_threads_for, Embedded, SimEnv, Stepping, TwinProfile};
+use crate::embedded::{render_threads_for, stepping_for, Embedded, SimEnv, TwinProfile};
 
 /// What to connect to.
 #[derive(Debug, Clone)]
@@ -76,14 +76,7 @@ pub async fn connect(target: Target, expected_task: &str) -> Result<Connection, 
                 .collect::<Result<_, _>>()
                 .map_err(|e| ControllerError::Config(e.to_string()))?;
             let render_threads = render_threads_for(envs.len())?;
-            // One env: its steps run on the trainer's thread. Several: each
-            // twin on its own thread, so that they progress in parallel
-            // (a vector env's requests go out from one thread).
-            let stepping = if envs.len() == 1 {
-                Stepping::OnArrival
-            } else {
-                Stepping::OwnThread
-            };
+            let stepping = stepping_for(envs.len())?;
             let sims: Vec<SimEnv> = envs
                 .iter()
                 .enumerate()

@@ -221,6 +221,32 @@ def test_render_threads_come_from_the_environment_and_change_no_pixel(monkeypatc
             gymnasium.make("OffWorldMonolithDiscreteSim-v0")
 
 
+def test_twin_stepping_comes_from_the_environment_and_changes_no_observation(monkeypatch):
+    """One embedded env simulates on the caller's thread unless
+    OFFWORLD_TWIN_STEPPING=own-thread gives its twin a thread: a seed's
+    observations, rewards and ends are the same either way; a value that is
+    not a stepping is refused, naming the variable."""
+
+    def walk(stepping):
+        monkeypatch.setenv("OFFWORLD_TWIN_STEPPING", stepping)
+        env = gymnasium.make("OffWorldMonolithObstacleDiscreteSim-v0", channel_type=Channels.RGBD)
+        obs, _ = env.reset(seed=5)
+        steps = [(obs.tobytes(), 0.0, False, False)]
+        for action in [0, 2, 2, 1, 2]:
+            obs, reward, terminated, truncated, _ = env.step(action)
+            steps.append((obs.tobytes(), reward, terminated, truncated))
+        env.close()
+        return steps
+
+    default, own, arrival = walk(""), walk("own-thread"), walk("on-arrival")
+    assert default[0][0] != default[-1][0], "the robot moved: the frames differ"
+    assert default == own == arrival
+    for bad in ["thread", "ON-ARRIVAL", "1"]:
+        monkeypatch.setenv("OFFWORLD_TWIN_STEPPING", bad)
+        with pytest.raises(errors.BadRequest, match="OFFWORLD_TWIN_STEPPING"):
+            gymnasium.make("OffWorldMonolithDiscreteSim-v0")
+
+
 def test_bad_actions_raise_typed_errors():
     env = gymnasium.make("OffWorldMonolithContinuousSim-v0", resolution=(32, 32))
     with pytest.raises(errors.InvalidState):
