@@ -77,7 +77,8 @@ pub fn render_threads_for(twins: usize) -> Result<usize, ControllerError> {
 /// Overrides [`stepping_for`]: `own-thread` gives even a lone embedded twin
 /// a thread of its own (its steps then cost a thread wake-up, and a hung
 /// simulation times out instead of holding the trainer's call), or
-/// `on-arrival`.
+/// `on-arrival` (for every twin: a vector env's then take turns on the
+/// trainer's thread).
 pub const TWIN_STEPPING_VAR: &str = "OFFWORLD_TWIN_STEPPING";
 
 /// Where the twins of one embedded deployment of `twins` envs simulate:

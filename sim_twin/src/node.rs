@@ -117,9 +117,6 @@ pub const OVERHEAD_CAMERA: &str = "top";
 
 /// Bound of the event queue (commands arrive one per step).
 const QUEUE: usize = 256;
-/// How often a lockstep thread looks for a held preview frame while the
-/// preview is watched (frames may be offered on other threads).
-const PREVIEW_LOOK: Duration = offworld_runtime::preview::PREVIEW_PERIOD;
 /// How long a starting twin asks the network for the e-stop latches.
 const RECALL: Duration = Duration::from_millis(300);
 /// A simulation thread busy with one event longer than this is stuck (a
@@ -137,6 +134,8 @@ struct Busy {
     since_ms: AtomicU64,
     /// The watchdog found the thread stuck.
     stuck: AtomicBool,
+    /// A panic broke the simulation: stuck for good, at once.
+    broken: AtomicBool,
 }
 
 impl Busy {
@@ -145,6 +144,7 @@ impl Busy {
             origin: Instant::now(),
             since_ms: AtomicU64::new(0),
             stuck: AtomicBool::new(false),
+            broken: AtomicBool::new(false),
         }
     }
 
@@ -235,6 +235,7 @@ impl Simulation {
 
     fn broken(&self) {
         tracing::error!(env = %self.env, "the sim twin's simulation panicked: it takes no more commands (restart it)");
+        self.busy.broken.store(true, Ordering::Release);
         self.inbox.close();
     }
 
@@ -263,8 +264,7 @@ impl Simulation {
         };
         self.drain(&mut worker);
         // A preview frame held for being early goes out at the end of its
-        // period: the thread puts it, once it knows to look (it then looks
-        // every period while the preview is watched).
+        // period: the thread puts it, once it knows to look.
         if worker.publishers.preview.held_for().is_some() && !self.inbox.polled() {
             self.inbox.wake();
         }
@@ -281,12 +281,15 @@ fn dropped<E>(refused: &Refused<E>) {
 
 /// Ends the node: its thread stops at its next wait, and nothing more is
 /// queued. Also run if the thread ends by a panic, so that no sender waits
-/// forever for room in the queue.
-struct CloseOnExit<'a>(&'a Inbox<Event>);
+/// forever for room in the queue, and the watchdog withdraws the twin.
+struct CloseOnExit<'a>(&'a Simulation);
 
 impl Drop for CloseOnExit<'_> {
     fn drop(&mut self) {
-        self.0.close();
+        if std::thread::panicking() {
+            self.0.broken();
+        }
+        self.0.inbox.close();
     }
 }
 
@@ -546,7 +549,7 @@ fn send_unless_stuck(simulation: &Simulation, event: Event) -> bool {
 
 /// The node's simulation thread.
 fn run(simulation: &Simulation, clock: Clock) {
-    let _close = CloseOnExit(&simulation.inbox);
+    let _close = CloseOnExit(simulation);
     let env = &simulation.env;
     tracing::info!(%env, ?clock, "sim twin serving");
     let Some(mut worker) = (match clock {
@@ -570,16 +573,9 @@ fn run(simulation: &Simulation, clock: Clock) {
 fn run_lockstep(simulation: &Simulation) -> Option<MutexGuard<'_, Worker>> {
     loop {
         // A preview frame held for being early goes out when its period
-        // ends, unless the next step's frame replaces it first. With
-        // `Stepping::OnArrival` frames are offered on other threads: while
-        // the preview is watched, the thread also looks every period.
-        let wait = {
-            let worker = simulation.worker()?;
-            let preview = &worker.publishers.preview;
-            preview
-                .held_for()
-                .or_else(|| (simulation.on_arrival && preview.watched()).then_some(PREVIEW_LOOK))
-        };
+        // ends, unless the next step's frame replaces it first (one held
+        // on another thread wakes this one: `command_on_arrival`).
+        let wait = simulation.worker()?.publishers.preview.held_for();
         match simulation.inbox.wait(wait) {
             Waited::Closed => return simulation.worker(),
             Waited::TimedOut | Waited::Woken => {
@@ -606,17 +602,17 @@ fn watchdog(
     let period = (stuck_after / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
     while watching.load(Ordering::Acquire) {
         std::thread::sleep(period);
-        let Some(for_how_long) = busy.busy_for() else {
-            continue;
-        };
-        if for_how_long < stuck_after {
+        let broken = busy.broken.load(Ordering::Acquire);
+        let for_how_long = busy.busy_for().unwrap_or_default();
+        if !broken && for_how_long < stuck_after {
             continue;
         }
         busy.stuck.store(true, Ordering::Release);
         tracing::error!(
             %env,
+            broken,
             busy_s = for_how_long.as_secs_f64(),
-            "the sim twin's simulation thread is stuck on one event: withdrawing this twin \
+            "the sim twin's simulation is stuck on one event or broken: withdrawing this twin \
              (the env shows offline); restart it"
         );
         drop(token.lock().unwrap_or_else(PoisonError::into_inner).take());

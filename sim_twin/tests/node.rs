@@ -595,6 +595,9 @@ async fn a_twin_stepping_on_arrival_answers_on_the_delivering_thread() {
                             .or_else(|| rx.recv_timeout(Duration::from_secs(5)).ok())
                             .expect("answered")
                             .expect("a named thread");
+                        // Time for a node thread that took this one to let
+                        // the simulation go: else it may take the next too.
+                        std::thread::sleep(Duration::from_millis(5));
                         (before.is_some(), frame_thread)
                     })
                     .collect::<Vec<_>>()

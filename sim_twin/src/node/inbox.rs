@@ -104,7 +104,7 @@ impl<E> Inbox<E> {
     }
 
     /// Refuses every later event and wakes the thread to stop; the events
-    /// already queued stay for it to take.
+    /// already queued stay (a lockstep thread takes them before it ends).
     pub(super) fn close(&self) {
         self.queue().closed = true;
         self.arrived.notify_all();
