@@ -251,9 +251,12 @@ async fn bench() -> anyhow::Result<()> {
         // What one embedded env renders on (`gymnasium.make` with its
         // live monitor): the monitor competes with the render's helpers.
         render_threads: render_threads_for(1)?,
-        // And steps where its commands arrive, as that env does: the
-        // monitor's callbacks then run on the step's thread.
-        stepping: Stepping::OnArrival,
+        // Its twin on a thread of its own: this bench's client is on a
+        // session of its own, and a step begun on Zenoh's receive thread
+        // with two render threads ran 10-12 % slower here than on the
+        // twin's thread (`gymnasium.make`, whose client shares the session,
+        // gains from `Stepping::OnArrival`: docs/performance.md).
+        stepping: Stepping::OwnThread,
     };
     // As `gymnasium.make` serves itself: no request rate a client can reach
     // (a site's 2,000 a second would cap long rounds of this bench).
