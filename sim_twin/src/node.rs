@@ -298,7 +298,6 @@ pub struct TwinNode {
     env: EnvId,
     simulation: Arc<Simulation>,
     stats: Arc<StatCounters>,
-    busy: Arc<Busy>,
     thread: Option<JoinHandle<()>>,
     /// Ends the watchdog thread.
     watching: Arc<AtomicBool>,
@@ -475,7 +474,6 @@ impl TwinNode {
             env,
             simulation,
             stats,
-            busy,
             watching,
             thread: Some(thread),
             _declarations: Declarations {
@@ -508,7 +506,7 @@ impl TwinNode {
     /// should exit so that its supervisor starts a fresh one — the stuck
     /// thread cannot be stopped, and dropping the node leaves it running.
     pub fn stuck(&self) -> bool {
-        self.busy.stuck.load(Ordering::Acquire)
+        self.simulation.busy.stuck.load(Ordering::Acquire)
     }
 }
 
