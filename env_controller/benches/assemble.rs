@@ -47,14 +47,19 @@ fn main() {
     let mut dst = vec![0u8; src.len()];
     let copy = median_us(|| dst.copy_from_slice(std::hint::black_box(&src)));
     println!("memcpy of 307200 B (the machine's yardstick): {copy:7.1} µs");
-    let view = native.view();
-    println!("assemble from a 320x240 rgb8 + 32FC1 frame, median of {ROUNDS}:");
-    for (channels, (w, h), depth_format) in [
-        (Channels::Rgbd, (320, 240), DepthFormat::Uint8),
-        (Channels::Rgbd, (320, 240), DepthFormat::Meters),
-        (Channels::DepthOnly, (320, 240), DepthFormat::Uint8),
-        (Channels::Rgbd, (84, 84), DepthFormat::Uint8),
+    let small = frame(84, 84);
+    println!("assemble, median of {ROUNDS}:");
+    // (source frame, layout): native sizes are what the twin renders for a
+    // client; 84x84 from 320x240 is the robot's camera resampled.
+    for (source, channels, (w, h), depth_format) in [
+        (&native, Channels::Rgbd, (320, 240), DepthFormat::Uint8),
+        (&native, Channels::Rgbd, (320, 240), DepthFormat::Meters),
+        (&native, Channels::DepthOnly, (320, 240), DepthFormat::Uint8),
+        (&native, Channels::Rgbd, (84, 84), DepthFormat::Uint8),
+        (&small, Channels::Rgbd, (84, 84), DepthFormat::Uint8),
+        (&small, Channels::DepthOnly, (84, 84), DepthFormat::Uint8),
     ] {
+        let view = source.view();
         let opts = ObsOptions {
             channels,
             width: w,
@@ -70,9 +75,11 @@ fn main() {
         }
         times.sort_by(f64::total_cmp);
         println!(
-            "  {:?} {w}x{h} {:?}: {:7.1} µs",
+            "  {:?} {w}x{h} {:?} from {}x{}: {:7.2} µs",
             channels,
             depth_format,
+            source.color.width,
+            source.color.height,
             times[ROUNDS / 2]
         );
     }

@@ -7,6 +7,9 @@ use offworld_runtime::msg::{
 };
 use offworld_runtime::WireError;
 
+#[cfg(target_arch = "x86_64")]
+mod avx2;
+
 /// Largest observation side accepted.
 pub const MAX_SIDE: u32 = 1024;
 
@@ -72,22 +75,30 @@ pub fn assemble_into(
             obs.shape_len()
         )));
     }
-    let layout = Layout {
-        frame,
-        src_x: (0..w)
-            .map(|x| ((x * 2 + 1) * sw / (w * 2)).min(sw - 1))
-            .collect(),
-        identity: w == sw,
-        depth_enc,
-        depth_scale: 255.0 / depth_max_m.max(1e-6),
-    };
-    pulp::Arch::new().dispatch(Fill {
-        layout: &layout,
-        data,
-        channels: opts.channels,
-        dtype,
-        rows: (sh, h),
-    });
+    let depth_scale = 255.0 / depth_max_m.max(1e-6);
+    let source_row = |y: usize| ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
+    let native_u8 = w == sw
+        && depth_enc == PixelEncoding::Depth32FC1
+        && dtype == DType::U8
+        && opts.channels != Channels::RgbOnly;
+    if !(native_u8 && write_native_u8(frame, opts.channels, &source_row, depth_scale, data)) {
+        let layout = Layout {
+            frame,
+            src_x: (0..w)
+                .map(|x| ((x * 2 + 1) * sw / (w * 2)).min(sw - 1))
+                .collect(),
+            identity: w == sw,
+            depth_enc,
+            depth_scale,
+            source_row: &source_row,
+        };
+        pulp::Arch::new().dispatch(Fill {
+            layout: &layout,
+            data,
+            channels: opts.channels,
+            dtype,
+        });
+    }
     if color_enc == PixelEncoding::Bgr8 && opts.channels != Channels::DepthOnly {
         swap_red_blue(data, channels, dtype.size());
     }
@@ -102,8 +113,6 @@ struct Fill<'l, 'f, 'a, 'd> {
     data: &'d mut [u8],
     channels: Channels,
     dtype: DType,
-    /// Source and output rows.
-    rows: (usize, usize),
 }
 
 impl pulp::WithSimd for Fill<'_, '_, '_, '_> {
@@ -113,20 +122,15 @@ impl pulp::WithSimd for Fill<'_, '_, '_, '_> {
     // are compiled for it.
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
-        let Self {
-            layout,
-            data,
-            rows: (sh, h),
-            ..
-        } = self;
+        let Self { layout, data, .. } = self;
         // One monomorphised loop per layout: no per-pixel branching.
         match (self.channels, self.dtype) {
-            (Channels::DepthOnly, DType::U8) => layout.fill::<false, true, false>(data, sh, h),
-            (Channels::DepthOnly, DType::F32) => layout.fill::<false, true, true>(data, sh, h),
-            (Channels::RgbOnly, DType::U8) => layout.fill::<true, false, false>(data, sh, h),
-            (Channels::RgbOnly, DType::F32) => layout.fill::<true, false, true>(data, sh, h),
-            (Channels::Rgbd, DType::U8) => layout.fill::<true, true, false>(data, sh, h),
-            (Channels::Rgbd, DType::F32) => layout.fill::<true, true, true>(data, sh, h),
+            (Channels::DepthOnly, DType::U8) => layout.fill::<false, true, false>(data),
+            (Channels::DepthOnly, DType::F32) => layout.fill::<false, true, true>(data),
+            (Channels::RgbOnly, DType::U8) => layout.fill::<true, false, false>(data),
+            (Channels::RgbOnly, DType::F32) => layout.fill::<true, false, true>(data),
+            (Channels::Rgbd, DType::U8) => layout.fill::<true, true, false>(data),
+            (Channels::Rgbd, DType::F32) => layout.fill::<true, true, true>(data),
         }
     }
 }
@@ -141,18 +145,15 @@ struct Layout<'f, 'a> {
     depth_enc: PixelEncoding,
     /// uint8 levels per metre.
     depth_scale: f32,
+    /// Output row `y` samples source row `source_row(y)`.
+    source_row: &'f dyn Fn(usize) -> usize,
 }
 
 impl Layout<'_, '_> {
     /// Fills `data` a row at a time: depth is converted for the whole row
     /// first (a tight loop), then the row is interleaved.
     #[inline(always)]
-    fn fill<const RGB: bool, const DEPTH: bool, const F32: bool>(
-        &self,
-        data: &mut [u8],
-        sh: usize,
-        h: usize,
-    ) {
+    fn fill<const RGB: bool, const DEPTH: bool, const F32: bool>(&self, data: &mut [u8]) {
         let channels = usize::from(RGB) * 3 + usize::from(DEPTH);
         let pixel = channels * if F32 { 4 } else { 1 };
         let w = self.src_x.len();
@@ -162,7 +163,7 @@ impl Layout<'_, '_> {
         let mut levels = vec![0u8; if DEPTH && !F32 { w } else { 0 }];
         let scale = self.depth_scale;
         for (y, out_row) in data.chunks_exact_mut(w * pixel).enumerate() {
-            let sy = ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
+            let sy = (self.source_row)(y);
             if DEPTH && F32 {
                 self.depth_row(sy, &mut metres, |m| m);
             } else if DEPTH {
@@ -192,14 +193,6 @@ impl Layout<'_, '_> {
     fn depth_row<T>(&self, sy: usize, out: &mut [T], convert: impl Fn(f32) -> T) {
         let depth = &self.frame.depth;
         let row = &depth.data[sy * depth.step as usize..];
-        let metres = |b: &[u8]| {
-            let d = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-            if d.is_finite() {
-                d
-            } else {
-                0.0
-            }
-        };
         let millimetres = |b: &[u8]| f32::from(u16::from_le_bytes([b[0], b[1]])) * 1e-3;
         let sw = depth.width as usize;
         match (self.depth_enc, self.identity) {
@@ -222,6 +215,50 @@ impl Layout<'_, '_> {
                 store(out, src, convert);
             }
         }
+    }
+}
+
+/// A little-endian `32FC1` depth; no return (NaN, ±inf) is 0 m.
+#[inline(always)]
+fn metres(b: &[u8]) -> f32 {
+    let d = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    if d.is_finite() {
+        d
+    } else {
+        0.0
+    }
+}
+
+/// Writes a uint8 observation at the frame's own width with AVX2; false,
+/// touching nothing, where the CPU has none.
+fn write_native_u8(
+    frame: &CameraFrameView,
+    channels: Channels,
+    source_row: &dyn Fn(usize) -> usize,
+    scale: f32,
+    data: &mut [u8],
+) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        fn rows<'a>(image: &offworld_runtime::msg::ImageView<'a>) -> avx2::Rows<'a> {
+            avx2::Rows {
+                data: image.data,
+                step: image.step as usize,
+            }
+        }
+        let image = avx2::NativeU8 {
+            color: (channels == Channels::Rgbd).then(|| rows(&frame.color)),
+            depth: rows(&frame.depth),
+            width: frame.depth.width as usize,
+            source_row,
+            scale,
+        };
+        avx2::write_native_u8(&image, data)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (frame, channels, source_row, scale, data);
+        false
     }
 }
 
@@ -617,6 +654,50 @@ mod tests {
                         prop_assert!(!ok);
                         prop_assert_eq!(e.code, offworld_runtime::ErrorCode::BadRequest);
                     }
+                }
+            }
+
+            /// At the camera's own width (AVX2 rows, where the CPU has
+            /// them) a uint8 observation is its per-pixel definition, for
+            /// any depth bits (NaN, ±inf, negative, huge, subnormal), any
+            /// width around the 8-pixel block and any row resampling.
+            #[test]
+            fn native_uint8_is_its_definition(
+                (w, h) in (1u32..40, 1u32..5),
+                out_h in 1u32..6,
+                depths in proptest::collection::vec(
+                    prop_oneof![any::<u32>().prop_map(f32::from_bits), -1.0f32..12.0],
+                    200,
+                ),
+                colours in proptest::collection::vec(any::<u8>(), 600),
+                depth_max in 0.1f32..10.0,
+            ) {
+                use offworld_runtime::msg::{CameraFrame, Header, Image};
+                let n = (w * h) as usize;
+                let depth = depths[..n].iter().flat_map(|d| d.to_le_bytes()).collect();
+                let frame = CameraFrame {
+                    seq: 1,
+                    color: Image::packed(Header::default(), w, h, PixelEncoding::Rgb8, colours[..n * 3].to_vec()),
+                    depth: Image::packed(Header::default(), w, h, PixelEncoding::Depth32FC1, depth),
+                };
+                let scale = 255.0 / depth_max;
+                for channels in [Channels::Rgbd, Channels::DepthOnly] {
+                    let opts = ObsOptions { channels, width: w, height: out_h, depth_format: DepthFormat::Uint8 };
+                    let mut out = ObsArray::default();
+                    assemble(&frame.view(), &opts, depth_max, &mut out).expect("assembles");
+                    let mut expected = Vec::new();
+                    for y in 0..out_h {
+                        let sy = ((y * 2 + 1) * h / (out_h * 2)).min(h - 1);
+                        for x in 0..w {
+                            let at = (sy * w + x) as usize;
+                            if channels == Channels::Rgbd {
+                                expected.extend_from_slice(&colours[at * 3..at * 3 + 3]);
+                            }
+                            let d = depths[at];
+                            expected.push((if d.is_finite() { d } else { 0.0 } * scale) as u8);
+                        }
+                    }
+                    prop_assert_eq!(&out.data, &expected, "{:?} {}x{} from {}x{}", channels, w, out_h, w, h);
                 }
             }
         }
