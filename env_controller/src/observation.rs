@@ -49,6 +49,24 @@ pub fn assemble_into(
     depth_max_m: f32,
     data: &mut [u8],
 ) -> Result<(), WireError> {
+    assemble_with(frame, opts, depth_max_m, data, Loops::Fastest)
+}
+
+/// Which loops write an observation: the fastest this CPU has, or the
+/// portable ones (which the tests hold to the same bytes on any CPU).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Loops {
+    Fastest,
+    Portable,
+}
+
+fn assemble_with(
+    frame: &CameraFrameView,
+    opts: &ObsOptions,
+    depth_max_m: f32,
+    data: &mut [u8],
+    loops: Loops,
+) -> Result<(), WireError> {
     let bad = |what: String| WireError::internal(format!("robot sent a bad frame: {what}"));
     let color_enc = frame.color.validate().map_err(|e| bad(e.to_string()))?;
     let depth_enc = frame.depth.validate().map_err(|e| bad(e.to_string()))?;
@@ -77,7 +95,8 @@ pub fn assemble_into(
     }
     let depth_scale = 255.0 / depth_max_m.max(1e-6);
     let source_row = |y: usize| ((y * 2 + 1) * sh / (h * 2)).min(sh - 1);
-    let native_u8 = w == sw
+    let native_u8 = loops == Loops::Fastest
+        && w == sw
         && depth_enc == PixelEncoding::Depth32FC1
         && dtype == DType::U8
         && opts.channels != Channels::RgbOnly;
@@ -386,6 +405,20 @@ mod tests {
     use super::*;
     use offworld_runtime::msg::{CameraFrame, DepthFormat, Header, Image};
 
+    /// The observation the fastest loops write, checked equal to the
+    /// portable loops' (all a CPU without AVX2 runs).
+    fn assembled(frame: &CameraFrameView, opts: &ObsOptions, depth_max: f32) -> Vec<u8> {
+        let len = opts.shape().shape_len() as usize;
+        let (mut fastest, mut portable) = (vec![0; len], vec![0; len]);
+        assemble_with(frame, opts, depth_max, &mut fastest, Loops::Fastest).expect("assembles");
+        assemble_with(frame, opts, depth_max, &mut portable, Loops::Portable).expect("assembles");
+        assert_eq!(
+            fastest, portable,
+            "the fastest and the portable loops differ"
+        );
+        fastest
+    }
+
     fn frame() -> CameraFrame {
         // 4×2: colour = (x, y, 7); depth = 0.5·(x + 1) m except one NaN.
         let (w, h) = (4u32, 2u32);
@@ -528,8 +561,7 @@ mod tests {
                         height: h,
                         depth_format,
                     };
-                    let mut out = ObsArray::default();
-                    assemble(&f.view(), &opts, depth_max, &mut out).expect("assembles");
+                    let out = assembled(&f.view(), &opts, depth_max);
                     let mut expected = Vec::new();
                     for y in 0..h {
                         for x in 0..w {
@@ -557,7 +589,7 @@ mod tests {
                             }
                         }
                     }
-                    assert_eq!(out.data, expected, "{channels:?} {w}x{h} {depth_format:?}");
+                    assert_eq!(out, expected, "{channels:?} {w}x{h} {depth_format:?}");
                 }
             }
         }
@@ -657,8 +689,9 @@ mod tests {
                 }
             }
 
-            /// At the camera's own width (AVX2 rows, where the CPU has
-            /// them) a uint8 observation is its per-pixel definition, for
+            /// At the camera's own width (AVX2 rows where the CPU has them,
+            /// and the portable ones) a uint8 observation is its per-pixel
+            /// definition, for
             /// any depth bits (NaN, ±inf, negative, huge, subnormal), any
             /// width around the 8-pixel block and any row resampling.
             #[test]
@@ -666,7 +699,18 @@ mod tests {
                 (w, h) in (1u32..40, 1u32..5),
                 out_h in 1u32..6,
                 depths in proptest::collection::vec(
-                    prop_oneof![any::<u32>().prop_map(f32::from_bits), -1.0f32..12.0],
+                    prop_oneof![
+                        4 => any::<u32>().prop_map(f32::from_bits),
+                        4 => -1.0f32..12.0,
+                        1 => prop_oneof![
+                            Just(f32::INFINITY),
+                            Just(f32::NEG_INFINITY),
+                            Just(f32::NAN),
+                            Just(-0.0),
+                            Just(f32::MAX),
+                            Just(f32::MIN_POSITIVE / 2.0),
+                        ],
+                    ],
                     200,
                 ),
                 colours in proptest::collection::vec(any::<u8>(), 600),
@@ -683,8 +727,7 @@ mod tests {
                 let scale = 255.0 / depth_max;
                 for channels in [Channels::Rgbd, Channels::DepthOnly] {
                     let opts = ObsOptions { channels, width: w, height: out_h, depth_format: DepthFormat::Uint8 };
-                    let mut out = ObsArray::default();
-                    assemble(&frame.view(), &opts, depth_max, &mut out).expect("assembles");
+                    let out = super::assembled(&frame.view(), &opts, depth_max);
                     let mut expected = Vec::new();
                     for y in 0..out_h {
                         let sy = ((y * 2 + 1) * h / (out_h * 2)).min(h - 1);
@@ -697,7 +740,7 @@ mod tests {
                             expected.push((if d.is_finite() { d } else { 0.0 } * scale) as u8);
                         }
                     }
-                    prop_assert_eq!(&out.data, &expected, "{:?} {}x{} from {}x{}", channels, w, out_h, w, h);
+                    prop_assert_eq!(&out, &expected, "{:?} {}x{} from {}x{}", channels, w, out_h, w, h);
                 }
             }
         }

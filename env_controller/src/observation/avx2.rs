@@ -1,9 +1,10 @@
 //! The common observations (uint8 depth, with or without colour, at the
 //! camera's own width) written with AVX2, 8 pixels a step: depth converted
 //! in one 8-lane vector, colour spread into RGBA slots by one byte shuffle.
-//! About half the time of the portable loops in the parent module, which
-//! baseline x86-64 limits to 64-bit words (`cargo bench --bench assemble`:
-//! 84×84 RGBD 8.1–8.9 → 3.2–4.9 µs, 320×240 47–61 → 24–30 µs).
+//! About half the time of the parent module's portable loops, which
+//! spread colour in 64-bit words and store depth a byte at a time
+//! (`cargo bench --bench assemble`: 84×84 RGBD 8.1–8.9 → 3.2–4.9 µs,
+//! 320×240 47–61 → 24–30 µs).
 
 use core::arch::x86_64::{__m128i, __m256, __m256i, _CMP_LT_OQ};
 use pulp::{x86::V3, Simd};
@@ -12,7 +13,8 @@ use super::{depth_level, metres};
 
 /// One uint8 observation at the source's width, from `32FC1` depth.
 pub(super) struct NativeU8<'a> {
-    /// Packed `rgb8` rows (`None`: depth only).
+    /// Colour rows, 3 bytes a pixel (`rgb8`, or `bgr8` swapped afterwards
+    /// by the caller); `None`: depth only.
     pub color: Option<Rows<'a>>,
     /// `32FC1` rows, little-endian metres.
     pub depth: Rows<'a>,
@@ -93,12 +95,15 @@ impl pulp::WithSimd for Fill<'_, '_, '_> {
             let m: __m256 = pulp::cast(metres);
             let finite = avx._mm256_cmp_ps::<_CMP_LT_OQ>(avx._mm256_and_ps(m, magnitude), infinity);
             let m = avx._mm256_and_ps(m, finite);
+            // m · scale is never NaN here (finite times finite); zero as the
+            // second operand of max would win if it were.
             let v = avx._mm256_min_ps(avx._mm256_max_ps(avx._mm256_mul_ps(m, scale), zero), top);
             avx._mm256_cvttps_epi32(v)
         };
         let rgb_to_rgbx: __m256i = pulp::cast(RGB_TO_RGBX);
         let low_bytes: __m256i = pulp::cast(LOW_BYTES);
-        let gather = avx._mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+        // The first 32 bits of each 128-bit half (4 levels each) side by side.
+        let halves_first_words = avx._mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
         let pixel = if image.color.is_some() { 4 } else { 1 };
         for (y, out) in data.chunks_exact_mut(w * pixel).enumerate() {
             let sy = (image.source_row)(y);
@@ -130,7 +135,7 @@ impl pulp::WithSimd for Fill<'_, '_, '_> {
                     let (out_blocks, out_rest) = out.as_chunks_mut::<8>();
                     for (o, d) in out_blocks.iter_mut().zip(depth_blocks) {
                         let bytes = avx2._mm256_shuffle_epi8(levels(*d), low_bytes);
-                        let packed = avx2._mm256_permutevar8x32_epi32(bytes, gather);
+                        let packed = avx2._mm256_permutevar8x32_epi32(bytes, halves_first_words);
                         let [eight, _, _, _]: [[u8; 8]; 4] = pulp::cast(packed);
                         *o = eight;
                     }
