@@ -57,6 +57,7 @@ pub fn assemble_into(
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Loops {
     Fastest,
+    #[cfg(test)]
     Portable,
 }
 
