@@ -3,7 +3,7 @@
 //! blended across edges), and depth as uint8 or metres.
 
 use offworld_runtime::msg::{
-    CameraFrameView, Channels, DType, ObsArray, ObsOptions, PixelEncoding,
+    CameraFrameView, Channels, DType, ImageView, ObsArray, ObsOptions, PixelEncoding,
 };
 use offworld_runtime::WireError;
 
@@ -190,7 +190,7 @@ impl Layout<'_, '_> {
                 self.depth_row(sy, &mut levels, |m| depth_level(m, scale));
             }
             // In bounds: the frame was validated (step · height = length).
-            let color_row = &color.data[sy * color.step as usize..][..color_row_len];
+            let color_row = row(color, sy, color_row_len);
             if self.identity && RGB && !F32 {
                 // The common layouts (native RGBD / RGB uint8) in 4-pixel blocks.
                 if DEPTH {
@@ -212,9 +212,9 @@ impl Layout<'_, '_> {
     #[inline(always)]
     fn depth_row<T>(&self, sy: usize, out: &mut [T], convert: impl Fn(f32) -> T) {
         let depth = &self.frame.depth;
-        let row = &depth.data[sy * depth.step as usize..];
-        let millimetres = |b: &[u8]| f32::from(u16::from_le_bytes([b[0], b[1]])) * 1e-3;
         let sw = depth.width as usize;
+        let row = row(depth, sy, depth.step as usize);
+        let millimetres = |b: &[u8]| f32::from(u16::from_le_bytes([b[0], b[1]])) * 1e-3;
         match (self.depth_enc, self.identity) {
             (PixelEncoding::Depth32FC1, true) => {
                 store(out, row[..sw * 4].chunks_exact(4).map(metres), convert);
@@ -236,6 +236,13 @@ impl Layout<'_, '_> {
             }
         }
     }
+}
+
+/// Row `y`'s first `len` bytes (in bounds for a validated image, whose
+/// length is step · height, and `len` ≤ its step).
+#[inline(always)]
+fn row<'a>(image: &ImageView<'a>, y: usize, len: usize) -> &'a [u8] {
+    &image.data[y * image.step as usize..][..len]
 }
 
 /// A little-endian `32FC1` depth; no return (NaN, ±inf) is 0 m.
@@ -260,15 +267,9 @@ fn write_native_u8(
 ) -> bool {
     #[cfg(target_arch = "x86_64")]
     {
-        fn rows<'a>(image: &offworld_runtime::msg::ImageView<'a>) -> avx2::Rows<'a> {
-            avx2::Rows {
-                data: image.data,
-                step: image.step as usize,
-            }
-        }
         let image = avx2::NativeU8 {
-            color: (channels == Channels::Rgbd).then(|| rows(&frame.color)),
-            depth: rows(&frame.depth),
+            color: (channels == Channels::Rgbd).then_some(&frame.color),
+            depth: &frame.depth,
             width: frame.depth.width as usize,
             source_row,
             scale,
@@ -692,9 +693,9 @@ mod tests {
 
             /// At the camera's own width (AVX2 rows where the CPU has them,
             /// and the portable ones) a uint8 observation is its per-pixel
-            /// definition, for
-            /// any depth bits (NaN, ±inf, negative, huge, subnormal), any
-            /// width around the 8-pixel block and any row resampling.
+            /// definition, for any depth bits (NaN, ±inf, negative, huge,
+            /// subnormal), any width around the 8-pixel block and any row
+            /// resampling.
             #[test]
             fn native_uint8_is_its_definition(
                 (w, h) in (1u32..40, 1u32..5),

@@ -9,38 +9,28 @@
 use core::arch::x86_64::{__m128i, __m256, __m256i, _CMP_LT_OQ};
 use pulp::{x86::V3, Simd};
 
-use super::{depth_level, metres};
+use offworld_runtime::msg::ImageView;
+
+use super::{depth_level, metres, row};
 
 /// One uint8 observation at the source's width, from `32FC1` depth.
-pub(super) struct NativeU8<'a> {
-    /// Colour rows, 3 bytes a pixel (`rgb8`, or `bgr8` swapped afterwards
-    /// by the caller); `None`: depth only.
-    pub color: Option<Rows<'a>>,
-    /// `32FC1` rows, little-endian metres.
-    pub depth: Rows<'a>,
+pub(super) struct NativeU8<'i, 'a> {
+    /// Colour, 3 bytes a pixel (`rgb8`, or `bgr8` swapped afterwards by
+    /// the caller); `None`: depth only.
+    pub color: Option<&'i ImageView<'a>>,
+    /// Little-endian metres.
+    pub depth: &'i ImageView<'a>,
     /// Pixels a row.
     pub width: usize,
     /// Output row `y` samples source row `source_row(y)`.
-    pub source_row: &'a dyn Fn(usize) -> usize,
+    pub source_row: &'i dyn Fn(usize) -> usize,
     /// uint8 levels per metre.
     pub scale: f32,
 }
 
-/// An image's bytes and its row length in bytes.
-pub(super) struct Rows<'a> {
-    pub data: &'a [u8],
-    pub step: usize,
-}
-
-impl Rows<'_> {
-    fn row(&self, y: usize, len: usize) -> &[u8] {
-        &self.data[y * self.step..][..len]
-    }
-}
-
 /// Writes `image` into `data` (4 or 1 bytes a pixel, rows of
 /// `image.width`); false, touching nothing, on a CPU without AVX2.
-pub(super) fn write_native_u8(image: &NativeU8<'_>, data: &mut [u8]) -> bool {
+pub(super) fn write_native_u8(image: &NativeU8<'_, '_>, data: &mut [u8]) -> bool {
     let Some(simd) = V3::try_new() else {
         return false;
     };
@@ -49,9 +39,9 @@ pub(super) fn write_native_u8(image: &NativeU8<'_>, data: &mut [u8]) -> bool {
     true
 }
 
-struct Fill<'i, 'a, 'd> {
+struct Fill<'n, 'i, 'a, 'd> {
     simd: V3,
-    image: &'i NativeU8<'a>,
+    image: &'n NativeU8<'i, 'a>,
     data: &'d mut [u8],
 }
 
@@ -76,7 +66,7 @@ const LOW_BYTES: [u8; 32] = {
     ]
 };
 
-impl pulp::WithSimd for Fill<'_, '_, '_> {
+impl pulp::WithSimd for Fill<'_, '_, '_, '_> {
     type Output = ();
 
     // Inlined into pulp's AVX2 entry point, so the intrinsics are too.
@@ -107,11 +97,11 @@ impl pulp::WithSimd for Fill<'_, '_, '_> {
         let pixel = if image.color.is_some() { 4 } else { 1 };
         for (y, out) in data.chunks_exact_mut(w * pixel).enumerate() {
             let sy = (image.source_row)(y);
-            let depth = image.depth.row(sy, w * 4);
+            let depth = row(image.depth, sy, w * 4);
             let (depth_blocks, depth_rest) = depth.as_chunks::<32>();
-            match &image.color {
+            match image.color {
                 Some(color) => {
-                    let rgb = color.row(sy, w * 3);
+                    let rgb = row(color, sy, w * 3);
                     let (out_blocks, out_rest) = out.as_chunks_mut::<32>();
                     let (rgb_blocks, rgb_rest) = rgb.as_chunks::<24>();
                     for ((o, c), d) in out_blocks.iter_mut().zip(rgb_blocks).zip(depth_blocks) {
