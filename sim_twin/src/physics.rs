@@ -188,7 +188,7 @@ impl RobotPhysics {
         world.integration_parameters.dt = DT;
         // One body, driven by a velocity servo and sliding against static
         // boxes: one solver iteration per substep holds it outside walls and
-        // boulders (`tests/physics.rs`) at 64 % of rapier's default four's
+        // boulders (`tests/integration/physics.rs`) at 64 % of rapier's default four's
         // instructions (docs/performance.md, "The twin's physics"). Its
         // speeds (≤ 0.7 m/s driving, ~1 cm a substep; a settle after a
         // reset drops it millimetres) cannot tunnel through a 10 cm wall or

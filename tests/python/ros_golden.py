@@ -1,7 +1,7 @@
 """Independent CDR reference: encodes ROS 2 messages with `rosbags`.
 
 Reads JSON lines `{"type": "...", "msg": {...}}` on stdin and prints, for
-each, the rosbags CDR bytes as hex. Used by runtime/tests/rosbags_golden.rs
+each, the rosbags CDR bytes as hex. Used by runtime/tests/integration/rosbags_golden.rs
 to prove our encoder is byte-identical to a codec we did not write.
 """
 

@@ -3,7 +3,7 @@
 //! killed, terminated or frozen while a step turns the robot, and what
 //! follows is measured from the base's own odometry and the gym client —
 //! how long the base kept moving, how far it turned, which typed error the
-//! client got and when. Shared by the fault tests (`tests/faults.rs`) and
+//! client got and when. Shared by the fault tests (`tests/integration/faults.rs`) and
 //! the report program (`fault_matrix`, figures for `docs/safety.md`).
 
 use std::fmt;

@@ -1,6 +1,6 @@
 //! Cross-component tests: the shipped binaries run as separate processes
-//! and meet over TCP on loopback (see `tests/processes.rs`), the emulated
-//! enclosure deployment ([`emulated`], `tests/real_side.rs`), plus the
+//! and meet over TCP on loopback (see `tests/integration/processes.rs`), the emulated
+//! enclosure deployment ([`emulated`], `tests/integration/real_side.rs`), plus the
 //! independent Python peers under `tests/python/` that other suites drive.
 
 pub mod emulated;

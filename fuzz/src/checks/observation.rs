@@ -5,7 +5,7 @@
 //! has) must equal a plain per-pixel reference, or be refused with a typed
 //! error; never a panic.
 //!
-//! Shared by the fuzz target and `env_controller/tests/fuzz_corpus.rs`.
+//! Shared by the fuzz target and `env_controller/tests/integration/fuzz_corpus.rs`.
 
 use offworld_env_controller::observation::{assemble, assemble_into, validate_options, MAX_SIDE};
 use offworld_runtime::codec;

@@ -3,7 +3,7 @@
 //! e-stop latch file, and world files (`WorldSpec` TOML, as the sim twin
 //! and the agent's reset planner load them).
 //!
-//! Shared by the fuzz targets and `robot_agent/tests/fuzz_corpus.rs`.
+//! Shared by the fuzz targets and `robot_agent/tests/integration/fuzz_corpus.rs`.
 
 use offworld_robot_agent::nav::{NavConfig, OccupancyGrid, Point};
 use offworld_robot_agent::AgentConfig;

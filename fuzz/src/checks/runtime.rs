@@ -4,7 +4,7 @@
 //! attachments, and the key space (env ids out of keys, ROS names).
 //!
 //! Shared, word for word, by the fuzz targets (`fuzz/fuzz_targets/`) and the
-//! corpus replay test `runtime/tests/fuzz_corpus.rs` (included there with
+//! corpus replay test `runtime/tests/integration/fuzz_corpus.rs` (included there with
 //! `#[path]`): a check panics exactly when an invariant breaks.
 //!
 //! CDR inputs are framed `[kind, cut, cut, payload…]`: `kind` picks the

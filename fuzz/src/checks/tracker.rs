@@ -3,7 +3,7 @@
 //! `parse_line`), the calibration TOML and the reference / samples TOML of
 //! `tracker_agent calibrate` (with the solver they feed).
 //!
-//! Shared by the fuzz targets and `tracker_agent/tests/fuzz_corpus.rs`.
+//! Shared by the fuzz targets and `tracker_agent/tests/integration/fuzz_corpus.rs`.
 
 use offworld_tracker_agent::calibration::{
     calibrate_from_samples, rosbot_mount, Calibration, ReferenceFile,

@@ -2,7 +2,7 @@
 //! profile they were recorded with, the gap is the replay's own error
 //! (near zero); with another profile it is the profiles' difference.
 
-mod common;
+use crate::common;
 
 use offworld_runtime::Resolution;
 use std::path::Path;

@@ -2,7 +2,7 @@
 //! recover the perturbation (which only the recording twin was given) and
 //! shrink the replay error.
 
-mod common;
+use crate::common;
 
 use offworld_runtime::Resolution;
 

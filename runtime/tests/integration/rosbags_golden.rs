@@ -3,7 +3,7 @@
 //! decoder must read rosbags' bytes back. Needs `python3` with `rosbags`
 //! (installed by `.ci/setup`); `OFFWORLD_PYTHON` overrides the interpreter.
 
-mod common;
+use crate::common;
 
 use std::io::Write;
 use std::process::{Command, Stdio};

@@ -647,7 +647,7 @@ fn sim_twin_cli_takes_a_profile() {
 
 #[test]
 fn the_documented_example_loads() {
-    let doc = include_str!("../../docs/twin-profile.md");
+    let doc = include_str!("../../../docs/twin-profile.md");
     let start = doc.find("```toml\n").expect("example") + "```toml\n".len();
     let text = &doc[start..start + doc[start..].find("```").expect("end")];
     let profile = TwinProfile::parse(text).expect("the example parses");

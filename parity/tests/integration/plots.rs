@@ -4,7 +4,7 @@
 //! the report links them, that the same replay gives the same bytes, and
 //! that an empty replay or NaN errors do not break them.
 
-mod common;
+use crate::common;
 
 use offworld_runtime::Resolution;
 use std::path::{Path, PathBuf};

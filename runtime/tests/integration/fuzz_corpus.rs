@@ -3,9 +3,9 @@
 //! (`fuzz/src/checks/runtime.rs`): every file must decode or be refused
 //! without a panic, with every invariant held.
 
-#[path = "../../fuzz/src/checks/runtime.rs"]
+#[path = "../../../fuzz/src/checks/runtime.rs"]
 mod checks;
-#[path = "../../fuzz/src/checks/corpus.rs"]
+#[path = "../../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
 #[test]
@@ -53,7 +53,7 @@ fn seeds_cover_every_kind() {
 }
 
 /// Writes the seeds into the corpus directories (to start afresh:
-/// `cargo test --release -p offworld-runtime --test fuzz_corpus -- --ignored`).
+/// `cargo test --release --test integration fuzz_corpus::write_seed_corpus -- --ignored`).
 #[test]
 #[ignore]
 fn write_seed_corpus() {

@@ -1,7 +1,7 @@
 //! Round trips for every message, and a table of corruptions every decoder
 //! must reject with a typed error (never a panic, never a huge allocation).
 
-mod common;
+use crate::{common, for_each_sample};
 
 use std::fmt::Debug;
 

@@ -1,7 +1,7 @@
 //! Two real Zenoh sessions on loopback exchange every message type through
 //! put/subscribe and get/queryable, using the contract's keys and wire helpers.
 
-mod common;
+use crate::common;
 
 use std::fmt::Debug;
 use std::time::Duration;

@@ -28,7 +28,7 @@ use serde_json::{json, Value};
 use zenoh::Session;
 
 /// Bound of every wait for something that must happen (never a speed).
-mod common;
+use crate::common;
 
 const EVENTUALLY: Duration = Duration::from_secs(20);
 

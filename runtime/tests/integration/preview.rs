@@ -4,7 +4,7 @@
 //! The viewers' copies of commands, poses and odometry carry each message
 //! with its tag, droppable and at low priority, only while watched.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

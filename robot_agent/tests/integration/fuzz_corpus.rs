@@ -3,9 +3,9 @@
 //! `fuzz/README.md`) through the fuzz targets' own checks
 //! (`fuzz/src/checks/robot_agent.rs`).
 
-#[path = "../../fuzz/src/checks/robot_agent.rs"]
+#[path = "../../../fuzz/src/checks/robot_agent.rs"]
 mod checks;
-#[path = "../../fuzz/src/checks/corpus.rs"]
+#[path = "../../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
 #[test]
@@ -27,7 +27,7 @@ fn world_toml_corpus() {
 }
 
 /// Writes the seeds into the corpus directories (to start afresh:
-/// `cargo test --release -p offworld-robot-agent --test fuzz_corpus -- --ignored`).
+/// `cargo test --release --test integration fuzz_corpus::write_seed_corpus -- --ignored`).
 #[test]
 #[ignore]
 fn write_seed_corpus() {

@@ -2,9 +2,9 @@
 //! (`fuzz/corpus/<target>/`, see `fuzz/README.md`) through the fuzz
 //! targets' own checks (`fuzz/src/checks/tracker.rs`).
 
-#[path = "../../fuzz/src/checks/tracker.rs"]
+#[path = "../../../fuzz/src/checks/tracker.rs"]
 mod checks;
-#[path = "../../fuzz/src/checks/corpus.rs"]
+#[path = "../../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
 #[test]
@@ -26,7 +26,7 @@ fn tracker_calibration_corpus() {
 }
 
 /// Writes the seeds into the corpus directories (to start afresh:
-/// `cargo test --release -p offworld-tracker-agent --test fuzz_corpus -- --ignored`).
+/// `cargo test --release --test integration fuzz_corpus::write_seed_corpus -- --ignored`).
 #[test]
 #[ignore]
 fn write_seed_corpus() {

@@ -2,9 +2,9 @@
 //! frames (`fuzz/corpus/observation/`, see `fuzz/README.md`) through the
 //! fuzz target's own check (`fuzz/src/checks/observation.rs`).
 
-#[path = "../../fuzz/src/checks/observation.rs"]
+#[path = "../../../fuzz/src/checks/observation.rs"]
 mod checks;
-#[path = "../../fuzz/src/checks/corpus.rs"]
+#[path = "../../../fuzz/src/checks/corpus.rs"]
 mod corpus;
 
 #[test]
@@ -17,7 +17,7 @@ fn observation_corpus() {
 }
 
 /// Writes the seeds into the corpus directory (to start afresh:
-/// `cargo test --release -p offworld-env-controller --test fuzz_corpus -- --ignored`).
+/// `cargo test --release --test integration fuzz_corpus::write_seed_corpus -- --ignored`).
 #[test]
 #[ignore]
 fn write_seed_corpus() {

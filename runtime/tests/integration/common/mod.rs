@@ -321,7 +321,7 @@ pub fn wire_error() -> WireError {
 #[macro_export]
 macro_rules! for_each_sample {
     ($f:ident) => {{
-        use common::*;
+        use $crate::common::*;
         $f("Twist", twist());
         $f("PoseStamped", pose_stamped());
         $f("Odometry", odometry());

@@ -1,0 +1,6 @@
+//! `offworld-cli`'s integration tests: one test binary whose modules are the
+//! suites (README.md, "Layout"). Run one suite by its module:
+//! `cargo test --release --test integration <module>::`.
+
+mod deployment;
+mod offworld;

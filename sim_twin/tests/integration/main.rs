@@ -1,0 +1,8 @@
+//! `offworld-sim-twin`'s integration tests: one test binary whose modules are the
+//! suites (README.md, "Layout"). Run one suite by its module:
+//! `cargo test --release --test integration <module>::`.
+
+mod node;
+mod physics;
+mod profile;
+mod render;
