@@ -88,7 +88,7 @@ impl BaseState {
     }
 }
 
-/// One line of `base_probe`'s output: `yaw x y moving`.
+/// One line of `test_helper base-probe`'s output: `yaw x y moving`.
 impl fmt::Display for BaseState {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let moving = u8::from(self.moving);
@@ -137,7 +137,7 @@ enum Feed {
         _subscriber: Subscriber<()>,
         _session: Session,
     },
-    /// A `base_probe` inside the robot's network namespace.
+    /// A `test_helper base-probe` inside the robot's network namespace.
     Probe { _process: Process },
 }
 
@@ -155,8 +155,8 @@ impl BaseObserver {
         if let Some(netns) = deployment.robot_netns() {
             let mut probe = Process::spawn_piped_in(
                 Some(netns),
-                "base_probe",
-                &["--connect", &deployment.hardware_endpoint],
+                "test_helper",
+                &["base-probe", "--connect", &deployment.hardware_endpoint],
                 "warn",
             )?;
             let stdout = probe.0.stdout.take().context("the probe's stdout")?;

@@ -1416,8 +1416,9 @@ async fn a_trainer_flooding_presence_tokens_holds_up_no_one_else() -> anyhow::Re
     let mut gym = impatient_gym(&trainer, &site.env, "flood").await?;
     step_for(&mut gym, Duration::from_secs(1)).await?;
 
-    let helper = offworld_deploy::process::binary_dir().join("floods_tokens");
-    let mut args = site.farm.site.role_args(Role::Trainer);
+    let helper = offworld_deploy::process::binary_dir().join("test_helper");
+    let mut args = vec!["floods-tokens".to_owned()];
+    args.extend(site.farm.site.role_args(Role::Trainer));
     args.extend(["--env".into(), site.env.to_string()]);
     args.extend([
         "--count".into(),
@@ -1428,7 +1429,7 @@ async fn a_trainer_flooding_presence_tokens_holds_up_no_one_else() -> anyhow::Re
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let mut flooder = Process::start(None, &helper, &args, "warn", std::process::Stdio::piped())?;
     let said = first_line(&mut flooder).await?;
-    assert_eq!(said.trim(), "flooding", "floods_tokens");
+    assert_eq!(said.trim(), "flooding", "test_helper floods-tokens");
     let steps = step_for(&mut gym, Duration::from_secs(5))
         .await
         .map_err(|e| anyhow::anyhow!("a step during the flood: {e}"))?;
@@ -1487,7 +1488,7 @@ async fn first_line(process: &mut Process) -> anyhow::Result<String> {
 }
 
 /// A trainer steps `site`'s env; then a client of its own process
-/// (`stops_reading`) asks the controller 20,000 times and stops before
+/// (`test_helper stops-reading`) asks the controller 20,000 times and stops before
 /// reading the answers: the trainer's steps for the next 3 s (each within
 /// 2 s, else a `Timeout`).
 async fn burst_then_sleep(site: &SimSite) -> anyhow::Result<Result<u32, WireError>> {
@@ -1495,14 +1496,15 @@ async fn burst_then_sleep(site: &SimSite) -> anyhow::Result<Result<u32, WireErro
     let mut gym = impatient_gym(&trainer, &site.env, "unread").await?;
     step_for(&mut gym, Duration::from_secs(1)).await?;
 
-    let helper = offworld_deploy::process::binary_dir().join("stops_reading");
-    let mut args = site.farm.site.role_args(Role::Trainer);
+    let helper = offworld_deploy::process::binary_dir().join("test_helper");
+    let mut args = vec!["stops-reading".to_owned()];
+    args.extend(site.farm.site.role_args(Role::Trainer));
     args.extend(["--key".into(), site.env.key(Topic::Spec)]);
     args.extend(["--count".into(), "20000".into()]);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let mut asker = Process::start(None, &helper, &args, "warn", std::process::Stdio::piped())?;
     let said = first_line(&mut asker).await?;
-    assert_eq!(said.trim(), "sent 20000", "stops_reading");
+    assert_eq!(said.trim(), "sent 20000", "test_helper stops-reading");
     let steps = step_for(&mut gym, Duration::from_secs(3)).await;
     drop(asker); // killed
     Ok(steps)

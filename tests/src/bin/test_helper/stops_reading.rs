@@ -1,4 +1,4 @@
-//! `stops_reading`: test helper. A Zenoh client that stops reading its
+//! `test_helper stops-reading`: a Zenoh client that stops reading its
 //! answers and sends a burst of queries: a trainer whose laptop went to
 //! sleep mid-burst, or one that means to clog the router. The first answer
 //! holds the thread that reads the link (Zenoh runs a reply's callback
@@ -6,7 +6,7 @@
 //! `sent <n>`, then stops its own process (SIGSTOP); the test kills it.
 //!
 //! ```text
-//! stops_reading -c trainer.json5 --connect quic/127.0.0.1:7447 \
+//! test_helper stops-reading -c trainer.json5 --connect quic/127.0.0.1:7447 \
 //!     --cfg 'transport/auth/usrpwd/password:"…"' --key offworld/@v1/sim/a-0/spec --count 20000
 //! ```
 
@@ -14,15 +14,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use clap::Parser;
 use offworld_program::CommonArgs;
 
-#[derive(Parser)]
-#[command(
-    version,
-    about = "Send a burst of queries, then stop this process before reading the answers"
-)]
-struct Args {
+#[derive(clap::Args)]
+pub struct Args {
     #[command(flatten)]
     common: CommonArgs,
     /// What to ask.
@@ -37,9 +32,7 @@ struct Args {
     linger_ms: u64,
 }
 
-#[tokio::main(flavor = "multi_thread", worker_threads = 1)]
-async fn main() -> anyhow::Result<()> {
-    let args = Args::parse();
+pub async fn run(args: Args) -> anyhow::Result<()> {
     let session = args
         .common
         .client_config()

@@ -1,4 +1,4 @@
-//! `floods_tokens`: test helper. A trainer that declares liveliness tokens
+//! `test_helper floods-tokens`: a trainer that declares liveliness tokens
 //! under `alive/client/*` (its presence, which its credentials allow) by
 //! the thousand, distinct ones, and drops them again, round after round:
 //! a stranger trying to drown the controller in presence changes. Prints
@@ -6,26 +6,21 @@
 //! `--seconds` pass.
 //!
 //! ```text
-//! floods_tokens -c trainer.json5 --connect quic/127.0.0.1:7447 \
+//! test_helper floods-tokens -c trainer.json5 --connect quic/127.0.0.1:7447 \
 //!     --cfg 'transport/auth/usrpwd/password:"…"' --env sim/a-0 --count 30000
 //! ```
 
 use std::io::Write;
 use std::time::{Duration, Instant};
 
-use clap::Parser;
 use offworld_program::CommonArgs;
 use offworld_runtime::keys::EnvId;
 
 /// Tokens out before `flooding` is printed.
 const FIRST: u32 = 1_000;
 
-#[derive(Parser)]
-#[command(
-    version,
-    about = "Declare and drop distinct client liveliness tokens in rounds"
-)]
-struct Args {
+#[derive(clap::Args)]
+pub struct Args {
     #[command(flatten)]
     common: CommonArgs,
     /// The env whose client tokens to flood (`<realm>/<env>`).
@@ -39,14 +34,13 @@ struct Args {
     seconds: u64,
 }
 
-#[tokio::main(flavor = "multi_thread", worker_threads = 1)]
-async fn main() -> anyhow::Result<()> {
+pub async fn run(args: Args) -> anyhow::Result<()> {
     let Args {
         common,
         env,
         count,
         seconds,
-    } = Args::parse();
+    } = args;
     let session = common
         .client_config()
         .open()
