@@ -47,6 +47,7 @@ use zenoh::sample::Sample;
 use zenoh::session::SessionPutBuilder;
 use zenoh::{Session, Wait};
 
+use offworld_runtime::preview::ViewerCopy;
 use offworld_sim_twin::overhead::OverheadStream;
 use offworld_sim_twin::physics::DT;
 use offworld_sim_twin::{ros_out, SimError, SimTwin};
@@ -182,14 +183,21 @@ impl EmulatedHardware {
                 .spawn(move || accept_loop(listener, clients, stop))
                 .map_err(|e| SimError::Io(e.to_string()))?
         };
-        let overhead = config
-            .overhead_key
-            .clone()
-            .map(|key| OverheadStream::new(twin.scene(), key, OverheadStream::DEFAULT_HZ));
+        // The ceiling camera, for spectators only: rendered on the emulation's
+        // thread while someone watches, put on the output thread. One that
+        // cannot be declared is logged and left out.
+        let overhead_copy = config.overhead_key.clone().and_then(|key| {
+            ViewerCopy::declare_on(session, key)
+                .inspect_err(|e| tracing::warn!("no overhead view: {e}"))
+                .ok()
+        });
+        let overhead = overhead_copy.as_ref().map(|copy| {
+            OverheadStream::new(twin.scene(), copy.watch(), OverheadStream::DEFAULT_HZ)
+        });
         let (out_tx, out_rx) = sync_channel::<Outgoing>(OUTPUT_QUEUE);
         let out = RosOut {
             session: session.clone(),
-            overhead_key: config.overhead_key.clone(),
+            overhead: overhead_copy,
             keys,
             color_id: RmwPublisherId::random(),
             depth_id: RmwPublisherId::random(),
@@ -306,7 +314,7 @@ enum Outgoing {
 struct RosOut {
     session: Session,
     keys: RosKeys,
-    overhead_key: Option<String>,
+    overhead: Option<ViewerCopy>,
     color_id: RmwPublisherId,
     depth_id: RmwPublisherId,
     odom_id: RmwPublisherId,
@@ -463,8 +471,8 @@ impl RosOut {
                 }
                 Outgoing::Odom(bytes) => self.put_ros(&self.keys.odom, bytes, &self.odom_id),
                 Outgoing::Overhead(bytes) => {
-                    if let Some(key) = &self.overhead_key {
-                        self.put(self.session.put(key, bytes), key);
+                    if let Some(copy) = &self.overhead {
+                        copy.put(bytes.into(), None);
                     }
                 }
             }

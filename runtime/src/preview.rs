@@ -92,7 +92,20 @@ pub struct ViewerCopy {
     publisher: Publisher<'static>,
     /// Whether a subscriber matches, kept by Zenoh's matching listener
     /// (which lives as long as the publisher).
-    watched: Arc<AtomicBool>,
+    watched: Watch,
+}
+
+/// Whether a [`ViewerCopy`] is watched, for a thread other than its
+/// publisher's: a loop that renders a view only while someone watches and
+/// hands it to another thread to put.
+#[derive(Debug, Clone, Default)]
+pub struct Watch(Arc<AtomicBool>);
+
+impl Watch {
+    /// Whether anyone subscribes to the stream now.
+    pub fn watched(&self) -> bool {
+        self.0.load(Ordering::Relaxed)
+    }
 }
 
 impl ViewerCopy {
@@ -103,11 +116,18 @@ impl ViewerCopy {
         let copy = topic
             .viewers_copy()
             .ok_or_else(|| format!("`{}` has no viewers' copy", topic.as_str()))?;
-        let publisher = wire::publisher(session, env.key(copy), Delivery::Latest)
+        Self::declare_on(session, env.key(copy))
+    }
+
+    /// A stream for viewers only on `key` (an overhead camera's), delivered
+    /// as the copies are: `Latest`, at [`PREVIEW_PRIORITY`], only while
+    /// watched.
+    pub fn declare_on(session: &Session, key: String) -> zenoh::Result<Self> {
+        let publisher = wire::publisher(session, key, Delivery::Latest)
             .priority(PREVIEW_PRIORITY)
             .wait()?;
-        let watched = Arc::new(AtomicBool::new(false));
-        let flag = watched.clone();
+        let watched = Watch::default();
+        let flag = watched.0.clone();
         publisher
             .matching_listener()
             .callback(move |status| flag.store(status.matching(), Ordering::Relaxed))
@@ -118,7 +138,12 @@ impl ViewerCopy {
 
     /// Whether anyone subscribes to the copy now.
     pub fn watched(&self) -> bool {
-        self.watched.load(Ordering::Relaxed)
+        self.watched.watched()
+    }
+
+    /// Whether it is watched, for other threads.
+    pub fn watch(&self) -> Watch {
+        self.watched.clone()
     }
 
     /// Puts `payload` (and its `attachment`) if someone watches; returns

@@ -34,7 +34,7 @@ use offworld_runtime::keys::{global_estop_key, Component, EnvId, Topic};
 use offworld_runtime::msg::{
     EStopAck, EStopState, GotoReply, GotoRequest, MotionCommand, MotionFault, Pose2D, SeqTag, Time,
 };
-use offworld_runtime::preview::{DueCopy, PreviewPublisher, WatchedPublisher};
+use offworld_runtime::preview::{DueCopy, PreviewPublisher, ViewerCopy, WatchedPublisher};
 use offworld_runtime::wire::{self, Delivery};
 use offworld_runtime::WireError;
 use zenoh::liveliness::LivelinessToken;
@@ -345,7 +345,7 @@ impl TwinNode {
         let busy = Arc::new(Busy::new());
         let zerr = |e: zenoh::Error| SimError::Zenoh(e.to_string());
         let stats = Arc::new(StatCounters::default());
-        let worker = Worker::new(session.clone(), env.clone(), twin, stats.clone())?;
+        let worker = Worker::new(session, env.clone(), twin, stats.clone())?;
         let (shared_estops, answered) = tokio::sync::watch::channel(EStopState::default());
         let simulation = Arc::new(Simulation {
             env: env.clone(),
@@ -633,7 +633,6 @@ struct ActiveMotion {
 
 /// The simulation thread's state.
 struct Worker {
-    session: Session,
     env: EnvId,
     twin: SimTwin,
     /// The site and env e-stop latches in force.
@@ -646,7 +645,8 @@ struct Worker {
     /// Camera frame payloads (recycled).
     frames: FramePayloads,
     rejected: u64,
-    overhead: Option<OverheadStream>,
+    /// The overhead view, put through its viewers' stream.
+    overhead: Option<(OverheadStream, ViewerCopy)>,
     stats: Arc<StatCounters>,
 }
 
@@ -667,20 +667,20 @@ struct Publishers {
 
 impl Worker {
     fn new(
-        session: Session,
+        session: &Session,
         env: EnvId,
         twin: SimTwin,
         stats: Arc<StatCounters>,
     ) -> Result<Self, SimError> {
         let declare = |topic: Topic, delivery: Delivery| {
-            wire::publisher(&session, env.key(topic), delivery)
+            wire::publisher(session, env.key(topic), delivery)
                 .wait()
                 .map_err(|e| SimError::Zenoh(e.to_string()))
         };
         // Viewers read a copy of what the controller reads whole.
         let watched = |topic: Topic, delivery: Delivery| {
             Ok::<_, SimError>(WatchedPublisher::new(
-                &session,
+                session,
                 &env,
                 topic,
                 declare(topic, delivery)?,
@@ -688,7 +688,7 @@ impl Worker {
         };
         let publishers = Publishers {
             obs: declare(Topic::Obs, Delivery::Every)?,
-            preview: PreviewPublisher::declare(&session, &env)
+            preview: PreviewPublisher::declare(session, &env)
                 .map_err(|e| SimError::Zenoh(e.to_string()))?,
             odom: watched(Topic::Odom, Delivery::Every)?,
             pose: watched(Topic::Pose, Delivery::Every)?,
@@ -696,13 +696,18 @@ impl Worker {
             fault: declare(Topic::Fault, Delivery::Every)?,
             estop_ack: declare(Topic::EStopAck, Delivery::Every)?,
         };
-        let overhead = env
-            .overhead_key(OVERHEAD_CAMERA)
-            .ok()
-            .map(|key| OverheadStream::new(twin.scene(), key, OverheadStream::DEFAULT_HZ));
+        // For spectators only: one that cannot be declared is logged and
+        // left out, and the twin works on.
+        let overhead = env.overhead_key(OVERHEAD_CAMERA).ok().and_then(|key| {
+            let copy = ViewerCopy::declare_on(session, key)
+                .inspect_err(|e| tracing::warn!("no overhead view: {e}"))
+                .ok()?;
+            let stream =
+                OverheadStream::new(twin.scene(), copy.watch(), OverheadStream::DEFAULT_HZ);
+            Some((stream, copy))
+        });
         Ok(Self {
             overhead,
-            session,
             env,
             twin,
             estops: EStopState::default(),
@@ -936,11 +941,13 @@ impl Worker {
         reply_blocking(query, result.as_ref().map_err(Clone::clone));
     }
 
-    /// The overhead view, rate-limited (spectators only).
+    /// The overhead view, rate-limited, while spectators watch.
     fn publish_overhead(&mut self) {
-        if let Some(stream) = &mut self.overhead {
+        if let Some((stream, copy)) = &mut self.overhead {
             let pose = self.twin.ground_truth();
-            stream.maybe_publish(&self.session, self.twin.scene(), &pose);
+            if let Some(bytes) = stream.maybe_encode(self.twin.scene(), &pose) {
+                copy.put(bytes.into(), None);
+            }
         }
     }
 

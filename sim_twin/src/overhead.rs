@@ -5,6 +5,7 @@
 
 use crate::physics::BodyPose;
 use crate::scene::{Scene, SurfaceKind};
+use offworld_runtime::preview::Watch;
 
 /// An overhead view's pixel grid over the enclosure (walls included).
 #[derive(Debug, Clone)]
@@ -122,12 +123,15 @@ impl OverheadCamera {
     }
 }
 
-/// The overhead camera streamed on an env's `overhead/<camera>` key as
-/// `sensor_msgs/Image` rgb8, rate-limited by the wall clock (spectators do
-/// not need more, and the step path must not pay for it).
+/// The overhead camera's frames for an env's `overhead/<camera>` key, as
+/// `sensor_msgs/Image` rgb8: rate-limited by the wall clock (spectators do
+/// not need more, and the step path must not pay for it), and rendered only
+/// while someone watches. They are put through the key's
+/// [`ViewerCopy`](offworld_runtime::preview::ViewerCopy), whose
+/// [`Watch`] this follows.
 pub struct OverheadStream {
     camera: OverheadCamera,
-    key: String,
+    watch: Watch,
     period: std::time::Duration,
     last: Option<std::time::Instant>,
     image: offworld_runtime::msg::Image,
@@ -137,8 +141,8 @@ impl OverheadStream {
     /// Default frame rate, Hz.
     pub const DEFAULT_HZ: f64 = 2.0;
 
-    /// A stream on `key` at most `hz` frames per second.
-    pub fn new(scene: &Scene, key: String, hz: f64) -> Self {
+    /// At most `hz` frames per second, while `watch` says someone watches.
+    pub fn new(scene: &Scene, watch: Watch, hz: f64) -> Self {
         let camera = OverheadCamera::new(scene, 320);
         let mut image = offworld_runtime::msg::Image::packed(
             offworld_runtime::msg::Header::new(offworld_runtime::msg::Time::default(), "overhead"),
@@ -152,16 +156,20 @@ impl OverheadStream {
             .reserve((camera.width() * camera.height() * 3) as usize);
         Self {
             camera,
-            key,
+            watch,
             period: std::time::Duration::from_secs_f64(1.0 / hz.clamp(0.01, 60.0)),
             last: None,
             image,
         }
     }
 
-    /// A frame (CDR `sensor_msgs/Image`) if the last one is older than
-    /// the period.
+    /// A frame (CDR `sensor_msgs/Image`) if someone watches and the last
+    /// one is older than the period. Unwatched, it costs one atomic load:
+    /// no render, no encoding.
     pub fn maybe_encode(&mut self, scene: &Scene, robot: &BodyPose) -> Option<Vec<u8>> {
+        if !self.watch.watched() {
+            return None;
+        }
         let now = std::time::Instant::now();
         if self
             .last
@@ -175,22 +183,6 @@ impl OverheadStream {
         offworld_runtime::codec::encode(&self.image)
             .map_err(|e| tracing::error!("cannot encode the overhead view: {e}"))
             .ok()
-    }
-
-    /// Publishes a frame on `session` if the last one is older than the
-    /// period.
-    pub fn maybe_publish(&mut self, session: &zenoh::Session, scene: &Scene, robot: &BodyPose) {
-        use zenoh::Wait;
-        let Some(bytes) = self.maybe_encode(scene, robot) else {
-            return;
-        };
-        let put = session
-            .put(&self.key, bytes)
-            .encoding(zenoh::bytes::Encoding::APPLICATION_CDR)
-            .wait();
-        if let Err(e) = put {
-            tracing::warn!("overhead put failed: {e}");
-        }
     }
 }
 

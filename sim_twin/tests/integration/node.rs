@@ -7,9 +7,11 @@ use std::time::Duration;
 use offworld_runtime::codec;
 use offworld_runtime::keys::global_estop_key;
 use offworld_runtime::msg::*;
+use offworld_runtime::preview::ViewerCopy;
 use offworld_runtime::session::loopback_pair;
 use offworld_runtime::wire::{self, RequestError};
 use offworld_runtime::{Component, EnvId, ErrorCode, Topic};
+use offworld_sim_twin::overhead::OverheadStream;
 use offworld_sim_twin::{Clock, NodeOptions, PlanarPose, SimTwin, Stepping, TwinConfig, TwinNode};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
@@ -205,16 +207,81 @@ async fn an_overhead_view_is_streamed_for_spectators() {
         .await
         .expect("subscriber");
     client.connect().await;
-    client.command(9, 0.10, 0.0, 0.6).await;
-    client.answer(9).await.expect("answer");
-    let sample = tokio::time::timeout(Duration::from_secs(5), overhead.recv_async())
-        .await
-        .expect("an overhead frame")
-        .expect("sample");
+    // The twin renders the view only once it knows of a spectator (Zenoh's
+    // matching status, a moment after subscribing): step until one comes.
+    let mut sample = None;
+    for seq in 9..59 {
+        client.command(seq, 0.10, 0.0, 0.1).await;
+        client.answer(seq).await.expect("answer");
+        if let Ok(Ok(s)) =
+            tokio::time::timeout(Duration::from_millis(100), overhead.recv_async()).await
+        {
+            sample = Some(s);
+            break;
+        }
+    }
+    let sample = sample.expect("an overhead frame within 50 steps");
     let image: Image = codec::decode_payload(sample.payload()).expect("image");
     assert_eq!(image.validate(), Ok(PixelEncoding::Rgb8));
     assert_eq!(image.width, 320);
     assert_eq!(image.header.frame_id, "overhead");
+}
+
+/// Nobody watching, the overhead view costs nothing: no frame is rendered
+/// or encoded. A spectator's subscription starts it; its end stops it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_overhead_view_is_rendered_only_while_watched() {
+    let (server, client) = loopback_pair().await.expect("loopback sessions");
+    let key = EnvId::sim("overhead-test")
+        .expect("env")
+        .overhead_key("top")
+        .expect("key");
+    let copy = ViewerCopy::declare_on(&server, key.clone()).expect("viewers' stream");
+    let twin = SimTwin::new(TwinConfig::builtin("monolith").expect("world")).expect("twin");
+    // A high rate: the period never holds a frame back here.
+    let mut stream = OverheadStream::new(twin.scene(), copy.watch(), 60.0);
+    let robot = twin.ground_truth();
+    let watched_becomes = |want: bool| {
+        let watch = copy.watch();
+        async move {
+            for _ in 0..500 {
+                if watch.watched() == want {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+            panic!("watched never became {want}");
+        }
+    };
+
+    assert!(!copy.watched());
+    assert_eq!(stream.maybe_encode(twin.scene(), &robot), None, "unwatched");
+
+    let spectator = client.declare_subscriber(&key).await.expect("subscriber");
+    watched_becomes(true).await;
+    let bytes = stream
+        .maybe_encode(twin.scene(), &robot)
+        .expect("a frame while watched");
+    assert!(copy.put(bytes.clone().into(), None));
+    let sample = tokio::time::timeout(Duration::from_secs(5), spectator.recv_async())
+        .await
+        .expect("the frame within 5 s")
+        .expect("sample");
+    assert_eq!(sample.payload().to_bytes().as_ref(), bytes.as_slice());
+    let image: Image = codec::decode_payload(sample.payload()).expect("image");
+    assert_eq!(
+        (image.width, image.header.frame_id.as_str()),
+        (320, "overhead")
+    );
+
+    spectator.undeclare().await.expect("undeclare");
+    watched_becomes(false).await;
+    tokio::time::sleep(Duration::from_millis(20)).await; // a period later
+    assert_eq!(
+        stream.maybe_encode(twin.scene(), &robot),
+        None,
+        "unwatched again"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
