@@ -25,6 +25,10 @@
 //! frozen live monitor held every step of its env through the router for
 //! the 5 s Zenoh waits before closing a blocked link.
 //!
+//! The overhead views (`overhead/<camera>`) are streams for viewers only,
+//! delivered alike ([`ViewerCopy::declare_on`]); the sim twin and the
+//! emulated enclosure render theirs only while watched ([`Watch`]).
+//!
 //! A congested link to a viewer costs the publisher Zenoh's drop patience
 //! (`session::PATIENT_DROP_US`) once; until that link's queue drains, the
 //! next previews to it are dropped at once (Zenoh marks the queue
@@ -50,7 +54,7 @@ use crate::wire::{self, Delivery, RequestError};
 pub const PREVIEW_PERIOD: Duration = Duration::from_millis(20);
 
 /// The priority of every viewers' copy (the preview, `preview_cmd`,
-/// `preview_pose`, `preview_odom`): below Zenoh's default (`Data`), where
+/// `preview_pose`, `preview_odom`) and of the overhead views: below Zenoh's default (`Data`), where
 /// `obs`, `odom`, faults and e-stop acknowledgements travel: a link queues
 /// each priority apart and sends the higher first.
 pub const PREVIEW_PRIORITY: Priority = Priority::DataLow;
@@ -86,8 +90,10 @@ impl Pacer {
     }
 }
 
-/// The viewers' copy of one of an env's topics ([`Topic::viewers_copy`]):
-/// `Latest` at [`PREVIEW_PRIORITY`], put only while a subscriber matches.
+/// The viewers' copy of one of an env's topics ([`Topic::viewers_copy`]),
+/// or a stream for viewers only (an overhead camera's,
+/// [`ViewerCopy::declare_on`]): `Latest` at [`PREVIEW_PRIORITY`], put only
+/// while a subscriber matches.
 pub struct ViewerCopy {
     publisher: Publisher<'static>,
     /// Whether a subscriber matches, kept by Zenoh's matching listener

@@ -633,6 +633,10 @@ struct ActiveMotion {
 
 /// The simulation thread's state.
 struct Worker {
+    /// Held, not used: Zenoh's publishers and subscribers hold their
+    /// session weakly, and the node serves until dropped whatever its
+    /// caller does with its own handle.
+    _session: Session,
     env: EnvId,
     twin: SimTwin,
     /// The site and env e-stop latches in force.
@@ -708,6 +712,7 @@ impl Worker {
         });
         Ok(Self {
             overhead,
+            _session: session.clone(),
             env,
             twin,
             estops: EStopState::default(),
