@@ -394,7 +394,7 @@ impl Hardware {
             if tracker.due(now) {
                 self.stream_tracker(now);
             }
-            if let Some(stream) = &mut self.overhead {
+            if let Some(stream) = self.overhead.as_mut().filter(|s| s.watched()) {
                 let pose = self.twin.ground_truth();
                 if let Some(bytes) = stream.maybe_encode(self.twin.scene(), &pose) {
                     self.enqueue(Outgoing::Overhead(bytes));

@@ -948,7 +948,7 @@ impl Worker {
 
     /// The overhead view, rate-limited, while spectators watch.
     fn publish_overhead(&mut self) {
-        if let Some((stream, copy)) = &mut self.overhead {
+        if let Some((stream, copy)) = self.overhead.as_mut().filter(|(s, _)| s.watched()) {
             let pose = self.twin.ground_truth();
             if let Some(bytes) = stream.maybe_encode(self.twin.scene(), &pose) {
                 copy.put(bytes.into(), None);

@@ -163,11 +163,17 @@ impl OverheadStream {
         }
     }
 
+    /// Whether anyone watches now: a caller skips even the robot's pose
+    /// for [`OverheadStream::maybe_encode`] when nobody does.
+    pub fn watched(&self) -> bool {
+        self.watch.watched()
+    }
+
     /// A frame (CDR `sensor_msgs/Image`) if someone watches and the last
     /// one is older than the period. Unwatched, it costs one atomic load:
     /// no render, no encoding.
     pub fn maybe_encode(&mut self, scene: &Scene, robot: &BodyPose) -> Option<Vec<u8>> {
-        if !self.watch.watched() {
+        if !self.watched() {
             return None;
         }
         let now = std::time::Instant::now();
